@@ -1,0 +1,121 @@
+"""Command-line interface: ``inject profile``, ``inject simulate``, ...
+
+Each subcommand parses its options, calls the engine and prints or writes the result. Any
+:class:`~inject.errors.InjectError` becomes a one-line message on stderr and exit status 2
+(``--traceback`` shows the full stack instead).
+"""
+import argparse
+import json
+import sys
+
+from . import __version__
+from .errors import InjectError, InputError
+
+
+def _add_profile_parser(sub):
+    p = sub.add_parser("profile", help="streak profile of one satellite in one geometry",
+                       description="Geometry, photometry and cross-section of one streak.")
+    p.add_argument("--height", type=float, required=True, metavar="KM", help="orbit height, km")
+    p.add_argument("--zenith", type=float, default=0.0, metavar="DEG", help="zenith angle (0)")
+    p.add_argument("--phi", type=float, default=90.0, metavar="DEG",
+                   help="velocity rotation angle, paper eq. 8 (90: along constant azimuth)")
+    p.add_argument("--shape", choices=("box", "disk"), default="box")
+    p.add_argument("--length", type=float, metavar="M", help="box length along the motion (7.25)")
+    p.add_argument("--width", type=float, metavar="M", help="box width across the motion (2.65)")
+    p.add_argument("--radius", type=float, metavar="M", help="disk radius (1.0)")
+    p.add_argument("--seeing", type=float, default=0.67, metavar="ARCSEC",
+                   help="atmospheric FWHM (Kolmogorov unless --seeing-model), 0 for none")
+    p.add_argument("--seeing-model", choices=("kolmogorov", "vonkarman"), default="kolmogorov")
+    p.add_argument("--band", default="g", help="u g r i z y (g)")
+    p.add_argument("--mag", type=float, default=5.0,
+                   help="stationary AB magnitude at --ref-range, face-on (5.0)")
+    p.add_argument("--ref-range", type=float, default=550.0, metavar="KM")
+    p.add_argument("--pixel-scale", type=float, default=0.2, metavar="ARCSEC")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=run_profile)
+
+
+def _shape_from_args(args):
+    from .satellite import Box, Disk
+
+    if args.shape == "box":
+        if args.radius is not None:
+            raise InputError("--radius", args.radius, "only applies to --shape disk")
+        return Box(7.25 if args.length is None else args.length,
+                   2.65 if args.width is None else args.width)
+    if args.length is not None or args.width is not None:
+        raise InputError("--length/--width", (args.length, args.width),
+                         "only apply to --shape box")
+    return Disk(1.0 if args.radius is None else args.radius)
+
+
+def run_profile(args):
+    from .instrument import LSST
+    from .profile import Seeing
+    from .streak import StreakModel
+
+    model = StreakModel(
+        height_km=args.height, zenith_deg=args.zenith, phi_deg=args.phi,
+        shape=_shape_from_args(args), mag=args.mag, band_name=args.band,
+        seeing=Seeing(args.seeing, args.seeing_model),
+        telescope=LSST.with_pixel_scale(args.pixel_scale), ref_range_km=args.ref_range)
+    result = model.summary()
+    if args.json:
+        offsets, e_per_px = model.cross_section()
+        result["cross_section"] = {"offset_arcsec": offsets.round(6).tolist(),
+                                   "e_per_px": e_per_px.tolist()}
+        json.dump(result, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        _print_table(result)
+
+
+_TABLE_ROWS = (
+    ("height_km", "orbit height", "km", "{:.1f}"),
+    ("zenith_deg", "zenith angle", "deg", "{:.2f}"),
+    ("range_km", "range", "km", "{:.2f}"),
+    ("nadir_angle_deg", "nadir angle", "deg", "{:.3f}"),
+    ("orbital_speed_m_s", "orbital speed", "m/s", "{:.1f}"),
+    ("angular_speed_deg_s", "angular speed", "deg/s", "{:.4f}"),
+    ("t_eff_s", "effective pixel exposure", "ms", "{:.4f}", 1e3),
+    ("apparent_mag", "apparent magnitude", "AB mag", "{:.3f}"),
+    ("zeropoint_mag", "zero point (1 e-/s)", "AB mag", "{:.2f}"),
+    ("flux_per_px_e", "charge per pixel of track", "e-", "{:.1f}"),
+    ("fwhm_arcsec", "streak FWHM", "arcsec", "{:.3f}"),
+    ("peak_e_per_px", "peak surface brightness", "e-/px", "{:.1f}"),
+)
+
+
+def _print_table(result):
+    for key, label, unit, fmt, *scale in _TABLE_ROWS:
+        value = result[key] * (scale[0] if scale else 1)
+        print(f"{label:<28s} {fmt.format(value):>14s}  {unit}")
+
+
+def build_parser():
+    """The ``inject`` argument parser with every subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="inject", description="Realistic satellite streaks for Rubin/LSSTCam images.")
+    parser.add_argument("--version", action="version", version=f"inject {__version__}")
+    parser.add_argument("--traceback", action="store_true",
+                        help="show the full traceback on errors")
+    sub = parser.add_subparsers(dest="command", required=True)
+    _add_profile_parser(sub)
+    return parser
+
+
+def main(argv=None):
+    """Entry point of the ``inject`` console script; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        args.func(args)
+    except InjectError as err:
+        if args.traceback:
+            raise
+        print(f"inject {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("inject: interrupted", file=sys.stderr)
+        return 130
+    return 0

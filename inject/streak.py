@@ -1,0 +1,146 @@
+"""One satellite pass seen by one telescope: geometry + photometry + profile -> streak model.
+
+:class:`StreakModel` gathers everything a renderer, the truth table and ``inject profile``
+need: the stationary profile in the track frame, the charge per pixel of track length, the
+cross-section across the track, its FWHM and peak.
+"""
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from .geometry import Geometry
+from .instrument import LSST
+from .photometry import apparent_magnitude, band, electron_rate
+from .profile import Seeing, line_spread, stationary_profile
+from .satellite import Box
+from .validate import finite
+
+
+@dataclass(frozen=True)
+class StreakModel:
+    """A satellite of given shape and brightness on a circular orbit, seen at one zenith angle.
+
+    Parameters
+    ----------
+    height_km, zenith_deg, phi_deg : float
+        Orbit height, zenith angle of the line of sight, rotation angle of the velocity (paper
+        eq. 8; 90 = along constant azimuth).
+    shape : Shape
+        Satellite shape (body frame, metres).
+    mag : float
+        Stationary AB magnitude at ``ref_range_km``, viewed face-on.
+    band_name : str
+        LSST filter.
+    seeing : Seeing
+        Atmospheric PSF.
+    telescope : Telescope
+        Pupil and plate scale.
+    ref_range_km : float
+        Range at which ``mag`` is given.
+    """
+
+    height_km: float
+    zenith_deg: float = 0.0
+    phi_deg: float = 90.0
+    shape: object = Box(7.25, 2.65)
+    mag: float = 5.0
+    band_name: str = "g"
+    seeing: Seeing = Seeing()
+    telescope: object = LSST
+    ref_range_km: float = 550.0
+
+    def __post_init__(self):
+        finite("phi_deg", self.phi_deg)
+        band(self.band_name)
+        self.geometry  # validates height and zenith now rather than on first use
+
+    @cached_property
+    def geometry(self):
+        """The :class:`~inject.geometry.Geometry` of this pass."""
+        return Geometry.from_orbit(self.height_km, self.zenith_deg, self.phi_deg,
+                                   self.telescope.pixel_scale_arcsec)
+
+    @property
+    def pixel_scale(self):
+        return self.telescope.pixel_scale_arcsec
+
+    @cached_property
+    def apparent_mag(self):
+        """Magnitude at this range and nadir angle (``cos theta_N / r^2`` scaling)."""
+        g = self.geometry
+        return float(apparent_magnitude(self.mag, g.range_km, g.nadir_angle_deg,
+                                        self.ref_range_km))
+
+    @property
+    def zeropoint(self):
+        return band(self.band_name).zeropoint
+
+    @cached_property
+    def flux_per_px(self):
+        """Charge deposited per pixel of track length, e-: count rate times ``t_eff``."""
+        return float(electron_rate(self.apparent_mag, self.band_name)) * self.geometry.t_eff_s
+
+    @cached_property
+    def profile(self):
+        """Unit-flux stationary profile in the track frame (arcsec, motion along +x)."""
+        g = self.geometry
+        shape = self.shape.profile(g.range_km, g.nadir_angle_deg, g.phi_deg)
+        return stationary_profile(shape, g.range_km, self.seeing, self.telescope)
+
+    @cached_property
+    def lsf(self):
+        """Line-spread function across the track, without pixel response."""
+        return line_spread(self.profile, step_arcsec=self._fine_step)
+
+    @cached_property
+    def pixel_lsf(self):
+        """Line-spread function with the response of pixels aligned with the track."""
+        return line_spread(self.profile, self.pixel_scale, step_arcsec=self._fine_step)
+
+    @property
+    def _fine_step(self):
+        # Fine enough that linear interpolation of the half-maximum crossings is good to 1e-4.
+        return min(np.pi / self.profile.maxk / 2, self.pixel_scale / 40)
+
+    @property
+    def fwhm_arcsec(self):
+        """FWHM of the line-spread function (outermost half-maximum crossings)."""
+        return float(self.lsf.fwhm())
+
+    @property
+    def peak_e_per_px(self):
+        """Most charge one pixel can collect, over all sub-pixel offsets of the streak."""
+        return float(self.flux_per_px * self.pixel_lsf.peak() * self.pixel_scale)
+
+    def cross_section(self, half_width_arcsec=None):
+        """Offsets (arcsec) and the charge a pixel centred there collects (e-/px).
+
+        Restricted to ``|offset| <= half_width_arcsec`` (default: where the signal is above
+        1e-6 of its peak).
+        """
+        cs = self.pixel_lsf
+        e_per_px = self.flux_per_px * cs.lsf * self.pixel_scale
+        if half_width_arcsec is None:
+            significant = np.flatnonzero(e_per_px > 1e-6 * e_per_px.max())
+            half_width_arcsec = max(abs(cs.offset_arcsec[significant[[0, -1]]]))
+        keep = np.abs(cs.offset_arcsec) <= half_width_arcsec
+        return cs.offset_arcsec[keep], e_per_px[keep]
+
+    def summary(self):
+        """The scalar quantities of ``inject profile --json`` as a dict of plain floats."""
+        g = self.geometry
+        return {
+            "height_km": g.height_km, "zenith_deg": g.zenith_deg, "phi_deg": g.phi_deg,
+            "range_km": g.range_km, "nadir_angle_deg": g.nadir_angle_deg,
+            "orbital_speed_m_s": g.orbital_speed_m_s,
+            "tangential_speed_m_s": g.tangential_speed_m_s,
+            "angular_speed_rad_s": g.angular_speed_rad_s,
+            "angular_speed_deg_s": float(np.degrees(g.angular_speed_rad_s)),
+            "t_eff_s": g.t_eff_s, "band": self.band_name, "zeropoint_mag": self.zeropoint,
+            "apparent_mag": self.apparent_mag, "flux_per_px_e": self.flux_per_px,
+            "fwhm_arcsec": self.fwhm_arcsec,
+            "fwhm_pixelated_arcsec": float(self.pixel_lsf.fwhm()),
+            "peak_e_per_px": self.peak_e_per_px,
+            "pixel_scale_arcsec": self.pixel_scale,
+        }
