@@ -34,7 +34,7 @@ def test_profile_json_paper_case(capsys):
 def test_profile_disk_and_table(capsys):
     out = run_json(capsys, "--height", "550", "--shape", "disk", "--radius", "1")
     assert out["fwhm_arcsec"] == pytest.approx(3.106, abs=0.002)
-    assert main(["profile", "--height", "550"]) == 0
+    assert main(["profile", "--height", "550", "--zenith", "70"]) == 0
     table = capsys.readouterr().out
     fwhm_row = next(line for line in table.splitlines() if line.startswith("streak FWHM"))
     assert fwhm_row.split()[-2] == "1.463"
