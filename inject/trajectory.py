@@ -1,0 +1,86 @@
+"""Tracks on the pixel grid.
+
+Pixel (0, 0) is the centre of the first pixel; x runs along columns, y along rows (numpy index
+``[y, x]``); angles are degrees counter-clockwise from +x. An image of shape ``(ny, nx)`` covers
+``-0.5 <= x < nx - 0.5`` and ``-0.5 <= y < ny - 0.5``.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+from .validate import finite
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A straight track from ``(x0, y0)`` over ``length`` pixels at ``angle_deg``.
+
+    Use :meth:`crossing` for a track that crosses a whole image.
+    """
+
+    x0: float
+    y0: float
+    angle_deg: float
+    length: float
+
+    def __post_init__(self):
+        for name in ("x0", "y0", "angle_deg", "length"):
+            object.__setattr__(self, name, float(finite(name, getattr(self, name))))
+        if self.length < 0:
+            raise InputError("length", self.length, "must be >= 0")
+
+    @property
+    def direction(self):
+        """Unit vector ``(cos, sin)`` along the track."""
+        a = np.radians(self.angle_deg)
+        return np.cos(a), np.sin(a)
+
+    @property
+    def x1(self):
+        return self.x0 + self.length * self.direction[0]
+
+    @property
+    def y1(self):
+        return self.y0 + self.length * self.direction[1]
+
+    @classmethod
+    def crossing(cls, shape, x0, y0, angle_deg, margin=0.0):
+        """The line through ``(x0, y0)`` at ``angle_deg``, from edge to edge of an image.
+
+        ``margin`` (pixels) extends the track beyond the image edges on both sides, so that the
+        end caps of the swept profile fall outside the image. Returns None if the line misses it.
+        """
+        ny, nx = shape
+        chord = _clip_line(x0, y0, angle_deg, (-0.5 - margin, nx - 0.5 + margin),
+                           (-0.5 - margin, ny - 0.5 + margin))
+        if chord is None:
+            return None
+        t0, t1 = chord
+        c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+        return cls(x0 + t0 * c, y0 + t0 * s, angle_deg, t1 - t0)
+
+    def clip(self, shape):
+        """Part of the segment inside an image of ``shape = (ny, nx)`` as ``(t0, t1)`` distances
+        along the track from ``(x0, y0)``, or None if it misses the image."""
+        ny, nx = shape
+        chord = _clip_line(self.x0, self.y0, self.angle_deg, (-0.5, nx - 0.5), (-0.5, ny - 0.5))
+        if chord is None:
+            return None
+        t0, t1 = max(chord[0], 0.0), min(chord[1], self.length)
+        return (t0, t1) if t1 > t0 else None
+
+
+def _clip_line(x0, y0, angle_deg, xlim, ylim):
+    """Parameter interval ``(t0, t1)`` of the infinite line inside a rectangle (Liang-Barsky)."""
+    a = np.radians(angle_deg)
+    direction = (np.cos(a), np.sin(a))
+    lo, hi = -np.inf, np.inf
+    for origin, d, (vmin, vmax) in zip((x0, y0), direction, (xlim, ylim)):
+        if abs(d) < 1e-15:
+            if not vmin <= origin <= vmax:
+                return None
+            continue
+        ta, tb = sorted(((vmin - origin) / d, (vmax - origin) / d))
+        lo, hi = max(lo, ta), min(hi, tb)
+    return (lo, hi) if hi > lo else None
