@@ -92,6 +92,43 @@ def _print_table(result):
         print(f"{label:<28s} {fmt.format(value):>14s}  {unit}")
 
 
+def _add_simulate_parser(sub):
+    p = sub.add_parser("simulate", help="simulate one CCD with streaks from a scene file",
+                       description="Simulate one LSSTCam-like CCD from a YAML scene file.")
+    p.add_argument("scene", help="YAML scene file (see sample_fields/)")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.fits")
+    p.add_argument("--exr", metavar="OUT.exr", help="also write OpenEXR")
+    p.add_argument("--png", metavar="OUT.png", help="also write a quicklook PNG")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.add_argument("overrides", nargs="*", metavar="key.path=value",
+                   help="override scene keys, e.g. satellites.0.mag=6 detector.nx=512")
+    p.set_defaults(func=run_simulate)
+
+
+def run_simulate(args):
+    from .config import apply_overrides, load_scene_file, parse_scene
+    from .io.atomic import check_writable
+    from .io.fits import write_exposure
+    from .scene import simulate
+
+    scene = parse_scene(apply_overrides(load_scene_file(args.scene), args.overrides))
+    outputs = [args.output] + [path for path in (args.exr, args.png) if path]
+    for path in outputs:  # fail before the work, not after it
+        check_writable(path, args.overwrite)
+    result = simulate(scene)
+    write_exposure(args.output, scene, result, scene.detector.gain, overwrite=args.overwrite)
+    if args.exr:
+        from .io.exr import write_exr
+
+        write_exr(args.exr, scene, result, overwrite=args.overwrite)
+    if args.png:
+        from .io.quicklook import write_quicklook
+
+        write_quicklook(args.png, result, overwrite=args.overwrite)
+    for path in outputs:
+        print(f"wrote {path}", file=sys.stderr)
+
+
 def build_parser():
     """The ``inject`` argument parser with every subcommand."""
     parser = argparse.ArgumentParser(
@@ -101,13 +138,19 @@ def build_parser():
                         help="show the full traceback on errors")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_profile_parser(sub)
+    _add_simulate_parser(sub)
     return parser
 
 
 def main(argv=None):
     """Entry point of the ``inject`` console script; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    # Overrides (key.path=value) may come after options: argparse leaves those as extras.
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        if not hasattr(args, "overrides") or any("=" not in item for item in extra):
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        args.overrides = list(args.overrides) + extra
     try:
         args.func(args)
     except InjectError as err:

@@ -1,0 +1,193 @@
+"""Scene files: YAML parsed safely, dotted overrides, validation into a :class:`Scene`.
+
+Every problem is reported as a :class:`~inject.errors.SceneError` naming the key path
+(``satellites[0].height``) and the bad value.
+"""
+from dataclasses import dataclass, field
+
+import yaml
+
+from .detector import Detector, detector_from_spec
+from .errors import InjectError, SceneError
+from .photometry import band
+from .satellite import Shape, shape_from_dict
+from .validate import positive
+
+#: The embedded default scene: the paper's 550 km satellite on one full ITL CCD.
+DEFAULT_SCENE = {
+    "seed": 1, "band": "g", "exptime": 30.0, "seeing": 0.67, "zenith": 70.0,
+    "detector": {"type": "itl"}, "sky": True, "stars": True, "noise": True,
+    "satellites": [{
+        "height": 550.0, "phi": 90.0, "shape": {"type": "box", "length": 7.25, "width": 2.65},
+        "mag": 5.0, "ref_range": 550.0, "track": {"x0": 300.0, "y0": 200.0, "angle": 33.0}}],
+}
+
+_TOP_KEYS = {"seed", "band", "exptime", "seeing", "zenith", "detector", "sky", "stars", "noise",
+             "satellites", "pointing"}
+_SATELLITE_KEYS = {"height", "phi", "shape", "mag", "ref_range", "track"}
+_TRACK_KEYS = {"x0", "y0", "angle", "length"}
+
+
+@dataclass(frozen=True)
+class Track:
+    """Where a streak goes on the pixel grid; ``length=None`` crosses the whole image."""
+
+    x0: float
+    y0: float
+    angle: float
+    length: float | None = None
+
+
+@dataclass(frozen=True)
+class SatelliteSpec:
+    """One satellite of a scene."""
+
+    height: float
+    shape: Shape
+    mag: float
+    track: Track
+    phi: float = 90.0
+    ref_range: float = 550.0
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated single-CCD scene."""
+
+    seed: int
+    band: str
+    exptime: float
+    seeing: float
+    zenith: float
+    detector: Detector
+    sky: object
+    stars: object
+    noise: bool
+    satellites: tuple = field(default_factory=tuple)
+    pointing: dict | None = None
+    raw: dict = field(default_factory=dict, compare=False, repr=False)
+
+
+def load_scene_file(path):
+    """Read a YAML scene file into a mapping (``yaml.safe_load``: no code runs)."""
+    try:
+        with open(path, encoding="utf-8") as stream:
+            raw = yaml.safe_load(stream)
+    except OSError as err:
+        raise SceneError(f"{path}: cannot read scene file ({err.strerror})") from None
+    except yaml.YAMLError as err:
+        raise SceneError(f"{path}: not valid YAML ({err})") from None
+    if not isinstance(raw, dict):
+        raise SceneError(f"{path}: a scene file must be a mapping of keys to values")
+    return raw
+
+
+def apply_overrides(raw, overrides):
+    """Apply ``key.path=value`` strings to a scene mapping (values parsed as YAML scalars).
+
+    List items are addressed by index: ``satellites.0.mag=6``.
+    """
+    raw = yaml.safe_load(yaml.safe_dump(raw))  # a deep copy of plain data
+    for item in overrides:
+        path, sep, text = item.partition("=")
+        if not sep or not path:
+            raise SceneError(f"override {item!r}: expected key.path=value")
+        value = yaml.safe_load(text)
+        node, keys = raw, path.split(".")
+        for depth, key in enumerate(keys):
+            last = depth == len(keys) - 1
+            where = ".".join(keys[: depth + 1])
+            if isinstance(node, list):
+                if not key.isdigit() or int(key) >= len(node):
+                    raise SceneError(f"override {item!r}: no list item {where}")
+                key = int(key)
+            elif not isinstance(node, dict):
+                raise SceneError(f"override {item!r}: {'.'.join(keys[:depth])} is not a mapping")
+            if last:
+                node[key] = value
+            else:
+                if isinstance(node, dict) and not isinstance(node.get(key), (dict, list)):
+                    node[key] = {}
+                node = node[key]
+    return raw
+
+
+def _number(where, value, kind=float):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SceneError(f"{where}={value!r}: must be a number")
+    if value != value or value in (float("inf"), float("-inf")):
+        raise SceneError(f"{where}={value!r}: must be finite")
+    if kind is int and value != int(value):
+        raise SceneError(f"{where}={value!r}: must be an integer")
+    return kind(value)
+
+
+def _check_keys(where, mapping, allowed, required=()):
+    if not isinstance(mapping, dict):
+        raise SceneError(f"{where}={mapping!r}: must be a mapping")
+    unknown = set(mapping) - set(allowed)
+    if unknown:
+        raise SceneError(f"{where}: unknown keys {sorted(unknown)} (allowed: {sorted(allowed)})")
+    missing = set(required) - set(mapping)
+    if missing:
+        raise SceneError(f"{where}: missing keys {sorted(missing)}")
+
+
+def _satellite(i, spec):
+    where = f"satellites[{i}]"
+    _check_keys(where, spec, _SATELLITE_KEYS, {"height", "shape", "mag", "track"})
+    track = spec["track"]
+    _check_keys(f"{where}.track", track, _TRACK_KEYS, {"x0", "y0", "angle"})
+    length = track.get("length")
+    try:
+        height = _number(f"{where}.height", spec["height"])
+        positive("height_km", height)
+        return SatelliteSpec(
+            height=height,
+            shape=shape_from_dict(spec["shape"]),
+            mag=_number(f"{where}.mag", spec["mag"]),
+            phi=_number(f"{where}.phi", spec.get("phi", 90.0)),
+            ref_range=_number(f"{where}.ref_range", spec.get("ref_range", 550.0)),
+            track=Track(*(_number(f"{where}.track.{k}", track[k]) for k in ("x0", "y0", "angle")),
+                        None if length is None else _number(f"{where}.track.length", length)))
+    except SceneError:
+        raise
+    except InjectError as err:
+        raise SceneError(f"{where}: {err}") from None
+
+
+def parse_scene(raw):
+    """Validate a scene mapping (defaults filled from :data:`DEFAULT_SCENE`)."""
+    _check_keys("scene", raw, _TOP_KEYS)
+    merged = {k: v for k, v in DEFAULT_SCENE.items() if k != "satellites"} | raw
+    try:
+        band(merged["band"])
+        detector = detector_from_spec(merged["detector"])
+    except InjectError as err:
+        raise SceneError(str(err)) from None
+    for flag in ("noise",):
+        if not isinstance(merged[flag], bool):
+            raise SceneError(f"{flag}={merged[flag]!r}: must be true or false")
+    for flag in ("sky", "stars"):
+        if not isinstance(merged[flag], (bool, dict)):
+            raise SceneError(f"{flag}={merged[flag]!r}: must be true, false or a mapping")
+    satellites = merged.get("satellites", [])
+    if not isinstance(satellites, list):
+        raise SceneError(f"satellites={satellites!r}: must be a list")
+    seed = _number("seed", merged["seed"], int)
+    if seed < 1:
+        raise SceneError(f"seed={seed}: must be >= 1 (0 means 'random' to GalSim)")
+    exptime = _number("exptime", merged["exptime"])
+    seeing = _number("seeing", merged["seeing"])
+    zenith = _number("zenith", merged["zenith"])
+    if not exptime > 0:
+        raise SceneError(f"exptime={exptime}: must be > 0")
+    if not 0 <= seeing < 30:
+        raise SceneError(f"seeing={seeing}: must be >= 0 arcsec and < 30")
+    if not 0 <= zenith < 90:
+        raise SceneError(f"zenith={zenith}: must be >= 0 and < 90")
+    return Scene(seed=seed, band=merged["band"], exptime=exptime, seeing=seeing, zenith=zenith,
+                 detector=detector, sky=merged["sky"], stars=merged["stars"],
+                 noise=merged["noise"],
+                 satellites=tuple(_satellite(i, s) for i, s in enumerate(satellites)),
+                 pointing=merged.get("pointing"), raw=raw)

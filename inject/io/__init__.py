@@ -1,0 +1,1 @@
+"""Readers and writers: FITS, OpenEXR, PNG quicklooks; every write is atomic."""
