@@ -131,7 +131,13 @@ class SweptProfile:
         support = _extent(self.lsf, tol / 2, budget.flux_tolerance) + p
         self._cap = _extent(along, tol / 2, 1.0) + p
         self._table_d = _extent(self.lsf, tol / 2, 1.0) + p
-        step, mismatch = self._build_cap_table()
+        # The marginal along the track bounds the cap only roughly (it is not the tail of
+        # h(t, d) at fixed d): widen the table until its ends match 0 and LSF(d).
+        for _ in range(6):
+            step, mismatch = self._build_cap_table()
+            if mismatch <= tol / 2:
+                break
+            self._cap *= 1.5
         self.plan = RenderPlan(
             support_px=support / p, cap_px=self._cap / p, table_step_px=step / p,
             lsf_step_px=lsf_step / p,
@@ -141,8 +147,8 @@ class SweptProfile:
     def _build_cap_table(self):
         """Tabulate ``C(t, d)`` for ``|t| <= cap``, ``|d| <= table_d`` (arcsec).
 
-        Returns the table step and the table's largest mismatch with the interior LSF at its
-        far end, relative to the peak: a direct measure of its error.
+        Returns the table step and the table's largest mismatch with 0 at its start and with
+        the interior LSF at its far end, relative to the peak: a direct measure of its error.
         """
         p = self.pixel_scale
         # Cubic-spline interpolation errs by ~ step^4 |f""""| / 384: sample on the scale of the
@@ -184,7 +190,8 @@ class SweptProfile:
         self._table = ndimage.spline_filter(table, order=3)
         self._t0, self._d0, self._table_step = t[keep_t][0], d[keep_d][0], step
         far = np.interp(d[keep_d], self.lsf.offset_arcsec, self.lsf.lsf)
-        return step, float(np.abs(table[:, -1] - far).max() / self._peak)
+        ends = max(np.abs(table[:, -1] - far).max(), np.abs(table[:, 0]).max())
+        return step, float(ends / self._peak)
 
     def _cumulative(self, t, d):
         """``C(t, d)`` in arcsec coordinates (vectorised)."""
