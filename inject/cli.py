@@ -12,9 +12,8 @@ from . import __version__
 from .errors import InjectError, InputError
 
 
-def _add_profile_parser(sub):
-    p = sub.add_parser("profile", help="streak profile of one satellite in one geometry",
-                       description="Geometry, photometry and cross-section of one streak.")
+def _add_satellite_options(p):
+    """Options describing one satellite and its geometry (shared by profile and add-streak)."""
     p.add_argument("--height", type=float, required=True, metavar="KM", help="orbit height, km")
     p.add_argument("--zenith", type=float, default=0.0, metavar="DEG", help="zenith angle (0)")
     p.add_argument("--phi", type=float, default=90.0, metavar="DEG",
@@ -31,8 +30,27 @@ def _add_profile_parser(sub):
                    help="stationary AB magnitude at --ref-range, face-on (5.0)")
     p.add_argument("--ref-range", type=float, default=550.0, metavar="KM")
     p.add_argument("--pixel-scale", type=float, default=0.2, metavar="ARCSEC")
+
+
+def _add_profile_parser(sub):
+    p = sub.add_parser("profile", help="streak profile of one satellite in one geometry",
+                       description="Geometry, photometry and cross-section of one streak.")
+    _add_satellite_options(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run_profile)
+
+
+def _model_from_args(args, pixel_scale=None):
+    from .instrument import LSST
+    from .profile import Seeing
+    from .streak import StreakModel
+
+    return StreakModel(
+        height_km=args.height, zenith_deg=args.zenith, phi_deg=args.phi,
+        shape=_shape_from_args(args), mag=args.mag, band_name=args.band,
+        seeing=Seeing(args.seeing, args.seeing_model),
+        telescope=LSST.with_pixel_scale(pixel_scale or args.pixel_scale),
+        ref_range_km=args.ref_range)
 
 
 def _shape_from_args(args):
@@ -50,15 +68,7 @@ def _shape_from_args(args):
 
 
 def run_profile(args):
-    from .instrument import LSST
-    from .profile import Seeing
-    from .streak import StreakModel
-
-    model = StreakModel(
-        height_km=args.height, zenith_deg=args.zenith, phi_deg=args.phi,
-        shape=_shape_from_args(args), mag=args.mag, band_name=args.band,
-        seeing=Seeing(args.seeing, args.seeing_model),
-        telescope=LSST.with_pixel_scale(args.pixel_scale), ref_range_km=args.ref_range)
+    model = _model_from_args(args)
     result = model.summary()
     if args.json:
         offsets, e_per_px = model.cross_section()
@@ -129,6 +139,75 @@ def run_simulate(args):
         print(f"wrote {path}", file=sys.stderr)
 
 
+def _add_add_streak_parser(sub):
+    p = sub.add_parser("add-streak", help="inject a streak into an existing FITS image",
+                       description="Inject one streak into a FITS image (any 2-D image HDU or an "
+                                   "LSST IMAGE/MASK/VARIANCE file). The input is never modified.")
+    p.add_argument("input", metavar="IN.fits")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.fits")
+    _add_satellite_options(p)
+    track = p.add_argument_group("track (pixels; pixel (0, 0) is the centre of the first pixel)")
+    track.add_argument("--x0", type=float, help="start x (or use --ra0/--dec0 with a WCS)")
+    track.add_argument("--y0", type=float, help="start y")
+    track.add_argument("--ra0", type=float, metavar="DEG", help="start RA (needs a WCS)")
+    track.add_argument("--dec0", type=float, metavar="DEG", help="start Dec (needs a WCS)")
+    track.add_argument("--angle", type=float, default=0.0, metavar="DEG",
+                       help="track angle, counter-clockwise from +x (0)")
+    track.add_argument("--track-length", type=float, metavar="PX",
+                       help="track length; omit to cross the whole image")
+    p.add_argument("--gain", type=float, help="e- per image unit (default: header GAIN, or 1 "
+                                              "if BUNIT is electrons)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the injected charge's noise")
+    p.add_argument("--no-noise", action="store_true", help="add the exact model, no Poisson noise")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing OUT.fits")
+    p.set_defaults(func=run_add_streak)
+
+
+def run_add_streak(args):
+    import os
+
+    import numpy as np
+
+    from .config import Track
+    from .addstreak import add_streaks
+    from .io.atomic import atomic_path, check_writable
+    from .io.reader import read_exposure
+
+    if os.path.exists(args.output) and os.path.samefile(args.input, args.output):
+        raise InputError("-o", args.output, "must differ from the input (it is never modified)")
+    check_writable(args.output, args.overwrite)
+    exposure = read_exposure(args.input)
+    wcs = exposure.wcs
+    pixel_scale = None
+    if wcs is not None:
+        from astropy.wcs.utils import proj_plane_pixel_scales
+
+        pixel_scale = float(np.mean(proj_plane_pixel_scales(wcs))) * 3600.0
+    if args.ra0 is not None or args.dec0 is not None:
+        if wcs is None:
+            raise InputError("--ra0/--dec0", (args.ra0, args.dec0), f"{args.input} has no WCS")
+        args.x0, args.y0 = (float(v) for v in wcs.world_to_pixel_values(args.ra0, args.dec0))
+    if args.x0 is None or args.y0 is None:
+        raise InputError("--x0/--y0", (args.x0, args.y0), "give a start point (or --ra0/--dec0)")
+    gain = args.gain
+    if gain is None:
+        unit = str(exposure.header_value("BUNIT") or "").lower()
+        gain = 1.0 if unit.startswith("electron") else exposure.header_value("GAIN")
+        if gain is None:
+            raise InputError("--gain", None, f"{args.input} has no GAIN header and BUNIT is "
+                                             f"not electrons: give --gain")
+    model = _model_from_args(args, pixel_scale)
+    track = Track(args.x0, args.y0, args.angle, args.track_length)
+    rng = np.random.default_rng(np.random.SeedSequence(args.seed))
+    _, truth = add_streaks(exposure, [model], [track], float(gain), rng, noise=not args.no_noise)
+    with atomic_path(args.output, args.overwrite) as tmp:
+        exposure.hdus.writeto(tmp, overwrite=True)
+    row = truth[0]
+    print(f"wrote {args.output}: streak from ({row['x0']:.1f}, {row['y0']:.1f}) to "
+          f"({row['x1']:.1f}, {row['y1']:.1f}), {row['charge_in_image_e']:.4g} e- injected",
+          file=sys.stderr)
+
+
 def build_parser():
     """The ``inject`` argument parser with every subcommand."""
     parser = argparse.ArgumentParser(
@@ -139,6 +218,7 @@ def build_parser():
     sub = parser.add_subparsers(dest="command", required=True)
     _add_profile_parser(sub)
     _add_simulate_parser(sub)
+    _add_add_streak_parser(sub)
     return parser
 
 

@@ -5,6 +5,8 @@ size keeps the sensor's electronics.
 """
 from dataclasses import dataclass, replace
 
+import numpy as np
+
 from .errors import InputError
 
 
@@ -73,3 +75,52 @@ def detector_from_spec(spec):
     if "nx" in spec or "ny" in spec:
         det = det.cutout(spec.get("nx", det.nx), spec.get("ny", det.ny))
     return det
+
+
+def bleed_saturation(image, full_well, midline=None):
+    """Spread charge above full well along columns, conserving it (in place).
+
+    Each run of saturated pixels in a column grows up and down, alternately, until the
+    column's capacity there holds its charge; the outermost pixels get the remainder.
+    Charge reaching the top or bottom edge is lost off the array, as in a real CCD. For e2v
+    sensors the channel stop between the two amplifier rows (``midline``, the first row of
+    the upper half) stops bleeding: a run never crosses it.
+
+    Returns
+    -------
+    ndarray of bool
+        Pixels at full well (the SAT mask).
+    """
+    ny = image.shape[0]
+    for x in np.flatnonzero((image > full_well).any(axis=0)):
+        column = image[:, x]
+        while True:
+            over = np.flatnonzero(column > full_well)
+            if len(over) == 0:
+                break
+            lo = hi = over[0]
+            floor, ceiling = 0, ny - 1
+            if midline is not None:
+                floor, ceiling = (0, midline - 1) if lo < midline else (midline, ny - 1)
+            charge = column[lo]
+            # Grow [lo, hi] until it can hold its charge at full well.
+            while charge > full_well * (hi - lo + 1):
+                # Alternate up and down; go the other way once a side is blocked.
+                grow_down = hi >= ceiling or ((hi - lo) % 2 == 1 and lo > floor)
+                if grow_down and lo > floor:
+                    lo -= 1
+                    charge += column[lo]
+                elif hi < ceiling:
+                    hi += 1
+                    charge += column[hi]
+                else:  # the run fills its whole half or column: the rest is lost
+                    break
+            n = hi - lo + 1
+            filled = min(charge, full_well * n)
+            # Full pixels in the middle, the remainder split between the two ends.
+            column[lo:hi + 1] = full_well
+            spare = full_well * n - filled
+            if spare > 0:
+                ends = [lo, hi] if n > 1 else [lo]
+                column[ends] -= spare / len(ends)
+    return image >= full_well

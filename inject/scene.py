@@ -63,37 +63,53 @@ def streak_models(scene):
 
 
 def render_streaks(scene, budget=Budget()):
-    """Noise-free streak charge (float64, e-) and one truth row per satellite."""
-    shape = scene.detector.shape
+    """Noise-free streak charge of a scene (float64, e-) and one truth row per satellite."""
+    return render_tracks(scene.detector.shape, streak_models(scene),
+                         [s.track for s in scene.satellites], budget)
+
+
+def render_tracks(shape, models, tracks, budget=Budget()):
+    """Render streak models along tracks into a new image of ``shape``.
+
+    Parameters
+    ----------
+    shape : tuple
+        ``(ny, nx)``.
+    models : list of StreakModel
+    tracks : list of Track
+        ``length=None`` crosses the whole image, with the end caps outside it.
+    budget : Budget
+
+    Returns
+    -------
+    image : ndarray
+        Streak charge, e-, float64.
+    truth : list of dict
+        One row per streak.
+    """
     model_image = np.zeros(shape)
     truth = []
-    for spec, model in zip(scene.satellites, streak_models(scene)):
-        swept = SweptProfile(model.profile, model.pixel_scale, spec.track.angle, budget)
-        track = spec.track
+    for model, track in zip(models, tracks):
+        swept = SweptProfile(model.profile, model.pixel_scale, track.angle, budget)
         if track.length is None:
-            # Cross the image with the end caps outside it.
             segment = Segment.crossing(shape, track.x0, track.y0, track.angle,
                                        margin=swept.plan.cap_px)
         else:
             segment = Segment(track.x0, track.y0, track.angle, track.length)
-        before = model_image.sum() if segment is not None else 0.0
+        charge = 0.0
         if segment is not None:
-            render_segment(model_image, swept, segment, model.flux_per_px)
-        charge = model_image.sum() - before
-        truth.append(_truth_row(scene, model, segment, swept, charge, track))
+            charge = render_segment(model_image, swept, segment, model.flux_per_px).charge_added
+        truth.append(_truth_row(shape, model, segment, swept, charge, track))
     return model_image, truth
 
 
-def _truth_row(scene, model, segment, swept, charge, track):
+def _truth_row(shape, model, segment, swept, charge, track):
     g = model.geometry
-    shape = scene.detector.shape
     flags = 0
-    if segment is None or segment.clip(shape) is None and charge == 0:
+    if charge == 0:
         flags |= FLAG_OFF_IMAGE
-    else:
-        expected = model.flux_per_px * segment.length
-        if charge < expected * (1 - 2 * swept.budget.flux_tolerance):
-            flags |= FLAG_CLIPPED
+    elif charge < model.flux_per_px * segment.length * (1 - 2 * swept.budget.flux_tolerance):
+        flags |= FLAG_CLIPPED
     if segment is None:
         x0, y0, x1, y1, length = track.x0, track.y0, track.x0, track.y0, 0.0
     else:
@@ -126,7 +142,7 @@ def simulate(scene, budget=Budget(), detector_index=0):
     expected = streaks + sky
     if scene.noise:
         gen = rng(scene.seed, "noise", detector_index)
-        image = gen.poisson(expected).astype(np.float64)
+        image = gen.poisson(np.clip(expected, 0, None)).astype(np.float64)
         image += gen.normal(0.0, det.read_noise, size=image.shape)
         variance = expected + det.read_noise ** 2
         noise_sigma = float(np.sqrt(sky + det.read_noise ** 2))
