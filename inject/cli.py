@@ -236,7 +236,8 @@ def main(argv=None):
     except InjectError as err:
         if args.traceback:
             raise
-        print(f"inject {args.command}: error: {err}", file=sys.stderr)
+        message = " ".join(str(err).split())  # one line, whatever the library said
+        print(f"inject {args.command}: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("inject: interrupted", file=sys.stderr)
