@@ -193,20 +193,26 @@ class SweptProfile:
         ends = max(np.abs(table[:, -1] - far).max(), np.abs(table[:, 0]).max())
         return step, float(ends / self._peak)
 
-    def _cumulative(self, t, d):
-        """``C(t, d)`` in arcsec coordinates (vectorised)."""
-        inner = np.interp(d, self.lsf.offset_arcsec, self.lsf.lsf)
-        out = np.where(t > self._cap, inner, 0.0)
-        near = (np.abs(t) <= self._cap)
-        in_table = near & (np.abs(d) <= self._table_d)
+    def _cap_cumulative(self, t, d, inner):
+        """``C(t, d)`` for ``|t| <= cap`` (arcsec), given ``inner = LSF(d)``."""
+        out = np.empty_like(t)
+        in_table = np.abs(d) <= self._table_d
         if in_table.any():
             coords = np.vstack(((d[in_table] - self._d0) / self._table_step,
                                 (t[in_table] - self._t0) / self._table_step))
             out[in_table] = ndimage.map_coordinates(self._table, coords, order=3,
                                                     prefilter=False, mode="nearest")
         # Far from the track the cap is below tol/2 of the peak: a separable model is enough.
-        tails = near & ~in_table
+        tails = ~in_table
         out[tails] = inner[tails] * np.interp(t[tails], self._along_t, self._along_cdf)
+        return out
+
+    def _cumulative(self, t, d, inner):
+        """``C(t, d)`` anywhere: 0 before the cap, ``LSF(d)`` after it."""
+        out = np.where(t > self._cap, inner, 0.0)
+        near = np.abs(t) <= self._cap
+        if near.any():
+            out[near] = self._cap_cumulative(t[near], d[near], inner[near])
         return out
 
     def pixel_values(self, t_px, d_px, length_px):
@@ -214,7 +220,16 @@ class SweptProfile:
         ``length_px`` starting at ``t = 0``."""
         p = self.pixel_scale
         t, d = t_px * p, d_px * p
-        return p * (self._cumulative(t, d) - self._cumulative(t - length_px * p, d))
+        inner = np.interp(d, self.lsf.offset_arcsec, self.lsf.lsf)
+        # Most pixels see the whole profile pass: C(t) = LSF(d) and C(t - L) = 0.
+        ends = (t <= self._cap) | (t >= length_px * p - self._cap)
+        values = inner.copy()
+        if ends.any():
+            te, de, ie = t[ends], d[ends], inner[ends]
+            values[ends] = (self._cumulative(te, de, ie)
+                            - self._cumulative(te - length_px * p, de, ie))
+        values *= p
+        return values
 
 
 def footprint(shape, segment, support_px, cap_px):
@@ -282,7 +297,8 @@ def render_segment(image, swept, segment, flux_per_px):
     plan = swept.plan
     y, x, t, d = footprint(image.shape, segment, plan.support_px, plan.cap_px)
     values = flux_per_px * swept.pixel_values(t, d, segment.length)
-    image[y, x] += values  # footprint pixels are unique, so no np.add.at needed
+    # Footprint pixels are unique, so a plain fancy-indexed add is safe (no np.add.at).
+    image.reshape(-1)[y * image.shape[1] + x] += values
     return RenderResult(len(values), float(values.sum()), plan)
 
 
