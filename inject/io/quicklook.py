@@ -1,0 +1,166 @@
+"""PNG quicklook of a simulated CCD: z-scaled image, colour bar, truth tracks."""
+import math
+
+import numpy as np
+
+from .atomic import atomic_path
+
+#: Longest side, in plotted (binned) pixels, of the quicklook image.
+MAX_SIDE = 1000
+
+
+def bin_factor(shape, max_side=MAX_SIDE):
+    """Smallest integer block size bringing both sides of ``shape`` to ``<= max_side``."""
+    return max(1, math.ceil(max(shape) / max_side))
+
+
+def block_mean(image, factor):
+    """Block-average ``image`` by ``factor`` x ``factor``.
+
+    Edge blocks that overhang the image average only the pixels they hold, and non-finite
+    pixels are ignored, so nothing is trimmed and no NaN spreads.
+
+    Returns
+    -------
+    ndarray
+        Shape ``(ceil(ny / factor), ceil(nx / factor))``; NaN where a block holds no finite
+        pixel.
+    """
+    image = np.asarray(image, dtype=np.float64)
+    if factor == 1:
+        return image.copy()
+    ny, nx = image.shape
+    by, bx = -(-ny // factor), -(-nx // factor)
+    good = np.isfinite(image)
+    padded = np.zeros((by * factor, bx * factor))
+    count = np.zeros_like(padded)
+    padded[:ny, :nx] = np.where(good, image, 0.0)
+    count[:ny, :nx] = good
+    sums = padded.reshape(by, factor, bx, factor).sum(axis=(1, 3))
+    counts = count.reshape(by, factor, bx, factor).sum(axis=(1, 3))
+    out = np.full(sums.shape, np.nan)
+    np.divide(sums, counts, out=out, where=counts > 0)
+    return out
+
+
+def _clip_to_box(x0, y0, x1, y1, xmin, xmax, ymin, ymax):
+    """Liang-Barsky: the part of a segment inside a box, or None."""
+    dx, dy = x1 - x0, y1 - y0
+    lo, hi = 0.0, 1.0
+    for p, q in ((-dx, x0 - xmin), (dx, xmax - x0), (-dy, y0 - ymin), (dy, ymax - y0)):
+        if p == 0:
+            if q < 0:
+                return None
+            continue
+        t = q / p
+        if p < 0:
+            lo = max(lo, t)
+        else:
+            hi = min(hi, t)
+    if lo > hi:
+        return None
+    return x0 + lo * dx, y0 + lo * dy, x0 + hi * dx, y0 + hi * dy
+
+
+def _zscale_limits(binned):
+    from astropy.visualization import ZScaleInterval
+
+    finite = binned[np.isfinite(binned)]
+    if finite.size == 0:
+        return 0.0, 1.0
+    vmin, vmax = ZScaleInterval().get_limits(finite)
+    if not vmax > vmin:  # a flat image: give the colour map a non-empty range
+        vmin, vmax = vmin - 0.5, vmin + 0.5
+    return float(vmin), float(vmax)
+
+
+def write_quicklook(path, result, overwrite=False, truth=True, title=None):
+    """Write a PNG quicklook of a simulated CCD, atomically.
+
+    The image is block-averaged to at most :data:`MAX_SIDE` pixels a side (stated in the
+    title), shown with a z-scale stretch, grey colour map and ``origin='lower'`` (as ds9
+    shows the FITS file), axes in unbinned pixels and a colour bar in electrons.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file; always PNG whatever its extension.
+    result : inject.scene.SceneResult
+        Only ``image`` and ``truth`` are used.
+    overwrite : bool
+        Replace an existing ``path``.
+    truth : bool
+        Draw each truth track as a thin dashed line from ``(x0, y0)`` to ``(x1, y1)``,
+        labelled with its index in the truth table.
+    title : str, optional
+        First title line; default ``"inject: simulated CCD"``.
+
+    Raises
+    ------
+    OutputError
+        ``path`` exists without ``overwrite`` or cannot be written.
+    """
+    # The object-oriented API with an explicit Agg canvas: no pyplot global state, no
+    # dependence on the user's default backend, safe in worker threads.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    image = np.asarray(result.image)
+    ny, nx = image.shape
+    factor = bin_factor(image.shape)
+    binned = block_mean(image, factor)
+    vmin, vmax = _zscale_limits(binned)
+
+    aspect = ny / nx
+    width_in = 8.0
+    fig = Figure(figsize=(width_in, min(max(width_in * aspect * 0.85 + 0.9, 3.0), 12.0)),
+                 dpi=125)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    by, bx = binned.shape
+    # Extent in unbinned pixel coordinates (pixel centres at integers), so the truth tracks
+    # and axis labels need no conversion; overhanging edge blocks are cut by the limits.
+    shown = ax.imshow(binned, origin="lower", cmap="gray", vmin=vmin, vmax=vmax,
+                      interpolation="nearest",
+                      extent=(-0.5, bx * factor - 0.5, -0.5, by * factor - 0.5))
+    ax.set_xlim(-0.5, nx - 0.5)
+    ax.set_ylim(-0.5, ny - 0.5)
+    ax.set_xlabel("x [pixel]")
+    ax.set_ylabel("y [pixel]")
+    fig.colorbar(shown, ax=ax, label="electrons", fraction=0.046, pad=0.03)
+
+    missed = []
+    rows = result.truth if truth else []
+    for index, row in enumerate(rows):
+        coords = [row.get(k) for k in ("x0", "y0", "x1", "y1")]
+        if any(c is None or not np.isfinite(c) for c in coords):
+            continue
+        x0, y0, x1, y1 = map(float, coords)
+        # Thin and translucent: the streak under the line must stay visible.
+        ax.plot([x0, x1], [y0, y1], linestyle="--", linewidth=0.7, color="tab:orange",
+                alpha=0.7)
+        inside = _clip_to_box(x0, y0, x1, y1, -0.5, nx - 0.5, -0.5, ny - 0.5)
+        if inside is None:
+            missed.append(str(index))
+            continue
+        # Label at the middle of the visible part (so it stays on the plot), pushed off the
+        # track along its normal (pixels are square on screen) so it does not hide the streak.
+        xm, ym = (inside[0] + inside[2]) / 2, (inside[1] + inside[3]) / 2
+        angle = math.atan2(y1 - y0, x1 - x0)
+        ax.annotate(str(index), (xm, ym), xytext=(-12 * math.sin(angle), 12 * math.cos(angle)),
+                    textcoords="offset points", ha="center", va="center",
+                    color="tab:orange", fontsize=9, fontweight="bold")
+    if missed:
+        ax.text(0.01, 0.01, f"off image: {', '.join(missed)}", transform=ax.transAxes,
+                color="tab:orange", fontsize=8, va="bottom")
+
+    binning = (f"binned {factor}x{factor} (block mean)" if factor > 1 else "unbinned")
+    lines = [title or "inject: simulated CCD",
+             f"{nx} x {ny} px, {binning}, z-scale [{vmin:.4g}, {vmax:.4g}] e-"]
+    if truth:
+        lines[-1] += f", {len(result.truth)} truth track(s) dashed"
+    ax.set_title("\n".join(lines), fontsize=10)
+    fig.tight_layout()
+
+    with atomic_path(str(path), overwrite) as tmp:
+        fig.savefig(tmp, format="png")
