@@ -131,6 +131,8 @@ class CrossSection:
         half = 0.5 * self.peak()
         above = np.flatnonzero(self.lsf >= half)
         lo, hi = above[0], above[-1]
+        if lo == 0 or hi == len(self.lsf) - 1:
+            raise ValueError("cross-section sampled too narrowly to reach half maximum")
         y, f = self.offset_arcsec, self.lsf
 
         def crossing(i, j):

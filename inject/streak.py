@@ -117,12 +117,12 @@ class StreakModel:
         """Offsets (arcsec) and the charge a pixel centred there collects (e-/px).
 
         Restricted to ``|offset| <= half_width_arcsec`` (default: where the signal is above
-        1e-6 of its peak).
+        1e-4 of its peak; Kolmogorov wings reach far below that).
         """
         cs = self.pixel_lsf
         e_per_px = self.flux_per_px * cs.lsf * self.pixel_scale
         if half_width_arcsec is None:
-            significant = np.flatnonzero(e_per_px > 1e-6 * e_per_px.max())
+            significant = np.flatnonzero(e_per_px > 1e-4 * e_per_px.max())
             half_width_arcsec = max(abs(cs.offset_arcsec[significant[[0, -1]]]))
         keep = np.abs(cs.offset_arcsec) <= half_width_arcsec
         return cs.offset_arcsec[keep], e_per_px[keep]

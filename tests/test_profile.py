@@ -114,7 +114,7 @@ def test_dip_at_centre_means_peak_is_off_centre():
                                    StreakModel(2000, 30, phi_deg=20, seeing=Seeing(1.2))])
 def test_cross_section_sums_to_flux_per_pixel(model):
     """Summing pixels across the track (spacing p) gives the charge per pixel of track."""
-    offsets, e = model.cross_section()
+    offsets, e = model.cross_section(half_width_arcsec=np.inf)
     p = model.pixel_scale
     for shift in (0.0, 0.37 * p):
         centres = np.arange(offsets[0] + shift, offsets[-1], p)
