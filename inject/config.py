@@ -23,7 +23,7 @@ DEFAULT_SCENE = {
 }
 
 _TOP_KEYS = {"seed", "band", "exptime", "seeing", "zenith", "detector", "sky", "stars", "noise",
-             "satellites", "pointing"}
+             "satellites", "pointing", "dark_current", "cosmic_rays", "units"}
 _SATELLITE_KEYS = {"height", "phi", "shape", "mag", "ref_range", "track"}
 _TRACK_KEYS = {"x0", "y0", "angle", "length"}
 
@@ -65,6 +65,9 @@ class Scene:
     noise: bool
     satellites: tuple = field(default_factory=tuple)
     pointing: dict | None = None
+    dark_current: float = 0.0
+    cosmic_rays: float = 0.0
+    units: str = "electron"
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
 
@@ -186,8 +189,16 @@ def parse_scene(raw):
         raise SceneError(f"seeing={seeing}: must be >= 0 arcsec and < 30")
     if not 0 <= zenith < 90:
         raise SceneError(f"zenith={zenith}: must be >= 0 and < 90")
+    rates = {}
+    for key in ("dark_current", "cosmic_rays"):
+        rates[key] = _number(key, merged.get(key, 0.0))
+        if rates[key] < 0:
+            raise SceneError(f"{key}={rates[key]}: must be >= 0 (per second)")
+    units = merged.get("units", "electron")
+    if units not in ("electron", "adu"):
+        raise SceneError(f"units={units!r}: choose electron or adu")
     return Scene(seed=seed, band=merged["band"], exptime=exptime, seeing=seeing, zenith=zenith,
                  detector=detector, sky=merged["sky"], stars=merged["stars"],
                  noise=merged["noise"],
                  satellites=tuple(_satellite(i, s) for i, s in enumerate(satellites)),
-                 pointing=merged.get("pointing"), raw=raw)
+                 pointing=merged.get("pointing"), units=units, raw=raw, **rates)

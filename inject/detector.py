@@ -28,6 +28,9 @@ class Detector:
         Median read noise, e-.
     full_well : float
         Full-well capacity, e-.
+    amp_gains, amp_read_noise : tuple of float, optional
+        Per-amplifier values (16, amplifier 0 at the origin, row-major over the 2 x 8 grid);
+        every amplifier takes the median value when not given.
     """
 
     kind: str
@@ -38,11 +41,46 @@ class Detector:
     gain: float
     read_noise: float
     full_well: float = 170_000.0
+    amp_gains: tuple | None = None
+    amp_read_noise: tuple | None = None
+
+    N_AMP_ROWS, N_AMP_COLS = 2, 8
+
+    def __post_init__(self):
+        for name in ("amp_gains", "amp_read_noise"):
+            values = getattr(self, name)
+            if values is None:
+                continue
+            values = tuple(float(v) for v in np.atleast_1d(values))
+            if len(values) != self.N_AMP_ROWS * self.N_AMP_COLS or not all(
+                    np.isfinite(v) and v > 0 for v in values):
+                raise InputError(f"detector.{name}", values, "needs 16 positive numbers")
+            object.__setattr__(self, name, values)
+        if not self.full_well > 0:
+            raise InputError("detector.full_well", self.full_well, "must be > 0")
 
     @property
     def shape(self):
         """``(ny, nx)``, as numpy arrays are indexed."""
         return (self.ny, self.nx)
+
+    def amp_index(self):
+        """Amplifier number of every pixel, ``(ny, nx)`` int array."""
+        rows = np.minimum(np.arange(self.ny) // self.amp_ny, self.N_AMP_ROWS - 1)
+        cols = np.minimum(np.arange(self.nx) // self.amp_nx, self.N_AMP_COLS - 1)
+        return rows[:, None] * self.N_AMP_COLS + cols[None, :]
+
+    def per_pixel(self, name):
+        """``gain`` or ``read_noise`` of every pixel's amplifier, ``(ny, nx)`` float array."""
+        values = getattr(self, f"amp_{'gains' if name == 'gain' else name}")
+        if values is None:
+            return np.full(self.shape, getattr(self, name))
+        return np.asarray(values)[self.amp_index()]
+
+    @property
+    def midline(self):
+        """First row of the upper amplifier half: e2v channel stops block bleeding across it."""
+        return self.amp_ny if self.kind == "e2v" else None
 
     def cutout(self, nx, ny):
         """The same sensor, cut to ``nx x ny`` pixels (amplifiers clipped to it)."""
@@ -65,7 +103,7 @@ def detector_from_spec(spec):
         spec = {"type": spec}
     if not isinstance(spec, dict):
         raise InputError("detector", spec, "must be itl, e2v or a mapping with a type")
-    unknown = set(spec) - {"type", "nx", "ny"}
+    unknown = set(spec) - {"type", "nx", "ny", "gains", "read_noise", "full_well"}
     if unknown:
         raise InputError("detector", spec, f"unknown keys {sorted(unknown)}")
     kind = spec.get("type", "itl")
@@ -74,7 +112,19 @@ def detector_from_spec(spec):
     det = DETECTORS[kind]
     if "nx" in spec or "ny" in spec:
         det = det.cutout(spec.get("nx", det.nx), spec.get("ny", det.ny))
-    return det
+    changes = {}
+    for key, field in (("gains", "amp_gains"), ("read_noise", "amp_read_noise")):
+        if key in spec:
+            value = spec[key]
+            changes[field] = tuple([value] * 16) if isinstance(value, (int, float)) else value
+    if "full_well" in spec:
+        changes["full_well"] = spec["full_well"]
+    try:
+        return replace(det, **changes) if changes else det
+    except (TypeError, ValueError) as err:
+        if isinstance(err, InputError):
+            raise
+        raise InputError("detector", spec, "gains, read_noise and full_well must be numbers") from None
 
 
 def bleed_saturation(image, full_well, midline=None):
@@ -124,3 +174,27 @@ def bleed_saturation(image, full_well, midline=None):
                 ends = [lo, hi] if n > 1 else [lo]
                 column[ends] -= spare / len(ends)
     return image >= full_well
+
+
+def add_cosmic_rays(image, n_expected, rng, charge_per_px=1500.0, mean_length_px=6.0):
+    """Add cosmic-ray tracks (in place) and return their mask.
+
+    A simple model for mask and detection tests, not a physical one: ``Poisson(n_expected)``
+    straight tracks at uniform positions and angles, exponential lengths, a log-normal
+    charge per pixel of track around ``charge_per_px``, deposited at quarter-pixel steps.
+    imSim uses ~0.2 per s per CCD.
+    """
+    ny, nx = image.shape
+    mask = np.zeros(image.shape, bool)
+    for _ in range(rng.poisson(n_expected)):
+        x0, y0 = rng.uniform(0, nx), rng.uniform(0, ny)
+        angle = rng.uniform(0, np.pi)
+        length = rng.exponential(mean_length_px) + 1.0
+        charge = charge_per_px * rng.lognormal(0.0, 0.5)
+        s = np.arange(0.0, length, 0.25)
+        x = np.rint(x0 + s * np.cos(angle)).astype(int)
+        y = np.rint(y0 + s * np.sin(angle)).astype(int)
+        inside = (x >= 0) & (x < nx) & (y >= 0) & (y < ny)
+        np.add.at(image, (y[inside], x[inside]), charge * 0.25)
+        mask[y[inside], x[inside]] = True
+    return mask

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .detector import add_cosmic_rays, bleed_saturation
 from .errors import SceneError
 from .instrument import LSST
 from .photometry import sky_per_pixel
@@ -125,42 +126,83 @@ def _truth_row(shape, model, segment, swept, charge, track):
     }
 
 
-def simulate(scene, budget=Budget(), detector_index=0):
+def sky_level(scene):
+    """Sky background in e-/px for the scene (0 when ``sky`` is false).
+
+    ``sky: true`` is the band's dark sky at zenith (SMTN-002); a mapping may give ``level``
+    (e-/px), ``mag`` (mag/arcsec^2) and ``airmass_scaling: true`` (brighter by the
+    plane-parallel airmass ``sec z``, as the sky glow comes from a longer path).
+    """
+    if scene.sky is False:
+        return 0.0
+    spec = scene.sky if isinstance(scene.sky, dict) else {}
+    unknown = set(spec) - {"level", "mag", "airmass_scaling"}
+    if unknown:
+        raise SceneError(f"sky: unknown keys {sorted(unknown)} (allowed: level, mag, "
+                         f"airmass_scaling)")
+    if "level" in spec:
+        level = spec["level"]
+        if isinstance(level, bool) or not isinstance(level, (int, float)) or not level >= 0:
+            raise SceneError(f"sky.level={level!r}: must be a number >= 0 (e-/px)")
+        return float(level)
+    level = sky_per_pixel(scene.band, scene.exptime, LSST.pixel_scale_arcsec, spec.get("mag"))
+    if spec.get("airmass_scaling", False):
+        level /= np.cos(np.radians(scene.zenith))
+    return float(level)
+
+
+def simulate(scene, budget=Budget(), detector_index=0, wcs=None):
     """Simulate one CCD of a scene.
+
+    The order follows the charge: streaks, sky, stars and dark current are expected charge;
+    Poisson noise draws the collected charge; saturation bleeds it along columns; cosmic rays
+    add to it; read noise and (for ``units: adu``) the amplifiers' gains come last.
 
     Returns
     -------
     SceneResult
     """
-    if scene.stars:
-        raise SceneError("stars: not available yet in this version; set stars: false")
     det = scene.detector
     streaks, truth = render_streaks(scene, budget)
-    sky = sky_per_pixel(scene.band, scene.exptime, LSST.pixel_scale_arcsec) if scene.sky else 0.0
-    if isinstance(scene.sky, dict) and "level" in scene.sky:
-        sky = float(scene.sky["level"])
+    sky = sky_level(scene)
     expected = streaks + sky
+    if scene.stars:
+        from .stars import add_star_field
+
+        add_star_field(expected, scene, rng(scene.seed, "stars", detector_index), wcs=wcs)
+    dark = scene.dark_current * scene.exptime
+    expected += dark
+    read_noise = det.per_pixel("read_noise")
+    mask = np.zeros(det.shape, dtype=np.int32)
     if scene.noise:
         gen = rng(scene.seed, "noise", detector_index)
+        # The model can dip a few 1e-6 of its peak below zero (interpolation): not a charge.
         image = gen.poisson(np.clip(expected, 0, None)).astype(np.float64)
-        image += gen.normal(0.0, det.read_noise, size=image.shape)
-        variance = expected + det.read_noise ** 2
-        noise_sigma = float(np.sqrt(sky + det.read_noise ** 2))
     else:
         image = expected.copy()
+    saturated = bleed_saturation(image, det.full_well, det.midline)
+    if scene.cosmic_rays > 0:
+        cr_rng = rng(scene.seed, "cosmic_rays", detector_index)
+        cosmic = add_cosmic_rays(image, scene.cosmic_rays * scene.exptime, cr_rng)
+        mask[cosmic] |= 1 << MASK_PLANES["CR"]
+    if scene.noise:
+        image += gen.normal(0.0, 1.0, size=image.shape) * read_noise
+        variance = np.clip(expected, 0, None) + read_noise ** 2
+        noise_sigma = float(np.sqrt(sky + dark + np.median(read_noise) ** 2))
+    else:
         variance = np.zeros_like(expected)
         noise_sigma = 0.0
-    mask = np.zeros(det.shape, dtype=np.int32)
     if noise_sigma > 0:
         threshold = STREAK_MASK_SIGMA * noise_sigma
     else:
         threshold = STREAK_MASK_FRACTION * max((row["peak_e_per_px"] for row in truth), default=0)
     mask[streaks > threshold] |= 1 << MASK_PLANES["STREAK"]
-    saturated = image >= det.full_well
-    if saturated.any():
-        mask[saturated] |= 1 << MASK_PLANES["SAT"]
+    mask[saturated] |= 1 << MASK_PLANES["SAT"]
     for row in truth:
         if row["peak_e_per_px"] + sky >= det.full_well:
             row["flags"] |= FLAG_SATURATED
+    if scene.units == "adu":
+        gain = det.per_pixel("gain")
+        image, variance = image / gain, variance / gain ** 2
     return SceneResult(image=image, mask=mask, variance=variance, streak_model=streaks,
                        truth=truth, sky_level=sky, noise_sigma=noise_sigma)

@@ -43,7 +43,7 @@ def truth_table(rows):
 def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False):
     """Write a simulated CCD to ``path`` atomically."""
     image_hdr = fits.Header()
-    image_hdr["BUNIT"] = ("electron", "pixel values in electrons")
+    image_hdr["BUNIT"] = (scene.units, "pixel values")
     image_hdr["GAIN"] = (gain, "[e-/ADU] detector gain")
     if wcs_header is not None:
         image_hdr.extend(wcs_header)
@@ -56,7 +56,7 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False):
         fits.ImageHDU(result.streak_model.astype(np.float32), name="STREAK_MODEL"),
         truth_table(result.truth),
     ])
-    hdus["VARIANCE"].header["BUNIT"] = "electron2"
+    hdus["VARIANCE"].header["BUNIT"] = f"{scene.units}2"
     hdus["STREAK_MODEL"].header["BUNIT"] = "electron"
     with atomic_path(path, overwrite) as tmp:
         hdus.writeto(tmp, overwrite=True)

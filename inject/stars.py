@@ -1,0 +1,593 @@
+"""Field stars: Bahcall & Soneira counts, random star fields, catalogs and fast PSF drawing.
+
+Star counts come from the analytic fit of Bahcall & Soneira (1980, ApJS 44, 73, appendix B,
+eq. B1) to their Galaxy model: cumulative counts ``N(<V)`` per deg^2 at galactic ``(l, b)``,
+quoted as good to ~15% for ``|b| >= 20 deg``. No download is needed.
+
+Stars are drawn with one shared, in-focus PSF, so they are never drawn one by one with GalSim:
+the pixel-convolved PSF is drawn once on an oversampled grid, which gives a stamp for every
+sub-pixel phase on a ``(N + 1) x (N + 1)`` grid; each star gets the bilinear interpolation of
+the four phases around its position, scaled by its flux, added into the image with clipping at
+the edges. Pixel ``(0, 0)`` is the centre of the first pixel (as in :mod:`inject.trajectory`),
+``x`` along columns and ``y`` along rows.
+"""
+import functools
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import galsim
+import numpy as np
+
+from .errors import FileFormatError, InputError
+from .photometry import band as _band
+from .profile import GSPARAMS
+from .validate import finite, positive
+
+# -------------------------------------------------------------------------------------------
+# Bahcall & Soneira (1980) appendix B, eq. B1: cumulative V counts per deg^2.
+# N(<m) = C1 10^(beta (m - m*)) / [1 + 10^(alpha (m - m*))]^delta
+#             / [sin b (1 - mu cot b cos l)]^(3 - 5 gamma)                 (disk)
+#       + C2 10^(eta (m - m+)) / [1 + 10^(kappa (m - m+))]^lambda
+#             / (1 - cos b cos l)^sigma                                    (spheroid)
+# with mu, gamma linear in m between V = 12 and 20 and sigma = 1.45 - 0.20 cos b cos l.
+
+#: Parameters of eq. B1 for the integral counts in V.
+BS80 = {"C1": 925.0, "alpha": -0.132, "beta": 0.035, "delta": 3.0, "mstar": 15.75,
+        "C2": 1050.0, "kappa": -0.180, "eta": 0.087, "lam": 2.5, "mdagger": 17.5}
+
+#: Lowest |b| (deg) where the fit is used: it is singular at the plane (sin b -> 0).
+MIN_LATITUDE_DEG = 20.0
+
+
+def cumulative_counts(v_mag, l_deg, b_deg):
+    """Stars per deg^2 brighter than ``v_mag`` (Bahcall & Soneira 1980, eq. B1).
+
+    Parameters
+    ----------
+    v_mag : float or array_like
+        Limiting V magnitude(s).
+    l_deg, b_deg : float or array_like
+        Galactic longitude and latitude, deg (broadcast against ``v_mag``). The fit holds for
+        ``|b| >= 20 deg`` and is symmetric in ``b``.
+
+    Returns
+    -------
+    ndarray or float
+        ``N(<V)`` per deg^2; e.g. 1440 at ``V = 20``, ``b = 90`` and 5190 at ``b = 30``,
+        ``l = 90``.
+
+    Raises
+    ------
+    InputError
+        If an input is not finite or ``|b| < 20 deg``.
+    """
+    m = finite("v_mag", v_mag)
+    l_rad = np.radians(finite("galactic_l", l_deg))
+    b_abs = np.abs(finite("galactic_b", b_deg))
+    if np.any(b_abs > 90):
+        raise InputError("galactic_b", b_deg, "must be in [-90, 90]")
+    if np.any(b_abs < MIN_LATITUDE_DEG):
+        raise InputError("galactic_b", b_deg,
+                         f"the Bahcall & Soneira fit needs |b| >= {MIN_LATITUDE_DEG:g} deg; "
+                         "give density_per_deg2 or a catalog instead")
+    b_rad = np.radians(b_abs)
+    p = BS80
+    # mu and gamma run linearly from their V = 12 to their V = 20 values, constant outside.
+    dm12 = np.clip(m - 12.0, 0.0, 8.0)
+    mu = 0.03 + 0.0075 * dm12
+    gamma = 0.36 - 0.04 * dm12
+    cos_l, sin_b, cos_b = np.cos(l_rad), np.sin(b_rad), np.cos(b_rad)
+    sigma = 1.45 - 0.20 * cos_b * cos_l
+    x1 = m - p["mstar"]
+    disk = (p["C1"] * 10.0 ** (p["beta"] * x1) / (1.0 + 10.0 ** (p["alpha"] * x1)) ** p["delta"]
+            / (sin_b - mu * cos_b * cos_l) ** (3.0 - 5.0 * gamma))
+    x2 = m - p["mdagger"]
+    spheroid = (p["C2"] * 10.0 ** (p["eta"] * x2) / (1.0 + 10.0 ** (p["kappa"] * x2)) ** p["lam"]
+                / (1.0 - cos_b * cos_l) ** sigma)
+    out = disk + spheroid
+    return float(out) if out.ndim == 0 else out
+
+
+@dataclass(frozen=True)
+class StarFieldSpec:
+    """What stars to put in a field.
+
+    Parameters
+    ----------
+    galactic_l, galactic_b : float
+        Galactic coordinates of the field, deg.
+    mag_limit : float
+        Faintest magnitude drawn.
+    mag_bright : float
+        Brightest magnitude drawn (brighter stars saturate an LSSTCam CCD in 15-30 s and are
+        left out).
+    density_per_deg2 : float, optional
+        Stars per deg^2 brighter than ``mag_limit``, replacing the model's ``N(<mag_limit)``:
+        the model curve at ``(l, b)`` is scaled by this factor, so the magnitude distribution
+        keeps its shape. Below ``|b| = 20 deg`` the shape of ``|b| = 20 deg`` is used.
+    catalog : str or os.PathLike, optional
+        A star list to use instead of random stars (see :func:`read_catalog`).
+    """
+
+    galactic_l: float = 90.0
+    galactic_b: float = 90.0
+    mag_limit: float = 24.0
+    mag_bright: float = 12.0
+    density_per_deg2: float | None = None
+    catalog: str | os.PathLike | None = None
+
+    def __post_init__(self):
+        finite("galactic_l", self.galactic_l)
+        b = float(finite("galactic_b", self.galactic_b))
+        if abs(b) > 90:
+            raise InputError("galactic_b", self.galactic_b, "must be in [-90, 90]")
+        finite("mag_limit", self.mag_limit)
+        finite("mag_bright", self.mag_bright)
+        if not self.mag_bright < self.mag_limit:
+            raise InputError("mag_bright", self.mag_bright,
+                             f"must be < mag_limit ({self.mag_limit})")
+        if self.density_per_deg2 is not None:
+            positive("density_per_deg2", self.density_per_deg2)
+        elif self.catalog is None and abs(b) < MIN_LATITUDE_DEG:
+            raise InputError("galactic_b", self.galactic_b,
+                             f"the Bahcall & Soneira fit needs |b| >= {MIN_LATITUDE_DEG:g} "
+                             "deg; give density_per_deg2 or a catalog instead")
+
+    def counts(self, mag):
+        """Stars per deg^2 brighter than ``mag`` in this field (model, or scaled model)."""
+        b = float(self.galactic_b)
+        if abs(b) < MIN_LATITUDE_DEG:  # only reached with a density override
+            b = float(np.copysign(MIN_LATITUDE_DEG, b))
+        n = cumulative_counts(mag, self.galactic_l, b)
+        if self.density_per_deg2 is not None:
+            n = n * (self.density_per_deg2
+                     / cumulative_counts(self.mag_limit, self.galactic_l, b))
+        return n
+
+
+def sample_stars(spec, area_deg2, band, rng):
+    """Random star magnitudes over ``area_deg2`` between ``spec.mag_bright`` and ``mag_limit``.
+
+    The number of stars is Poisson with mean ``area * (N(<mag_limit) - N(<mag_bright))`` and
+    the magnitudes follow ``dN/dm`` by inverse-transform sampling of the tabulated cumulative
+    counts (0.001 mag steps). The V magnitude of the model is used as the magnitude in
+    ``band``: there are no colour terms.
+
+    Parameters
+    ----------
+    spec : StarFieldSpec
+    area_deg2 : float
+        Sky area, deg^2.
+    band : str
+        LSST band name (checked; no colour terms are applied).
+    rng : numpy.random.Generator
+        E.g. ``inject.scene.rng(seed, "stars")``.
+
+    Returns
+    -------
+    ndarray
+        Magnitudes, float64, in random order.
+    """
+    _band(band)
+    area = float(positive("area_deg2", area_deg2))
+    grid = np.linspace(spec.mag_bright, spec.mag_limit,
+                       int(np.ceil((spec.mag_limit - spec.mag_bright) / 1e-3)) + 1)
+    cdf = spec.counts(grid)
+    cdf = cdf - cdf[0]
+    n = rng.poisson(area * cdf[-1])
+    # N(<m) increases strictly with m, so interpolating the inverse is well posed.
+    return np.interp(rng.uniform(0.0, cdf[-1], n), cdf, grid)
+
+
+def star_field(spec, shape, pixel_scale, band, rng, *, margin_px=0.0, wcs=None):
+    """Stars over an image: random ones from the counts, or those of ``spec.catalog``.
+
+    Random stars are uniform over the image plus ``margin_px`` on each side (stars just off
+    the edge still put light on it), with ``x`` in ``[-0.5 - margin, nx - 0.5 + margin)``.
+
+    Parameters
+    ----------
+    spec : StarFieldSpec
+    shape : tuple of int
+        ``(ny, nx)``.
+    pixel_scale : float
+        Arcsec per pixel.
+    band : str
+    rng : numpy.random.Generator
+    margin_px : float, optional
+    wcs : astropy.wcs.WCS, optional
+        Needed only for a catalog given in ra, dec.
+
+    Returns
+    -------
+    dict
+        ``x``, ``y`` (pixels, 0-based) and ``mag`` arrays of equal length.
+    """
+    if spec.catalog is not None:
+        return read_catalog(spec.catalog, wcs)
+    ny, nx = (int(v) for v in shape)
+    if ny <= 0 or nx <= 0:
+        raise InputError("shape", shape, "must be two positive integers (ny, nx)")
+    p = float(positive("pixel_scale", pixel_scale))
+    margin = float(finite("margin_px", margin_px))
+    if margin < 0:
+        raise InputError("margin_px", margin_px, "must be >= 0")
+    w, h = nx + 2 * margin, ny + 2 * margin
+    mag = sample_stars(spec, w * h * (p / 3600.0) ** 2, band, rng)
+    x = rng.uniform(-0.5 - margin, nx - 0.5 + margin, mag.size)
+    y = rng.uniform(-0.5 - margin, ny - 0.5 + margin, mag.size)
+    return {"x": x, "y": y, "mag": mag}
+
+
+# -------------------------------------------------------------------------------------------
+# Catalogs
+
+_FITS_SUFFIXES = (".fits", ".fit", ".fts", ".fits.gz", ".fit.gz", ".fts.gz")
+
+
+def read_catalog(path, wcs=None):
+    """Read a star list: columns ``x, y, mag`` (pixels) or ``ra, dec, mag`` (deg).
+
+    Column names are case-insensitive; if both are present, ``x, y`` win. Pixel coordinates
+    are 0-based with ``(0, 0)`` at the centre of the first pixel; ``ra, dec`` go through
+    ``wcs.world_to_pixel_values``, which uses the same convention.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A CSV file (header row with the column names) or a FITS binary table (the first
+        table HDU).
+    wcs : astropy.wcs.WCS, optional
+        Celestial WCS of the image; required for ``ra, dec``.
+
+    Returns
+    -------
+    dict
+        ``x``, ``y``, ``mag`` as float64 arrays.
+
+    Raises
+    ------
+    FileFormatError
+        If the file is missing or unreadable, lacks the columns, or has non-numeric or
+        non-finite values.
+    InputError
+        If the catalog is in ``ra, dec`` and no ``wcs`` is given.
+    """
+    from astropy.table import Table  # astropy.table is slow to import; only catalogs need it
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(f"star catalog {str(path)!r}: no such file")
+    is_fits = path.name.lower().endswith(_FITS_SUFFIXES) or _looks_like_fits(path)
+    kind = "FITS table" if is_fits else "CSV file"
+    try:
+        table = Table.read(path, format="fits" if is_fits else "ascii.csv")
+    except Exception as exc:  # astropy raises many kinds for malformed files
+        raise FileFormatError(f"star catalog {str(path)!r}: cannot read it as a {kind} "
+                              f"({type(exc).__name__}: {exc})") from None
+    names = {name.lower(): name for name in table.colnames}
+    if {"x", "y", "mag"} <= names.keys():
+        x = _column(table, names["x"], path)
+        y = _column(table, names["y"], path)
+    elif {"ra", "dec", "mag"} <= names.keys():
+        if wcs is None:
+            raise InputError("wcs", None, f"star catalog {str(path)!r} gives ra, dec: "
+                             "an image WCS is needed to place the stars")
+        if not hasattr(wcs, "world_to_pixel_values"):
+            raise InputError("wcs", wcs, "must be an astropy WCS")
+        ra = _column(table, names["ra"], path, unit="deg")
+        dec = _column(table, names["dec"], path, unit="deg")
+        celestial = wcs.celestial if getattr(wcs, "has_celestial", False) else wcs
+        x, y = (np.asarray(v, dtype=np.float64)
+                for v in celestial.world_to_pixel_values(ra, dec))
+    else:
+        raise FileFormatError(
+            f"star catalog {str(path)!r}: needs columns x, y, mag (pixels) or ra, dec, mag "
+            f"(deg); found {', '.join(table.colnames) or 'no columns'}")
+    mag = _column(table, names["mag"], path)
+    return {"x": x, "y": y, "mag": mag}
+
+
+def _looks_like_fits(path):
+    with open(path, "rb") as f:
+        return f.read(9) == b"SIMPLE  ="
+
+
+def _column(table, name, path, unit=None):
+    """A table column as finite float64 values (converted to ``unit`` if it has a unit)."""
+    col = table[name]
+    try:
+        if unit is not None and col.unit is not None:
+            values = col.quantity.to_value(unit)
+        else:
+            values = np.ma.filled(np.ma.asarray(col, dtype=np.float64), np.nan)
+    except Exception:  # strings, incompatible units
+        raise FileFormatError(f"star catalog {str(path)!r}: column {name!r} must be numeric"
+                              + (f" in {unit}" if unit else "")) from None
+    values = np.asarray(values, dtype=np.float64)
+    bad = np.flatnonzero(~np.isfinite(values))
+    if bad.size:
+        rows = ", ".join(str(i + 1) for i in bad[:5]) + (", ..." if bad.size > 5 else "")
+        raise FileFormatError(f"star catalog {str(path)!r}: column {name!r} has missing or "
+                              f"non-finite values in data row(s) {rows}")
+    return values
+
+
+# -------------------------------------------------------------------------------------------
+# Drawing
+
+#: Phase grid of the outer part of bright stars' stamps: the PSF is smooth there, so linear
+#: interpolation between half-pixel phases is exact to ~1e-4 of the local value.
+_OUTER_OVERSAMPLE = 2
+
+
+class PsfStamps:
+    """Pixel-convolved PSF stamps on a grid of sub-pixel phases, sized from the PSF.
+
+    Stamps are ``(2h + 1)^2`` pixels around ``floor(x), floor(y)``; the half size ``h`` is
+    the smallest for which the flux outside the stamp is below a tolerance for a star
+    anywhere in its pixel: ``faint_tolerance`` for the core stamps used by every star and
+    ``bright_tolerance`` for the larger stamps of bright stars (whose inner part is the core
+    stamp, outer part interpolated from half-pixel phases).
+
+    Parameters
+    ----------
+    psf : galsim.GSObject
+        The PSF in arcsec, centred at the origin; it is normalised to unit flux.
+    pixel_scale : float
+        Arcsec per pixel.
+    oversample : int
+        Phases per pixel ``N`` along each axis of the core stamps (``N + 1`` stamps per axis,
+        both ends included, so interpolation needs no wrap-around).
+    faint_tolerance, bright_tolerance : float
+        Largest fraction of a star's flux that may fall outside its stamp.
+    max_half_size : int
+        Cap on ``h``; if a tolerance cannot be met within it, the lost fraction is recorded
+        in :attr:`core_lost` / :attr:`bright_lost`.
+
+    Attributes
+    ----------
+    core_half, bright_half : int
+        Half sizes ``h`` of the core and bright stamps.
+    core_lost, bright_lost : float
+        Largest fraction of flux outside the stamp over sub-pixel positions.
+    core : ndarray
+        ``(N + 1, N + 1, 2 h + 1, 2 h + 1)``: ``core[j, i]`` is the stamp of a star at
+        ``(floor(x) + i / N, floor(y) + j / N)``.
+    """
+
+    def __init__(self, psf, pixel_scale, oversample=16, faint_tolerance=1e-3,
+                 bright_tolerance=1e-4, max_half_size=512):
+        self.pixel_scale = float(positive("pixel_scale", pixel_scale))
+        if int(oversample) != oversample or oversample < 1:
+            raise InputError("oversample", oversample, "must be an integer >= 1")
+        self.oversample = int(oversample)
+        positive("faint_tolerance", faint_tolerance)
+        positive("bright_tolerance", bright_tolerance)
+        if not isinstance(psf, galsim.GSObject):
+            raise InputError("psf", psf, "must be a GalSim profile (galsim.GSObject)")
+        if not psf.flux > 0:
+            raise InputError("psf", psf, "must have a positive flux")
+        # Stamps are drawn once, so draw them at least as accurately as the project's profiles:
+        # GalSim's default folding_threshold (5e-3) aliases that much flux into a stamp.
+        self.psf = psf.withFlux(1.0).withGSParams(
+            galsim.GSParams.combine([psf.gsparams, GSPARAMS]))
+        # The pixel response is part of every stamp; sampling psf x pixel at a star's offset
+        # is what drawImage(method="auto") does.
+        self._pixelised = galsim.Convolve(self.psf, galsim.Pixel(self.pixel_scale),
+                                          gsparams=self.psf.gsparams)
+        lost = self._lost_by_half_size(min(bright_tolerance, faint_tolerance), max_half_size)
+        self.core_half, self.core_lost = _half_size(lost, faint_tolerance)
+        self.bright_half, self.bright_lost = _half_size(lost, bright_tolerance)
+        self.bright_half = max(self.bright_half, self.core_half)
+        self.core = self._phase_stamps(self.core_half, self.oversample)
+        self.outer = self._phase_stamps(self.bright_half, _OUTER_OVERSAMPLE)
+        self.core_sums = self.core.sum(axis=(2, 3))
+
+    def _lost_by_half_size(self, tolerance, max_half):
+        """``lost[h]``: flux outside the centred ``(2h + 1)^2`` box, grown until < tolerance."""
+        half = min(max_half, max(32, self.psf.getGoodImageSize(self.pixel_scale)))
+        while True:
+            n = 2 * half + 1
+            image = self.psf.drawImage(nx=n, ny=n, scale=self.pixel_scale, method="auto",
+                                       dtype=np.float64).array
+            k = np.abs(np.arange(n) - half)
+            ring = np.maximum.outer(k, k)  # Chebyshev distance: the square box index
+            lost = 1.0 - np.cumsum(np.bincount(ring.ravel(), image.ravel(), minlength=half + 1))
+            if lost[-1] < tolerance or half >= max_half:
+                return lost
+            half = min(max_half, 2 * half)
+
+    def _phase_stamps(self, half, oversample):
+        """Stamps ``[j, i]`` of a star at ``(i / N, j / N)`` from one oversampled drawing."""
+        n_over = oversample * (2 * half + 2) + 1
+        over = self._pixelised.drawImage(nx=n_over, ny=n_over,
+                                         scale=self.pixel_scale / oversample,
+                                         method="no_pixel", dtype=np.float64).array
+        # no_pixel gives surface brightness x the fine pixel's area; a stamp pixel holds the
+        # fraction of flux in a whole pixel, i.e. surface brightness x p^2.
+        over *= oversample ** 2
+        # over[r, c] = (psf x pixel) at ((c - n_over//2) / N, (r - n_over//2) / N) pixels, and
+        # the stamp pixel k of phase i samples it at k - i / N.
+        base = n_over // 2 + oversample * np.arange(-half, half + 1)
+        size = 2 * half + 1
+        stamps = np.empty((oversample + 1, oversample + 1, size, size))
+        for j in range(oversample + 1):
+            rows = over[base - j]
+            for i in range(oversample + 1):
+                stamps[j, i] = rows[:, base - i]
+        return stamps
+
+
+def _half_size(lost, tolerance):
+    """Smallest ``h`` whose stamp keeps all but ``tolerance`` for any sub-pixel position.
+
+    A star at ``floor(x) + f``, ``0 <= f < 1``, is at least ``h - 1/2`` pixels from the
+    edges of its stamp, so the stamp holds the centred box of half size ``h - 1``.
+    """
+    ok = np.flatnonzero(lost[:-1] < tolerance)
+    h = int(ok[0]) + 1 if ok.size else len(lost) - 1
+    h = max(h, 2)
+    return h, float(max(lost[h - 1], 0.0))
+
+
+@functools.lru_cache(maxsize=4)
+def psf_stamps(psf, pixel_scale, oversample=16, faint_tolerance=1e-3, bright_tolerance=1e-4):
+    """Cached :class:`PsfStamps` (GalSim profiles are immutable and hashable)."""
+    return PsfStamps(psf, pixel_scale, oversample, faint_tolerance, bright_tolerance)
+
+
+def _interpolate(stamps, oversample, fx, fy):
+    """Bilinear interpolation between the four phases around fractional positions ``fx, fy``.
+
+    Returns ``(n, S, S)`` stamps; the interpolation weights sum to one.
+    """
+    px, py = fx * oversample, fy * oversample
+    i0 = np.minimum(px.astype(np.intp), oversample - 1)
+    j0 = np.minimum(py.astype(np.intp), oversample - 1)
+    t = (px - i0)[:, None, None]
+    u = (py - j0)[:, None, None]
+    low = stamps[j0, i0]
+    low *= 1.0 - t
+    low += t * stamps[j0, i0 + 1]
+    high = stamps[j0 + 1, i0]
+    high *= 1.0 - t
+    high += t * stamps[j0 + 1, i0 + 1]
+    low *= 1.0 - u
+    high *= u
+    low += high
+    return low
+
+
+def _interpolate_sums(sums, oversample, fx, fy):
+    """The same interpolation applied to the stamps' totals (exact: it is linear)."""
+    px, py = fx * oversample, fy * oversample
+    i0 = np.minimum(px.astype(np.intp), oversample - 1)
+    j0 = np.minimum(py.astype(np.intp), oversample - 1)
+    t, u = px - i0, py - j0
+    return ((1 - u) * ((1 - t) * sums[j0, i0] + t * sums[j0, i0 + 1])
+            + u * ((1 - t) * sums[j0 + 1, i0] + t * sums[j0 + 1, i0 + 1]))
+
+
+#: Stars per vectorised batch: small enough that a batch of stamps stays in cache.
+_BATCH = 16
+
+
+def draw_stars(image, x, y, fluxes_e, psf, pixel_scale, oversample=16, *,
+               faint_tolerance=1e-3, bright_tolerance=1e-4, bright_flux_e=1e5):
+    """Add point sources with a shared PSF to ``image`` (in place), without per-star GalSim.
+
+    Each star's stamp is the bilinear interpolation, in sub-pixel position, of the four
+    nearest pre-drawn phases (``oversample`` per pixel), times its flux, added over the part
+    of its stamp inside the image. Stars brighter than ``bright_flux_e`` get the larger
+    stamp of ``bright_tolerance``, the others the core stamp of ``faint_tolerance``.
+
+    Parameters
+    ----------
+    image : ndarray
+        2-D float array, ``(ny, nx)``, e-; modified in place. Sums are float64 (a float32
+        image gets a float64 buffer added once at the end).
+    x, y : array_like
+        Star positions, pixels (0-based, pixel centres at integers).
+    fluxes_e : array_like
+        Star fluxes, e- (>= 0).
+    psf : galsim.GSObject or PsfStamps
+        Unit-flux PSF in arcsec (e.g. ``galsim.Kolmogorov(fwhm=0.67)``), or stamps already
+        made; the stamps are cached per ``(psf, pixel_scale, oversample, tolerances)``.
+    pixel_scale : float
+        Arcsec per pixel.
+    oversample : int
+        Sub-pixel phases per pixel along each axis.
+    faint_tolerance, bright_tolerance : float
+        Largest fraction of flux outside the stamp of faint and bright stars.
+    bright_flux_e : float
+        Flux from which a star gets the bright stamp.
+
+    Returns
+    -------
+    ndarray
+        Charge of each star that landed in the image, e- (its flux less what fell outside
+        its stamp or off the image).
+    """
+    image = _check_image(image)
+    x, y, flux = _check_stars(x, y, fluxes_e)
+    stamps = psf if isinstance(psf, PsfStamps) else psf_stamps(
+        psf, float(pixel_scale), int(oversample), float(faint_tolerance),
+        float(bright_tolerance))
+    ny, nx = image.shape
+    target = image if image.dtype == np.float64 else np.zeros(image.shape)
+    drawn = np.zeros(flux.size)
+    ix = np.floor(x).astype(np.intp)
+    iy = np.floor(y).astype(np.intp)
+    fx, fy = x - ix, y - iy
+    bright = flux >= bright_flux_e
+    for is_bright, half in ((False, stamps.core_half), (True, stamps.bright_half)):
+        # Skip stars without flux or whose stamp misses the image before making stamps.
+        sel = np.flatnonzero((bright == is_bright) & (flux > 0)
+                             & (ix + half >= 0) & (ix - half < nx)
+                             & (iy + half >= 0) & (iy - half < ny))
+        for start in range(0, sel.size, _BATCH):
+            idx = sel[start:start + _BATCH]
+            if is_bright:
+                batch, totals = _bright_stamps(stamps, fx[idx], fy[idx]), None
+            else:
+                batch = _interpolate(stamps.core, stamps.oversample, fx[idx], fy[idx])
+                totals = _interpolate_sums(stamps.core_sums, stamps.oversample,
+                                           fx[idx], fy[idx]) * flux[idx]
+            batch *= flux[idx][:, None, None]
+            drawn[idx] = _add_batch(target, batch, ix[idx], iy[idx], half, totals)
+    if target is not image:
+        image += target
+    return drawn
+
+
+def _bright_stamps(stamps, fx, fy):
+    """Large stamps: half-pixel phases outside, the fine-phase core stamp inside."""
+    out = _interpolate(stamps.outer, _OUTER_OVERSAMPLE, fx, fy)
+    c = stamps.bright_half - stamps.core_half
+    out[:, c:out.shape[1] - c, c:out.shape[2] - c] = _interpolate(
+        stamps.core, stamps.oversample, fx, fy)
+    return out
+
+
+def _add_batch(image, batch, ix, iy, half, totals=None):
+    """Add stamps centred on pixels ``(ix, iy)``, clipped to the image; charge added each.
+
+    One slice addition per star: the rows of a stamp are contiguous in the image, which
+    beats a scatter with ``np.add.at`` over flattened indices ~3x (measured on 91^2 stamps).
+    ``totals`` (the stamps' sums, if known) saves summing the stamps of stars wholly inside.
+    """
+    ny, nx = image.shape
+    size = 2 * half + 1
+    x0, y0 = ix - half, iy - half
+    xs, ys = np.maximum(x0, 0), np.maximum(y0, 0)
+    xe, ye = np.minimum(x0 + size, nx), np.minimum(y0 + size, ny)
+    clipped = (xs != x0) | (ys != y0) | (xe != x0 + size) | (ye != y0 + size)
+    added = np.array(totals, dtype=np.float64) if totals is not None else np.empty(len(ix))
+    for k in range(len(ix)):
+        part = batch[k, ys[k] - y0[k]:ye[k] - y0[k], xs[k] - x0[k]:xe[k] - x0[k]]
+        image[ys[k]:ye[k], xs[k]:xe[k]] += part
+        if clipped[k] or totals is None:
+            added[k] = part.sum()
+    return added
+
+
+def _check_image(image):
+    if not isinstance(image, np.ndarray) or image.ndim != 2:
+        raise InputError("image", type(image).__name__, "must be a 2-D numpy array")
+    if not np.issubdtype(image.dtype, np.floating):
+        raise InputError("image", image.dtype, "must have a floating-point dtype")
+    return image
+
+
+def _check_stars(x, y, fluxes_e):
+    x = np.atleast_1d(finite("x", x)).astype(np.float64)
+    y = np.atleast_1d(finite("y", y)).astype(np.float64)
+    flux = np.atleast_1d(finite("fluxes_e", fluxes_e)).astype(np.float64)
+    if not (x.ndim == y.ndim == flux.ndim == 1 and x.shape == y.shape == flux.shape):
+        raise InputError("x, y, fluxes_e", (x.shape, y.shape, flux.shape),
+                         "must be 1-D arrays of the same length")
+    if np.any(flux < 0):
+        raise InputError("fluxes_e", fluxes_e, "must be >= 0")
+    return x, y, flux

@@ -1,0 +1,96 @@
+"""Scene statistics: noise against VARIANCE, reproducibility, saturation, units."""
+import numpy as np
+import pytest
+
+from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
+from inject.detector import ITL, bleed_saturation, detector_from_spec
+from inject.errors import InputError, SceneError
+from inject.photometry import sky_per_pixel
+from inject.scene import MASK_PLANES, simulate, sky_level
+
+BASE = ["detector.nx=300", "detector.ny=260", "stars=false", "satellites.0.track.x0=10",
+        "satellites.0.track.y0=40", "satellites.0.track.angle=20"]
+
+
+def scene(*overrides):
+    return parse_scene(apply_overrides(DEFAULT_SCENE, BASE + list(overrides)))
+
+
+def test_sky_noise_matches_variance():
+    res = simulate(scene("satellites=[]"))
+    sky = sky_per_pixel("g", 30.0)
+    assert res.image.mean() == pytest.approx(sky, rel=2e-3)
+    assert res.image.std() == pytest.approx(np.sqrt(res.variance.mean()), rel=0.02)
+    np.testing.assert_allclose(res.variance, sky + ITL.read_noise ** 2)
+
+
+def test_same_seed_bit_identical_other_seed_not():
+    a, b = simulate(scene()), simulate(scene())
+    np.testing.assert_array_equal(a.image, b.image)
+    c = simulate(scene("seed=2"))
+    assert not np.array_equal(a.image, c.image)
+    np.testing.assert_array_equal(a.streak_model, c.streak_model)  # the truth has no noise
+
+
+def test_streak_flux_recovered_within_poisson():
+    res = simulate(scene("satellites.0.mag=9"))
+    signal = (res.image - res.sky_level).sum()
+    expected = res.streak_model.sum()
+    sigma = np.sqrt(res.variance.sum())
+    assert abs(signal - expected) < 4 * sigma
+
+
+def test_saturating_streak_bleeds_and_conserves_charge():
+    sat = scene("satellites.0.mag=1", "noise=false", "sky=false",
+                "satellites.0.track.angle=0", "satellites.0.track.y0=130")
+    res = simulate(sat)
+    sat_bit = 1 << MASK_PLANES["SAT"]
+    assert (res.mask & sat_bit).any()
+    assert res.image.max() == pytest.approx(ITL.full_well)
+    columns = np.arange(60, 240)
+    # Charge moved along columns only: every column keeps its charge.
+    np.testing.assert_allclose(res.image[:, columns].sum(0), res.streak_model[:, columns].sum(0),
+                               rtol=1e-9)
+    assert res.truth[0]["flags"] & 4
+
+
+def test_bleed_respects_e2v_midline():
+    column = np.full((40, 1), 10.0)
+    column[18] = 6e5
+    total = column.sum()
+    bleed_saturation(column, 1e5, midline=20)
+    assert column.sum() == pytest.approx(total)
+    assert np.all(column[20:] == 10.0)  # nothing crossed into the upper half
+    assert np.count_nonzero(column[:20] >= 1e5) == 5
+
+
+def test_units_adu_divides_by_amp_gain():
+    e = simulate(scene("noise=false"))
+    adu = simulate(scene("noise=false", "units=adu"))
+    np.testing.assert_allclose(adu.image, e.image / ITL.gain)
+
+
+def test_per_amp_gains_and_cutout():
+    det = detector_from_spec({"type": "e2v", "gains": [1.0 + i / 10 for i in range(16)]})
+    gains = det.per_pixel("gain")
+    assert gains[0, 0] == 1.0 and gains[0, 4095] == pytest.approx(1.7)
+    assert gains[4003, 0] == pytest.approx(1.8) and det.midline == 2002
+    with pytest.raises(InputError):
+        detector_from_spec({"type": "itl", "gains": [1.0, 2.0]})
+
+
+def test_sky_options():
+    assert sky_level(scene("sky=false")) == 0
+    assert sky_level(scene("sky.level=123.5")) == 123.5
+    dark = sky_level(scene())
+    assert sky_level(scene("sky.airmass_scaling=true")) == pytest.approx(dark / np.cos(np.radians(70)))
+    assert sky_level(scene("sky.mag=21.25")) == pytest.approx(dark * 10 ** 0.4)
+    with pytest.raises(SceneError, match="unknown keys"):
+        sky_level(scene("sky.colour=blue"))
+
+
+def test_cosmic_rays_and_dark_current():
+    res = simulate(scene("cosmic_rays=2.0", "dark_current=0.5", "satellites=[]", "sky=false"))
+    cr = (res.mask & (1 << MASK_PLANES["CR"])) != 0
+    assert cr.any()
+    assert np.median(res.image[~cr]) == pytest.approx(15.0, abs=1.0)
