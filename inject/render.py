@@ -132,9 +132,10 @@ class SweptProfile:
         self._cap = _extent(along, tol / 2, 1.0) + p
         self._table_d = _extent(self.lsf, tol / 2, 1.0) + p
         # The marginal along the track bounds the cap only roughly (it is not the tail of
-        # h(t, d) at fixed d): widen the table until its ends match 0 and LSF(d).
+        # h(t, d) at fixed d): trim the table where its ends match 0 and LSF(d) within tol/2,
+        # and widen it if that was not far enough.
         for _ in range(6):
-            step, mismatch = self._build_cap_table()
+            step, mismatch = self._build_cap_table(tol / 2)
             if mismatch <= tol / 2:
                 break
             self._cap *= 1.5
@@ -144,8 +145,10 @@ class SweptProfile:
             predicted_error={"support": tol / 2, "lsf_interpolation": tol / 8,
                              "cap_tails": tol / 2, "cap_table": mismatch})
 
-    def _build_cap_table(self):
-        """Tabulate ``C(t, d)`` for ``|t| <= cap``, ``|d| <= table_d`` (arcsec).
+    def _build_cap_table(self, trim):
+        """Tabulate ``C(t, d)`` for ``|t| <= cap``, ``|d| <= table_d`` (arcsec), then trim the
+        cap to where ``C`` is within ``trim`` (relative to the peak) of 0 before it and of
+        ``LSF(d)`` after it.
 
         Returns the table step and the table's largest mismatch with 0 at its start and with
         the interior LSF at its far end, relative to the peak: a direct measure of its error.
@@ -154,9 +157,9 @@ class SweptProfile:
         # Cubic-spline interpolation errs by ~ step^4 |f""""| / 384: sample on the scale of the
         # finest feature GalSim keeps (pi / maxk), never coarser than p / 4.
         step = min(p / 4, max(np.pi / self.profile.maxk, p / 16))
-        # A period twice the table (GalSim samples k on a square grid): tails beyond it are
-        # below tol/2 of the peak.
-        n = fft.next_fast_len(int(2 * max(self._cap, self._table_d) / step) + 16)
+        # A period three times the table (GalSim samples k on a square grid), so the table
+        # stays clear of the tails wrapped around from the other end.
+        n = fft.next_fast_len(int(3 * max(self._cap, self._table_d) / step) + 16)
         n_t = n_d = n
         dk_t = dk_d = 2 * np.pi / (n * step)
         # The profile is real, so the half plane kt >= 0 holds its whole transform.
@@ -184,12 +187,19 @@ class SweptProfile:
         t = (np.arange(n_t) - n_t // 2) * step
         d = (np.arange(n_d) - n_d // 2) * step
         table = periodic - periodic[:, :1] + np.outer(lsf, (t + n_t * step / 2) / (n_t * step))
-        keep_t = np.abs(t) <= self._cap + 3 * step
         keep_d = np.abs(d) <= self._table_d + 3 * step
-        table = table[np.ix_(keep_d, keep_t)]
+        table = table[keep_d]
+        far = np.interp(d[keep_d], self.lsf.offset_arcsec, self.lsf.lsf)
+        # Largest |t| where C still differs from its limit by more than ``trim``.
+        off = np.where(t < 0, np.abs(table).max(axis=0),
+                       np.abs(table - far[:, None]).max(axis=0)) > trim * self._peak
+        inside = np.abs(t) <= self._cap
+        if off[inside].any():
+            self._cap = min(self._cap, float(np.abs(t[inside & off]).max()) + step)
+        keep_t = np.abs(t) <= self._cap + 3 * step
+        table = table[:, keep_t]
         self._table = ndimage.spline_filter(table, order=3)
         self._t0, self._d0, self._table_step = t[keep_t][0], d[keep_d][0], step
-        far = np.interp(d[keep_d], self.lsf.offset_arcsec, self.lsf.lsf)
         ends = max(np.abs(table[:, -1] - far).max(), np.abs(table[:, 0]).max())
         return step, float(ends / self._peak)
 
