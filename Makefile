@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install test slow demo figures clean
+.PHONY: install test slow demo figures bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -22,11 +22,17 @@ slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
 
 demo: $(STAMP)
-	$(BIN)/inject profile --height 550 --zenith 70 --length 7.25 --width 2.65 --mag 5 --band g
-	$(BIN)/inject profile --height 350 --zenith 70 --length 7.25 --width 2.65 --mag 5 --band g
+	@mkdir -p out
+	$(BIN)/inject simulate sample_fields/default.yaml -o out/default.fits --exr out/default.exr \
+		--png out/default.png --truth out/default_truth.csv --overwrite
+	@echo "outputs: out/default.fits (IMAGE MASK VARIANCE STREAK_MODEL TRUTH), out/default.exr,"
+	@echo "         out/default.png (quicklook), out/default_truth.csv"
 
 figures: $(STAMP)
 	$(BIN)/python scripts/paper_figures.py --out out/figures
+
+bench: $(STAMP)
+	$(BIN)/python scripts/bench_render.py --out out/bench
 
 clean:
 	rm -rf $(VENV) out build *.egg-info

@@ -109,6 +109,7 @@ def _add_simulate_parser(sub):
     p.add_argument("-o", "--output", required=True, metavar="OUT.fits")
     p.add_argument("--exr", metavar="OUT.exr", help="also write OpenEXR")
     p.add_argument("--png", metavar="OUT.png", help="also write a quicklook PNG")
+    p.add_argument("--truth", metavar="OUT.csv", help="also write the truth table as CSV")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.add_argument("overrides", nargs="*", metavar="key.path=value",
                    help="override scene keys, e.g. satellites.0.mag=6 detector.nx=512")
@@ -122,11 +123,18 @@ def run_simulate(args):
     from .scene import simulate
 
     scene = parse_scene(apply_overrides(load_scene_file(args.scene), args.overrides))
-    outputs = [args.output] + [path for path in (args.exr, args.png) if path]
+    outputs = [args.output] + [path for path in (args.exr, args.png, args.truth) if path]
     for path in outputs:  # fail before the work, not after it
         check_writable(path, args.overwrite)
-    result = simulate(scene)
-    write_exposure(args.output, scene, result, scene.detector.gain, overwrite=args.overwrite)
+    wcs = None
+    if scene.pointing is not None:
+        from .wcs import pointing_wcs
+
+        wcs = pointing_wcs(scene.pointing, scene.detector.shape, 0.2)
+    result = simulate(scene, wcs=wcs)
+    write_exposure(args.output, scene, result, scene.detector.gain,
+                   wcs_header=None if wcs is None else wcs.to_header(relax=True),
+                   overwrite=args.overwrite)
     if args.exr:
         from .io.exr import write_exr
 
@@ -135,6 +143,10 @@ def run_simulate(args):
         from .io.quicklook import write_quicklook
 
         write_quicklook(args.png, result, overwrite=args.overwrite)
+    if args.truth:
+        from .io.fits import write_truth_csv
+
+        write_truth_csv(args.truth, result.truth, overwrite=args.overwrite)
     for path in outputs:
         print(f"wrote {path}", file=sys.stderr)
 

@@ -5,11 +5,11 @@ eq. B1) to their Galaxy model: cumulative counts ``N(<V)`` per deg^2 at galactic
 quoted as good to ~15% for ``|b| >= 20 deg``. No download is needed.
 
 Stars are drawn with one shared, in-focus PSF, so they are never drawn one by one with GalSim:
-the pixel-convolved PSF is drawn once on an oversampled grid, which gives a stamp for every
-sub-pixel phase on a ``(N + 1) x (N + 1)`` grid; each star gets the bilinear interpolation of
-the four phases around its position, scaled by its flux, added into the image with clipping at
-the edges. Pixel ``(0, 0)`` is the centre of the first pixel (as in :mod:`inject.trajectory`),
-``x`` along columns and ``y`` along rows.
+the pixel-convolved PSF is sampled once from its Fourier transform for every sub-pixel phase
+on a ``(N + 1) x (N + 1)`` grid (:class:`PsfStamps`); each star gets the bilinear
+interpolation of the four phases around its position, scaled by its flux, added into the
+image with clipping at the edges. Pixel ``(0, 0)`` is the centre of the first pixel (as in
+:mod:`inject.trajectory`), ``x`` along columns and ``y`` along rows.
 """
 import functools
 import os
@@ -317,9 +317,10 @@ def _column(table, name, path, unit=None):
 # -------------------------------------------------------------------------------------------
 # Drawing
 
-#: Phase grid of the outer part of bright stars' stamps: the PSF is smooth there, so linear
-#: interpolation between half-pixel phases is exact to ~1e-4 of the local value.
-_OUTER_OVERSAMPLE = 2
+#: Phases per pixel of the ring that bright stars add outside the core stamp. The PSF is
+#: smooth there (r >~ 9" for 0.67" seeing), so the nearest of these phases (<= 1/4 px off)
+#: is within ~2% of the local value, itself ~1e-7 of the flux per pixel.
+_RING_OVERSAMPLE = 2
 
 
 class PsfStamps:
@@ -328,8 +329,8 @@ class PsfStamps:
     Stamps are ``(2h + 1)^2`` pixels around ``floor(x), floor(y)``; the half size ``h`` is
     the smallest for which the flux outside the stamp is below a tolerance for a star
     anywhere in its pixel: ``faint_tolerance`` for the core stamps used by every star and
-    ``bright_tolerance`` for the larger stamps of bright stars (whose inner part is the core
-    stamp, outer part interpolated from half-pixel phases).
+    ``bright_tolerance`` for the larger stamps of bright stars, which add a ring (the large
+    stamp with the core box zeroed, at the nearest half-pixel phase) to their core stamp.
 
     Parameters
     ----------
@@ -355,6 +356,8 @@ class PsfStamps:
     core : ndarray
         ``(N + 1, N + 1, 2 h + 1, 2 h + 1)``: ``core[j, i]`` is the stamp of a star at
         ``(floor(x) + i / N, floor(y) + j / N)``.
+    ring : ndarray
+        The same for the bright stamps at 2 phases per pixel, zero inside the core box.
     """
 
     def __init__(self, psf, pixel_scale, oversample=16, faint_tolerance=1e-3,
@@ -373,17 +376,16 @@ class PsfStamps:
         # GalSim's default folding_threshold (5e-3) aliases that much flux into a stamp.
         self.psf = psf.withFlux(1.0).withGSParams(
             galsim.GSParams.combine([psf.gsparams, GSPARAMS]))
-        # The pixel response is part of every stamp; sampling psf x pixel at a star's offset
-        # is what drawImage(method="auto") does.
-        self._pixelised = galsim.Convolve(self.psf, galsim.Pixel(self.pixel_scale),
-                                          gsparams=self.psf.gsparams)
         lost = self._lost_by_half_size(min(bright_tolerance, faint_tolerance), max_half_size)
         self.core_half, self.core_lost = _half_size(lost, faint_tolerance)
         self.bright_half, self.bright_lost = _half_size(lost, bright_tolerance)
         self.bright_half = max(self.bright_half, self.core_half)
         self.core = self._phase_stamps(self.core_half, self.oversample)
-        self.outer = self._phase_stamps(self.bright_half, _OUTER_OVERSAMPLE)
         self.core_sums = self.core.sum(axis=(2, 3))
+        self.ring = self._phase_stamps(self.bright_half, _RING_OVERSAMPLE, period=1.5)
+        c = self.bright_half - self.core_half
+        self.ring[:, :, c:self.ring.shape[2] - c, c:self.ring.shape[3] - c] = 0.0
+        self.ring_sums = self.ring.sum(axis=(2, 3))
 
     def _lost_by_half_size(self, tolerance, max_half):
         """``lost[h]``: flux outside the centred ``(2h + 1)^2`` box, grown until < tolerance."""
@@ -399,25 +401,65 @@ class PsfStamps:
                 return lost
             half = min(max_half, 2 * half)
 
-    def _phase_stamps(self, half, oversample):
-        """Stamps ``[j, i]`` of a star at ``(i / N, j / N)`` from one oversampled drawing."""
-        n_over = oversample * (2 * half + 2) + 1
-        over = self._pixelised.drawImage(nx=n_over, ny=n_over,
-                                         scale=self.pixel_scale / oversample,
-                                         method="no_pixel", dtype=np.float64).array
-        # no_pixel gives surface brightness x the fine pixel's area; a stamp pixel holds the
-        # fraction of flux in a whole pixel, i.e. surface brightness x p^2.
-        over *= oversample ** 2
-        # over[r, c] = (psf x pixel) at ((c - n_over//2) / N, (r - n_over//2) / N) pixels, and
-        # the stamp pixel k of phase i samples it at k - i / N.
-        base = n_over // 2 + oversample * np.arange(-half, half + 1)
+    def _phase_stamps(self, half, oversample, period=2.0):
+        """Stamps ``[j, i]`` of a star at ``(i / N, j / N)`` pixels from ``floor(x, y)``.
+
+        Each phase is summed from the PSF's Fourier transform: ``psf``'s k-image out to its
+        ``maxk``, times the pixel's sinc and the phase's shift, folded onto the pixel grid's
+        band (exact sampling) and inverse-FFT'd with a period of ``period`` times the stamp:
+        twice for the core, where the aliased wings then add ~1e-8 of the flux per pixel, and
+        1.5 for the ring, whose stamp already holds all but 1e-4 of the flux. That is what
+        drawImage(method="auto", offset=...) does, but with one k-image for all phases and
+        a period set by the stamp (GalSim's would be ~80" for a 0.67" Kolmogorov at
+        folding_threshold 1e-4: an 8192^2 FFT at 1/16 pixel).
+        """
+        p = self.pixel_scale
         size = 2 * half + 1
+        n = galsim.Image.good_fft_size(int(np.ceil(period * (size + 1))))  # the period, px
+        dk = 2.0 * np.pi / (n * p)
+        nk = int(np.ceil(self.psf.maxk / dk))
+        k = dk * np.arange(-nk, nk + 1)
+        sinc = np.sinc(k * p / (2.0 * np.pi))  # the pixel (a box of width p)
+        kimage = self.psf.drawKImage(nx=2 * nk + 1, ny=2 * nk + 1, scale=dk).array
+        kimage = kimage * sinc[:, None] * sinc[None, :]
+        # Fold: k index m = r + q n (0 <= r < n) goes to block q, row r. On a padded axis
+        # where m = -nk sits at index first = -nk mod n, block q holds [q n, (q + 1) n).
+        first = (-nk) % n
+        n_blocks = -(-(first + 2 * nk + 1) // n)
+        q = np.arange(n_blocks) - (first + nk) // n
+        n_half = n // 2 + 1  # irfft2 reads columns r <= n/2 only
+        blocks = np.zeros((n_blocks, n, n_blocks, n_half), np.complex128)
+        for by in range(n_blocks):
+            (y0, y1), (ky0, ky1) = _overlap(by * n, (by + 1) * n, first, 2 * nk + 1)
+            for bx in range(n_blocks):
+                (x0, x1), (kx0, kx1) = _overlap(bx * n, bx * n + n_half, first, 2 * nk + 1)
+                if y1 > y0 and x1 > x0:
+                    blocks[by, y0:y1, bx, x0:x1] = kimage[ky0:ky1, kx0:kx1]
+        # A star at +f has transform K(k) exp(-i k f p); for k = (r + q n) dk that is
+        # exp(-i r dk f p) exp(-2 pi i q f): a ramp in r times a phase per alias block.
+        f = np.arange(oversample + 1) / oversample
+        alias = np.exp(-2j * np.pi * np.outer(f, q))               # (phase, block)
+        r = np.arange(n)
+        ramp_y = np.exp(-1j * np.outer(f, r) * dk * p)              # (phase, row)
+        ramp_x = ramp_y[:, :n_half]
+        # Pixel k of the stamp is sample k of the period, wrapped.
+        idx = np.arange(-half, half + 1) % n
         stamps = np.empty((oversample + 1, oversample + 1, size, size))
         for j in range(oversample + 1):
-            rows = over[base - j]
-            for i in range(oversample + 1):
-                stamps[j, i] = rows[:, base - i]
+            by_x = np.einsum("b,bycx->cyx", alias[j], blocks)       # fold in y
+            folded = np.einsum("ic,cyx->iyx", alias, by_x)          # fold in x, each phase
+            folded *= ramp_y[j][None, :, None] * ramp_x[:, None, :]
+            # I(x) = (dk / 2 pi)^2 sum_k K e^{ikx}: with the inverse FFT's 1/n^2 and the
+            # pixel area p^2, the factor is (n dk p / 2 pi)^2 = 1.
+            field = np.fft.irfft2(folded, s=(n, n))
+            stamps[j] = field[:, idx[:, None], idx[None, :]]
         return stamps
+
+
+def _overlap(start, stop, first, length):
+    """Overlap of ``[start, stop)`` with ``[first, first + length)``, in both frames."""
+    lo, hi = max(start, first), min(stop, first + length)
+    return (lo - start, hi - start), (lo - first, hi - first)
 
 
 def _half_size(lost, tolerance):
@@ -475,13 +517,13 @@ _BATCH = 16
 
 
 def draw_stars(image, x, y, fluxes_e, psf, pixel_scale, oversample=16, *,
-               faint_tolerance=1e-3, bright_tolerance=1e-4, bright_flux_e=1e5):
+               faint_tolerance=1e-3, bright_tolerance=1e-4, bright_flux_e=1e6):
     """Add point sources with a shared PSF to ``image`` (in place), without per-star GalSim.
 
-    Each star's stamp is the bilinear interpolation, in sub-pixel position, of the four
+    Each star's core stamp is the bilinear interpolation, in sub-pixel position, of the four
     nearest pre-drawn phases (``oversample`` per pixel), times its flux, added over the part
-    of its stamp inside the image. Stars brighter than ``bright_flux_e`` get the larger
-    stamp of ``bright_tolerance``, the others the core stamp of ``faint_tolerance``.
+    inside the image; it holds all but ``faint_tolerance`` of the flux. Stars of at least
+    ``bright_flux_e`` also get the ring out to the stamp size of ``bright_tolerance``.
 
     Parameters
     ----------
@@ -498,11 +540,13 @@ def draw_stars(image, x, y, fluxes_e, psf, pixel_scale, oversample=16, *,
     pixel_scale : float
         Arcsec per pixel.
     oversample : int
-        Sub-pixel phases per pixel along each axis.
+        Sub-pixel phases per pixel along each axis. 16 puts pixels within 5e-4 of the peak of
+        an exact drawing (0.67" Kolmogorov, 0.2" pixels), 32 within 1.2e-4 (error ~ 1/N^2).
     faint_tolerance, bright_tolerance : float
         Largest fraction of flux outside the stamp of faint and bright stars.
     bright_flux_e : float
-        Flux from which a star gets the bright stamp.
+        Flux from which a star gets the bright stamp. The default, 1e6 e- (r ~ 17.3 in
+        30 s), leaves the faint stamps' lost wings below ~0.1 e- per pixel.
 
     Returns
     -------
@@ -515,48 +559,50 @@ def draw_stars(image, x, y, fluxes_e, psf, pixel_scale, oversample=16, *,
     stamps = psf if isinstance(psf, PsfStamps) else psf_stamps(
         psf, float(pixel_scale), int(oversample), float(faint_tolerance),
         float(bright_tolerance))
-    ny, nx = image.shape
     target = image if image.dtype == np.float64 else np.zeros(image.shape)
     drawn = np.zeros(flux.size)
     ix = np.floor(x).astype(np.intp)
     iy = np.floor(y).astype(np.intp)
     fx, fy = x - ix, y - iy
-    bright = flux >= bright_flux_e
-    for is_bright, half in ((False, stamps.core_half), (True, stamps.bright_half)):
-        # Skip stars without flux or whose stamp misses the image before making stamps.
-        sel = np.flatnonzero((bright == is_bright) & (flux > 0)
-                             & (ix + half >= 0) & (ix - half < nx)
-                             & (iy + half >= 0) & (iy - half < ny))
-        for start in range(0, sel.size, _BATCH):
-            idx = sel[start:start + _BATCH]
-            if is_bright:
-                batch, totals = _bright_stamps(stamps, fx[idx], fy[idx]), None
-            else:
-                batch = _interpolate(stamps.core, stamps.oversample, fx[idx], fy[idx])
-                totals = _interpolate_sums(stamps.core_sums, stamps.oversample,
-                                           fx[idx], fy[idx]) * flux[idx]
-            batch *= flux[idx][:, None, None]
-            drawn[idx] = _add_batch(target, batch, ix[idx], iy[idx], half, totals)
+
+    n_core = stamps.oversample
+    sel = _reaching(image.shape, ix, iy, stamps.core_half, flux > 0)
+    for start in range(0, sel.size, _BATCH):
+        idx = sel[start:start + _BATCH]
+        batch = _interpolate(stamps.core, n_core, fx[idx], fy[idx])
+        batch *= flux[idx][:, None, None]
+        totals = _interpolate_sums(stamps.core_sums, n_core, fx[idx], fy[idx]) * flux[idx]
+        drawn[idx] += _add_stamps(target, batch, ix[idx], iy[idx], stamps.core_half, totals)
+
+    # Bright stars: the ring at the nearest half-pixel phase (a view: no interpolation).
+    sel = _reaching(image.shape, ix, iy, stamps.bright_half, flux >= bright_flux_e)
+    i_near = np.rint(fx[sel] * _RING_OVERSAMPLE).astype(np.intp)
+    j_near = np.rint(fy[sel] * _RING_OVERSAMPLE).astype(np.intp)
+    for k, star in enumerate(sel):
+        ring = stamps.ring[j_near[k], i_near[k]]
+        total = stamps.ring_sums[j_near[k], i_near[k]] * flux[star]
+        drawn[star] += _add_stamps(target, (ring, flux[star]), ix[star:star + 1],
+                                   iy[star:star + 1], stamps.bright_half, [total])[0]
     if target is not image:
         image += target
     return drawn
 
 
-def _bright_stamps(stamps, fx, fy):
-    """Large stamps: half-pixel phases outside, the fine-phase core stamp inside."""
-    out = _interpolate(stamps.outer, _OUTER_OVERSAMPLE, fx, fy)
-    c = stamps.bright_half - stamps.core_half
-    out[:, c:out.shape[1] - c, c:out.shape[2] - c] = _interpolate(
-        stamps.core, stamps.oversample, fx, fy)
-    return out
+def _reaching(shape, ix, iy, half, wanted):
+    """Indices of wanted stars whose ``(2 half + 1)^2`` stamp overlaps the image."""
+    ny, nx = shape
+    return np.flatnonzero(wanted & (ix + half >= 0) & (ix - half < nx)
+                          & (iy + half >= 0) & (iy - half < ny))
 
 
-def _add_batch(image, batch, ix, iy, half, totals=None):
+def _add_stamps(image, stamps, ix, iy, half, totals):
     """Add stamps centred on pixels ``(ix, iy)``, clipped to the image; charge added each.
 
-    One slice addition per star: the rows of a stamp are contiguous in the image, which
-    beats a scatter with ``np.add.at`` over flattened indices ~3x (measured on 91^2 stamps).
-    ``totals`` (the stamps' sums, if known) saves summing the stamps of stars wholly inside.
+    ``stamps`` is an ``(n, S, S)`` array, or one ``(stamp, scale)`` pair added as
+    ``scale * stamp`` (saves copying a large shared stamp). ``totals`` are the stamps' sums,
+    so only clipped stamps are summed. One slice addition per star: a stamp's rows are
+    contiguous in the image, which beats a scatter with ``np.add.at`` over flattened indices
+    ~3x (measured for 91^2 stamps).
     """
     ny, nx = image.shape
     size = 2 * half + 1
@@ -564,11 +610,16 @@ def _add_batch(image, batch, ix, iy, half, totals=None):
     xs, ys = np.maximum(x0, 0), np.maximum(y0, 0)
     xe, ye = np.minimum(x0 + size, nx), np.minimum(y0 + size, ny)
     clipped = (xs != x0) | (ys != y0) | (xe != x0 + size) | (ye != y0 + size)
-    added = np.array(totals, dtype=np.float64) if totals is not None else np.empty(len(ix))
+    added = np.array(totals, dtype=np.float64)
     for k in range(len(ix)):
-        part = batch[k, ys[k] - y0[k]:ye[k] - y0[k], xs[k] - x0[k]:xe[k] - x0[k]]
+        rows = slice(ys[k] - y0[k], ye[k] - y0[k])
+        cols = slice(xs[k] - x0[k], xe[k] - x0[k])
+        if isinstance(stamps, tuple):
+            part = stamps[0][rows, cols] * stamps[1]
+        else:
+            part = stamps[k, rows, cols]
         image[ys[k]:ye[k], xs[k]:xe[k]] += part
-        if clipped[k] or totals is None:
+        if clipped[k]:
             added[k] = part.sum()
     return added
 
@@ -591,3 +642,79 @@ def _check_stars(x, y, fluxes_e):
     if np.any(flux < 0):
         raise InputError("fluxes_e", fluxes_e, "must be >= 0")
     return x, y, flux
+
+
+# -------------------------------------------------------------------------------------------
+# Scene glue
+
+#: Keys of a scene's ``stars:`` mapping (the fields of :class:`StarFieldSpec`).
+SCENE_KEYS = ("galactic_l", "galactic_b", "mag_limit", "mag_bright", "density_per_deg2",
+              "catalog")
+
+
+def spec_from_scene(scene):
+    """The :class:`StarFieldSpec` of a scene's ``stars:`` entry (``true`` or a mapping).
+
+    Galactic coordinates not given in the mapping come from the scene's ``pointing`` (ra,
+    dec) when it has one, else from the :class:`StarFieldSpec` defaults.
+    """
+    from .errors import SceneError
+
+    entry = {} if scene.stars is True else scene.stars
+    if not isinstance(entry, dict):
+        raise SceneError(f"stars={scene.stars!r}: must be true, false or a mapping with keys "
+                         f"{', '.join(SCENE_KEYS)}")
+    unknown = set(entry) - set(SCENE_KEYS)
+    if unknown:
+        raise SceneError(f"stars: unknown key(s) {', '.join(sorted(unknown))}; "
+                         f"allowed: {', '.join(SCENE_KEYS)}")
+    entry = dict(entry)
+    if scene.pointing and not {"galactic_l", "galactic_b"} & set(entry):
+        from astropy import units as u
+        from astropy.coordinates import SkyCoord
+
+        gal = SkyCoord(ra=float(scene.pointing["ra"]) * u.deg,
+                       dec=float(scene.pointing["dec"]) * u.deg).galactic
+        entry.update(galactic_l=float(gal.l.deg), galactic_b=float(gal.b.deg))
+    return StarFieldSpec(**entry)
+
+
+def add_star_field(image, scene, rng, wcs=None):
+    """Add a scene's stars to ``image`` (expected charge, e-, in place).
+
+    Stars are random (:func:`star_field`, with a margin of one core stamp so stars just off
+    the CCD still light its edge) or the scene's catalog; the PSF is the scene's Kolmogorov
+    seeing. Fluxes are ``electron_rate(mag, band) * exptime`` with the airmass-1 zero points
+    and no further extinction, exactly as the satellites' fluxes (and the paper) are computed,
+    so stars and streaks in a scene are on one photometric scale.
+
+    Parameters
+    ----------
+    image : ndarray
+        ``(ny, nx)`` float array; modified in place.
+    scene : inject.config.Scene
+    rng : numpy.random.Generator
+        The scene's ``"stars"`` stream.
+    wcs : astropy.wcs.WCS, optional
+        For catalogs in ra, dec.
+
+    Returns
+    -------
+    dict
+        ``x``, ``y``, ``mag``, ``flux_e`` and ``charge_in_image_e`` per star.
+    """
+    from .errors import SceneError
+    from .instrument import LSST
+    from .photometry import electron_rate
+    from .profile import Seeing
+
+    if scene.seeing <= 0:
+        raise SceneError("stars: need seeing > 0 (stars share the atmospheric PSF)")
+    spec = spec_from_scene(scene)
+    pixel_scale = LSST.pixel_scale_arcsec
+    stamps = psf_stamps(Seeing(scene.seeing).profile(), pixel_scale)
+    field = star_field(spec, image.shape, pixel_scale, scene.band, rng,
+                       margin_px=stamps.core_half, wcs=wcs)
+    flux = electron_rate(field["mag"], scene.band) * scene.exptime
+    drawn = draw_stars(image, field["x"], field["y"], flux, stamps, pixel_scale)
+    return {**field, "flux_e": flux, "charge_in_image_e": drawn}

@@ -40,6 +40,13 @@ def truth_table(rows):
     return hdu
 
 
+def write_truth_csv(path, rows, overwrite=False):
+    """The truth table as CSV (one row per streak), written atomically."""
+    table = Table(truth_table(rows).data)
+    with atomic_path(path, overwrite) as tmp:
+        table.write(tmp, format="ascii.csv", overwrite=True)
+
+
 def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False):
     """Write a simulated CCD to ``path`` atomically."""
     image_hdr = fits.Header()
