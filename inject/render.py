@@ -21,7 +21,17 @@ import numpy as np
 from scipy import fft, ndimage
 
 from .profile import line_spread
+from .errors import InputError
 from .validate import positive
+
+
+#: Finest pixel tolerance the renderer can honour: the LSF's own aliasing at GSPARAMS
+#: (folding_threshold 1e-4) is ~1e-6 of the peak.
+MIN_TOLERANCE = 2e-6
+
+#: Largest end-cap table (samples on a side) before the renderer stops widening it and
+#: reports the mismatch it reached as its predicted error instead.
+MAX_TABLE_SIZE = 4096
 
 
 @dataclass(frozen=True)
@@ -46,6 +56,10 @@ class Budget:
     def __post_init__(self):
         positive("tolerance", self.tolerance)
         positive("flux_tolerance", self.flux_tolerance)
+        if self.tolerance < MIN_TOLERANCE:
+            raise InputError("tolerance", self.tolerance,
+                             f"must be >= {MIN_TOLERANCE:g}, the accuracy of the line-spread "
+                             f"function at inject.profile.GSPARAMS")
 
 
 @dataclass(frozen=True)
@@ -134,9 +148,9 @@ class SweptProfile:
         # The marginal along the track bounds the cap only roughly (it is not the tail of
         # h(t, d) at fixed d): trim the table where its ends match 0 and LSF(d) within tol/2,
         # and widen it if that was not far enough.
-        for _ in range(6):
-            step, mismatch = self._build_cap_table(tol / 2)
-            if mismatch <= tol / 2:
+        while True:
+            step, mismatch, size = self._build_cap_table(tol / 2)
+            if mismatch <= tol / 2 or size * 1.5 > MAX_TABLE_SIZE:
                 break
             self._cap *= 1.5
         self.plan = RenderPlan(
@@ -150,8 +164,9 @@ class SweptProfile:
         cap to where ``C`` is within ``trim`` (relative to the peak) of 0 before it and of
         ``LSF(d)`` after it.
 
-        Returns the table step and the table's largest mismatch with 0 at its start and with
-        the interior LSF at its far end, relative to the peak: a direct measure of its error.
+        Returns the table step, the table's largest mismatch with 0 at its start and with
+        the interior LSF at its far end (relative to the peak: a direct measure of its
+        error), and the transform size used.
         """
         p = self.pixel_scale
         # Cubic-spline interpolation errs by ~ step^4 |f""""| / 384: sample on the scale of the
@@ -201,7 +216,7 @@ class SweptProfile:
         self._table = ndimage.spline_filter(table, order=3)
         self._t0, self._d0, self._table_step = t[keep_t][0], d[keep_d][0], step
         ends = max(np.abs(table[:, -1] - far).max(), np.abs(table[:, 0]).max())
-        return step, float(ends / self._peak)
+        return step, float(ends / self._peak), n
 
     def _cap_cumulative(self, t, d, inner):
         """``C(t, d)`` for ``|t| <= cap`` (arcsec), given ``inner = LSF(d)``."""

@@ -3,7 +3,7 @@
 The engine takes a validated :class:`~inject.config.Scene` and returns arrays and a truth
 table; writing files is :mod:`inject.io`'s job.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -12,7 +12,7 @@ from .errors import SceneError
 from .instrument import LSST
 from .photometry import sky_per_pixel
 from .profile import Seeing
-from .render import Budget, SweptProfile, render_segment
+from .render import MIN_TOLERANCE, Budget, SweptProfile, render_segment
 from .streak import StreakModel
 from .trajectory import Segment
 
@@ -65,11 +65,18 @@ def streak_models(scene):
 
 def render_streaks(scene, budget=Budget()):
     """Noise-free streak charge of a scene (float64, e-) and one truth row per satellite."""
+    noise = 0.0
+    if scene.noise:
+        noise = np.sqrt(sky_level(scene) + np.median(scene.detector.per_pixel("read_noise")) ** 2)
     return render_tracks(scene.detector.shape, streak_models(scene),
-                         [s.track for s in scene.satellites], budget)
+                         [s.track for s in scene.satellites], budget, noise)
 
 
-def render_tracks(shape, models, tracks, budget=Budget()):
+#: Streak wings are drawn until they fall below this fraction of the per-pixel noise.
+NOISE_FRACTION = 0.05
+
+
+def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0):
     """Render streak models along tracks into a new image of ``shape``.
 
     Parameters
@@ -80,6 +87,11 @@ def render_tracks(shape, models, tracks, budget=Budget()):
     tracks : list of Track
         ``length=None`` crosses the whole image, with the end caps outside it.
     budget : Budget
+    noise_sigma : float
+        Per-pixel noise, e-. A bright streak's seeing wings stay above the noise far beyond
+        the budget's relative tolerance: the tolerance is tightened (down to
+        ``MIN_TOLERANCE``) so that errors and the wings left out stay below
+        ``NOISE_FRACTION`` of the noise (a cut would show as an edge).
 
     Returns
     -------
@@ -91,7 +103,12 @@ def render_tracks(shape, models, tracks, budget=Budget()):
     model_image = np.zeros(shape)
     truth = []
     for model, track in zip(models, tracks):
-        swept = SweptProfile(model.profile, model.pixel_scale, track.angle, budget)
+        own = budget
+        if noise_sigma > 0:
+            tolerance = max(MIN_TOLERANCE, NOISE_FRACTION * noise_sigma / model.peak_e_per_px)
+            if tolerance < budget.tolerance:
+                own = replace(budget, tolerance=tolerance)
+        swept = SweptProfile(model.profile, model.pixel_scale, track.angle, own)
         if track.length is None:
             segment = Segment.crossing(shape, track.x0, track.y0, track.angle,
                                        margin=swept.plan.cap_px)

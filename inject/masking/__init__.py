@@ -1,0 +1,34 @@
+"""Streak masking: detect satellite streaks in a CCD image, measure them, mask them.
+
+- :mod:`~inject.masking.detect`: background, star suppression, binning, matched filter, fast
+  Hough transform, iterative peak finding with a calibrated false-alarm threshold.
+- :mod:`~inject.masking.measure`: line refinement from cross-track offsets of segments, the
+  extent along the line, a model-free FWHM from a robust stacked profile (with bootstrap error).
+- :mod:`~inject.masking.mask`: mask-width rules (surface brightness against the sky noise,
+  k x FWHM, the LSST ``maskStreaks`` and acstools ``findsat_mrt`` rules) and lost-pixel counts
+  from the rasterised mask.
+- :mod:`~inject.masking.run`: :func:`mask_image`, :func:`write_masked` and the ``inject mask``
+  command.
+
+Submodules are imported on first use, so that building the command-line parser stays cheap.
+"""
+import importlib
+
+from ..errors import InjectError
+
+
+class MaskingError(InjectError):
+    """An image cannot be searched for streaks (not 2-D, too small, no usable pixels...)."""
+
+
+_LAZY = {"mask_image": "run", "write_masked": "run", "run_mask": "run",
+         "add_mask_parser": "run", "detect_streaks": "detect", "prepare": "detect",
+         "measure_streak": "measure", "mask_widths": "mask", "lost_pixels": "mask"}
+
+__all__ = ["MaskingError", *_LAZY]
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
