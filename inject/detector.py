@@ -71,11 +71,17 @@ class Detector:
         return rows[:, None] * self.N_AMP_COLS + cols[None, :]
 
     def per_pixel(self, name):
-        """``gain`` or ``read_noise`` of every pixel's amplifier, ``(ny, nx)`` float array."""
+        """``gain`` or ``read_noise`` of every pixel's amplifier, ``(ny, nx)`` float array
+        (a read-only broadcast view when every amplifier has the median value)."""
         values = getattr(self, f"amp_{'gains' if name == 'gain' else name}")
         if values is None:
-            return np.full(self.shape, getattr(self, name))
+            return np.broadcast_to(np.float64(getattr(self, name)), self.shape)
         return np.asarray(values)[self.amp_index()]
+
+    def median(self, name):
+        """Median ``gain`` or ``read_noise`` over the amplifiers."""
+        values = getattr(self, f"amp_{'gains' if name == 'gain' else name}")
+        return float(getattr(self, name) if values is None else np.median(values))
 
     @property
     def midline(self):
