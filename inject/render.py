@@ -137,8 +137,6 @@ class SweptProfile:
         # Along the track: the marginal across it, and its cumulative, for the far tails.
         along = line_spread(profile.rotate(90 * galsim.degrees), p,
                             pixel_angle_deg=self.angle_deg + 90)
-        self._along_t = along.offset_arcsec
-        self._along_cdf = np.cumsum(along.lsf) * along.step
         # Across, the footprint must hold all but flux_tolerance of the charge (seeing tails
         # are power laws); the end-cap table only where values exceed tol/2 of the peak.
         # Either way flux is conserved: C rises from 0 to LSF(d) whatever the cap model.
@@ -153,11 +151,31 @@ class SweptProfile:
             if mismatch <= tol / 2 or size * 1.5 > MAX_TABLE_SIZE:
                 break
             self._cap *= 1.5
+        self._separable_tails(along)
         self.plan = RenderPlan(
             support_px=support / p, cap_px=self._cap / p, table_step_px=step / p,
             lsf_step_px=lsf_step / p,
             predicted_error={"support": tol / 2, "lsf_interpolation": tol / 8,
                              "cap_tails": tol / 2, "cap_table": mismatch})
+
+    def _separable_tails(self, along):
+        """Cumulatives along the track for the far wings (``|d| > table_d``), where the cap is
+        modelled as ``LSF(d)`` times the along-track marginal's cumulative ``Phi(t)``.
+
+        ``Phi`` is rescaled to rise from 0 to 1 exactly across ``[-cap, cap]``, so C and its
+        antiderivative K join their limits (0 before, ``LSF`` and ``t LSF - m1`` after)
+        continuously: flux then stays exact for constant and linearly varying tracks alike.
+        """
+        t, f = along.offset_arcsec, along.lsf
+        inside = np.abs(t) <= self._cap
+        cdf = np.cumsum(np.where(inside, f, 0.0)) * along.step
+        cdf /= cdf[-1]
+        self._along_t = t[inside]
+        self._along_cdf = cdf[inside]
+        self._along_k = np.cumsum(self._along_cdf) * along.step
+        self._along_k -= self._along_k[0]
+        # K(cap) = cap - m1 per unit LSF: the first moment that keeps K continuous at +cap.
+        self._along_moment = float(self._along_t[-1] - self._along_k[-1])
 
     def _build_cap_table(self, trim):
         """Tabulate ``C(t, d)`` for ``|t| <= cap``, ``|d| <= table_d`` (arcsec), then trim the
@@ -190,21 +208,12 @@ class SweptProfile:
         # Back to real space across the track: coeffs[d, m] are the transforms along t.
         coeffs = fft.fftshift(fft.ifft(fft.ifftshift(spectrum, axes=0), axis=0), axes=0)
         coeffs *= n_d * dk_d / (2 * np.pi)
-        del spectrum
-        lsf = coeffs[:, 0].real.copy()  # the kt = 0 term is the integral along t
-        # Exact antiderivative of the trigonometric series along t, from t = -period/2.
-        km = kt[0]
-        coeffs[:, 1:] /= 1j * km[1:]
-        coeffs[:, 0] = 0.0
-        if n_t % 2 == 0:
-            coeffs[:, -1] = 0.0  # the Nyquist term has no antiderivative on the grid
-        periodic = fft.fftshift(fft.irfft(coeffs, n=n_t, axis=1), axes=1) * n_t * dk_t / (2 * np.pi)
         t = (np.arange(n_t) - n_t // 2) * step
         d = (np.arange(n_d) - n_d // 2) * step
-        table = periodic - periodic[:, :1] + np.outer(lsf, (t + n_t * step / 2) / (n_t * step))
         keep_d = np.abs(d) <= self._table_d + 3 * step
-        table = table[keep_d]
+        coeffs = coeffs[keep_d]
         far = np.interp(d[keep_d], self.lsf.offset_arcsec, self.lsf.lsf)
+        table = self._antiderivative(coeffs, 1, t)
         # Largest |t| where C still differs from its limit by more than ``trim``.
         off = np.where(t < 0, np.abs(table).max(axis=0),
                        np.abs(table - far[:, None]).max(axis=0)) > trim * self._peak
@@ -215,44 +224,122 @@ class SweptProfile:
         table = table[:, keep_t]
         self._table = ndimage.spline_filter(table, order=3)
         self._t0, self._d0, self._table_step = t[keep_t][0], d[keep_d][0], step
+        self._second = None
+        # K = int C is needed only for tracks whose brightness varies: built on first use.
+        self._second_inputs = (coeffs, t, keep_t, d[keep_d], far)
         ends = max(np.abs(table[:, -1] - far).max(), np.abs(table[:, 0]).max())
         return step, float(ends / self._peak), n
 
-    def _cap_cumulative(self, t, d, inner):
-        """``C(t, d)`` for ``|t| <= cap`` (arcsec), given ``inner = LSF(d)``."""
-        out = np.empty_like(t)
-        in_table = np.abs(d) <= self._table_d
-        if in_table.any():
-            coords = np.vstack(((d[in_table] - self._d0) / self._table_step,
-                                (t[in_table] - self._t0) / self._table_step))
-            out[in_table] = ndimage.map_coordinates(self._table, coords, order=3,
-                                                    prefilter=False, mode="nearest")
+    @staticmethod
+    def _antiderivative(coeffs, power, t):
+        """First (C) or second (K = int C) antiderivative along t, from t = -period/2, of the
+        series whose coefficients along the track are ``coeffs[d, m]`` (m >= 0), exactly."""
+        n_t = len(t)
+        step = t[1] - t[0]
+        period = n_t * step
+        km = 2 * np.pi * np.arange(1, coeffs.shape[1]) / period
+        scale = 1.0 / step  # irfft's 1/n times the continuous transform's n dk / (2 pi)
+        series = []
+        for p in range(1, power + 1):
+            c = np.zeros_like(coeffs)
+            c[:, 1:] = coeffs[:, 1:] / (1j * km) ** p
+            if n_t % 2 == 0:
+                c[:, -1] = 0.0  # the Nyquist term has no antiderivative on the grid
+            series.append(fft.fftshift(fft.irfft(c, n=n_t, axis=1), axes=1) * scale)
+        lsf = coeffs[:, :1].real  # the kt = 0 term is the integral along t
+        tau = t + period / 2
+        g1 = series[0]
+        if power == 1:
+            return g1 - g1[:, :1] + lsf * (tau / period)
+        g2 = series[1]
+        return g2 - g2[:, :1] - g1[:, :1] * tau + lsf * (tau ** 2 / (2 * period))
+
+    def _second_table(self):
+        """Spline coefficients of K, built once, started at 0 at -cap and continued after
+        +cap as ``t LSF(d) - m1(d)``: the exact antiderivative of the C the renderer uses
+        (0 before -cap, the table, LSF(d) after +cap), or linearly varying tracks would not
+        conserve flux."""
+        if self._second is None:
+            coeffs, t, keep_t, d, far = self._second_inputs
+            second = ndimage.spline_filter(self._antiderivative(coeffs, 2, t)[:, keep_t],
+                                           order=3)
+            rows = np.arange(len(far), dtype=float)
+
+            def at(t_cap):
+                cols = np.full_like(rows, (t_cap - self._t0) / self._table_step)
+                return ndimage.map_coordinates(second, [rows, cols], order=3,
+                                               prefilter=False, mode="nearest")
+            second -= at(-self._cap)[:, None]  # spline coefficients shift with a constant
+            self._moment_d, self._moment = d, self._cap * far - at(self._cap)
+            self._second = second
+        return self._second
+
+    def _cumulatives(self, t, d, inner, want_second):
+        """``C(t, d)`` and, if asked, ``K(t, d)`` (arcsec), given ``inner = LSF(d)``.
+
+        Before the cap both vanish; after it ``C = LSF(d)`` and ``K = t LSF(d) - m1(d)``.
+        """
+        first = np.where(t > self._cap, inner, 0.0)
+        second = None
+        if want_second:
+            moment = self._first_moment(d, inner)
+            second = np.where(t > self._cap, t * inner - moment, 0.0)
+        near = np.abs(t) <= self._cap
+        if not near.any():
+            return first, second
+        tn, dn, inn = t[near], d[near], inner[near]
+        in_table = np.abs(dn) <= self._table_d
+        coords = np.vstack(((dn[in_table] - self._d0) / self._table_step,
+                            (tn[in_table] - self._t0) / self._table_step))
         # Far from the track the cap is below tol/2 of the peak: a separable model is enough.
         tails = ~in_table
-        out[tails] = inner[tails] * np.interp(t[tails], self._along_t, self._along_cdf)
-        return out
+        along_cdf = np.interp(tn[tails], self._along_t, self._along_cdf)
+        values = np.empty_like(tn)
+        values[in_table] = ndimage.map_coordinates(self._table, coords, order=3,
+                                                   prefilter=False, mode="nearest")
+        values[tails] = inn[tails] * along_cdf
+        first[near] = values
+        if want_second:
+            values[in_table] = ndimage.map_coordinates(self._second_table(), coords, order=3,
+                                                       prefilter=False, mode="nearest")
+            values[tails] = inn[tails] * np.interp(tn[tails], self._along_t, self._along_k)
+            second[near] = values
+        return first, second
 
-    def _cumulative(self, t, d, inner):
-        """``C(t, d)`` anywhere: 0 before the cap, ``LSF(d)`` after it."""
-        out = np.where(t > self._cap, inner, 0.0)
-        near = np.abs(t) <= self._cap
-        if near.any():
-            out[near] = self._cap_cumulative(t[near], d[near], inner[near])
-        return out
+    def _first_moment(self, d, inner):
+        """``m1(d) = integral of t h(t, d) dt``: from the table near the track, separable
+        (LSF times the along-track marginal's mean) in the far wings."""
+        table = np.abs(d) <= self._table_d
+        self._second_table()
+        return np.where(table, np.interp(d, self._moment_d, self._moment),
+                        inner * self._along_moment)
 
-    def pixel_values(self, t_px, d_px, length_px):
-        """Charge fraction ``V / F`` at track-frame pixel coordinates, for a track of length
-        ``length_px`` starting at ``t = 0``."""
+    def pixel_values(self, t_px, d_px, length_px, flux0=1.0, flux1=None):
+        """Charge at track-frame pixel coordinates for a track of ``length_px`` starting at
+        ``t = 0`` whose charge per pixel of track goes linearly from ``flux0`` to ``flux1``
+        (constant by default).
+
+        With ``F(s) = F0 + g s``, ``V = p {F0 [C(t) - C(t - L)] + g [K(t) - K(t - L)
+        - L C(t - L)]}`` where ``K`` is the antiderivative of ``C`` along the track.
+        """
         p = self.pixel_scale
-        t, d = t_px * p, d_px * p
+        t, d, length = t_px * p, d_px * p, length_px * p
+        flux1 = flux0 if flux1 is None else flux1
+        slope = (flux1 - flux0) / length if length > 0 else 0.0
         inner = np.interp(d, self.lsf.offset_arcsec, self.lsf.lsf)
-        # Most pixels see the whole profile pass: C(t) = LSF(d) and C(t - L) = 0.
-        ends = (t <= self._cap) | (t >= length_px * p - self._cap)
-        values = inner.copy()
+        # Most pixels see the whole profile pass: C(t) = LSF(d), C(t - L) = 0.
+        values = flux0 * inner
+        if slope:
+            values += slope * (t * inner - self._first_moment(d, inner))
+        ends = (t <= self._cap) | (t >= length - self._cap)
         if ends.any():
             te, de, ie = t[ends], d[ends], inner[ends]
-            values[ends] = (self._cumulative(te, de, ie)
-                            - self._cumulative(te - length_px * p, de, ie))
+            c_now, k_now = self._cumulatives(te, de, ie, bool(slope))
+            c_then, k_then = self._cumulatives(te - length, de, ie, bool(slope))
+            v = flux0 * (c_now - c_then)
+            if slope:
+                v += slope * (k_now - k_then - length * c_then)
+            values[ends] = v
         values *= p
         return values
 
@@ -260,35 +347,45 @@ class SweptProfile:
 def footprint(shape, segment, support_px, cap_px):
     """Pixels within ``support_px`` of a segment and ``cap_px`` beyond its ends.
 
-    Returns ``(y, x, t, d)``: integer pixel indices and their track-frame coordinates.
+    Returns ``(y, x, t, d)``: integer pixel indices (each pixel once) and their track-frame
+    coordinates.
     """
     ny, nx = shape
     c, s = segment.direction
     horizontal = abs(c) >= abs(s)
-    # Walk along the major axis; on each line, the pixels within the band across it.
-    (major_n, minor_n) = (nx, ny) if horizontal else (ny, nx)
-    (m0, n0, dm, dn) = ((segment.x0, segment.y0, c, s) if horizontal
-                        else (segment.y0, segment.x0, s, c))
-    ends = [m0 - cap_px * dm, m0 + (segment.length + cap_px) * dm]
-    reach = support_px * abs(dn)  # the band's extent along the major axis, from its slant
+    # Walk along the major axis. On each line both |d| <= support and -cap <= t <= L + cap
+    # are linear in the minor coordinate, so the pixels kept form one interval per line.
+    if horizontal:
+        major_n, minor_n, m0, n0 = nx, ny, segment.x0, segment.y0
+        (t_major, t_minor), (d_major, d_minor) = (c, s), (-s, c)
+    else:
+        major_n, minor_n, m0, n0 = ny, nx, segment.y0, segment.x0
+        (t_major, t_minor), (d_major, d_minor) = (s, c), (c, -s)
+    ends = [m0 - cap_px * t_major, m0 + (segment.length + cap_px) * t_major]
+    reach = support_px * abs(t_minor) + 1  # the band's slant adds to its major extent
     lo = max(0, int(np.floor(min(ends) - reach)))
     hi = min(major_n - 1, int(np.ceil(max(ends) + reach)))
-    if hi < lo:
-        return (np.empty(0, int),) * 2 + (np.empty(0),) * 2
     major = np.arange(lo, hi + 1)
-    centre = n0 + (major - m0) * dn / dm
-    half = support_px / abs(dm)
-    start = np.clip(np.floor(centre - half).astype(int), 0, minor_n)
-    stop = np.clip(np.ceil(centre + half).astype(int) + 1, 0, minor_n)
+    offset = major - m0
+
+    def interval(a_major, a_minor, low, high):
+        """Minor coordinates n with low <= a_major * offset + a_minor * (n - n0) <= high."""
+        if abs(a_minor) < 1e-12:
+            inside = (a_major * offset >= low) & (a_major * offset <= high)
+            return np.where(inside, -np.inf, np.inf), np.where(inside, np.inf, -np.inf)
+        bounds = ((low - a_major * offset) / a_minor, (high - a_major * offset) / a_minor)
+        return n0 + np.minimum(*bounds), n0 + np.maximum(*bounds)
+
+    d_lo, d_hi = interval(d_major, d_minor, -support_px, support_px)
+    t_lo, t_hi = interval(t_major, t_minor, -cap_px, segment.length + cap_px)
+    start = np.clip(np.ceil(np.maximum(d_lo, t_lo)), 0, minor_n).astype(int)
+    stop = np.clip(np.floor(np.minimum(d_hi, t_hi)) + 1, 0, minor_n).astype(int)
     counts = np.maximum(stop - start, 0)
     major = np.repeat(major, counts)
-    offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    minor = np.repeat(start, counts) + offsets
+    minor = np.arange(counts.sum()) + np.repeat(start - (np.cumsum(counts) - counts), counts)
     x, y = (major, minor) if horizontal else (minor, major)
-    t = (x - segment.x0) * c + (y - segment.y0) * s
-    d = -(x - segment.x0) * s + (y - segment.y0) * c
-    keep = (np.abs(d) <= support_px) & (t >= -cap_px) & (t <= segment.length + cap_px)
-    return y[keep], x[keep], t[keep], d[keep]
+    dx, dy = x - segment.x0, y - segment.y0
+    return y, x, dx * c + dy * s, dy * c - dx * s
 
 
 @dataclass(frozen=True)
@@ -300,7 +397,7 @@ class RenderResult:
     plan: RenderPlan
 
 
-def render_segment(image, swept, segment, flux_per_px):
+def render_segment(image, swept, segment, flux_per_px, flux_end=None):
     """Add one segment's streak charge into ``image`` (in place).
 
     Parameters
@@ -311,7 +408,9 @@ def render_segment(image, swept, segment, flux_per_px):
         Profile and angle; ``segment.angle_deg`` must equal ``swept.angle_deg``.
     segment : Segment
     flux_per_px : float
-        Charge per pixel of track length, e-.
+        Charge per pixel of track length at the start, e-.
+    flux_end : float, optional
+        Charge per pixel of track length at the end (linear in between); constant by default.
 
     Returns
     -------
@@ -321,7 +420,7 @@ def render_segment(image, swept, segment, flux_per_px):
         raise ValueError("segment angle differs from the SweptProfile's angle")
     plan = swept.plan
     y, x, t, d = footprint(image.shape, segment, plan.support_px, plan.cap_px)
-    values = flux_per_px * swept.pixel_values(t, d, segment.length)
+    values = swept.pixel_values(t, d, segment.length, flux_per_px, flux_end)
     # Footprint pixels are unique, so a plain fancy-indexed add is safe (no np.add.at).
     image.reshape(-1)[y * image.shape[1] + x] += values
     return RenderResult(len(values), float(values.sum()), plan)

@@ -135,3 +135,22 @@ def test_no_seeing_two_horns():
     assert image.sum() == pytest.approx(model.flux_per_px * seg.length, rel=1e-4)
     column = image[:, 100]
     assert column[100] < 0.8 * column.max()  # a dip in the middle
+
+
+@pytest.mark.parametrize("model", [PAPER_550, COMPOSITE], ids=["box", "comp"])
+def test_linear_brightness_ramp_matches_fine_constant_pieces(model):
+    """A track whose charge per pixel ramps linearly equals the sum of many short pieces."""
+    seg = Segment(120.3, 150.8, 17.0, 60.0)
+    f0, f1 = 1000.0, 4000.0
+    swept = SweptProfile(model.profile, model.pixel_scale, seg.angle_deg)
+    ramp = np.zeros((300, 320))
+    render_segment(ramp, swept, seg, f0, f1)
+    pieces = np.zeros_like(ramp)
+    n = 240
+    c, s = seg.direction
+    for i in range(n):
+        a = seg.length * i / n
+        piece = Segment(seg.x0 + a * c, seg.y0 + a * s, seg.angle_deg, seg.length / n)
+        render_segment(pieces, swept, piece, f0 + (f1 - f0) * (i + 0.5) / n)
+    assert ramp.sum() == pytest.approx(0.5 * (f0 + f1) * seg.length, rel=1e-4)
+    assert np.abs(ramp - pieces).max() < 2e-5 * ramp.max()
