@@ -5,6 +5,7 @@ Every problem is reported as a :class:`~inject.errors.SceneError` naming the key
 """
 from dataclasses import dataclass, field
 
+import numpy as np
 import yaml
 
 from .detector import Detector, detector_from_spec
@@ -26,16 +27,23 @@ _TOP_KEYS = {"seed", "band", "exptime", "seeing", "zenith", "detector", "sky", "
              "satellites", "pointing", "dark_current", "cosmic_rays", "units"}
 _SATELLITE_KEYS = {"height", "phi", "shape", "mag", "ref_range", "track"}
 _TRACK_KEYS = {"x0", "y0", "angle", "length"}
+_VERTEX_KEYS = {"x", "y", "height", "zenith", "phi", "mag"}
 
 
 @dataclass(frozen=True)
 class Track:
-    """Where a streak goes on the pixel grid; ``length=None`` crosses the whole image."""
+    """Where a streak goes on the pixel grid; ``length=None`` crosses the whole image.
+
+    ``vertices`` makes it a polyline: a tuple of mappings with ``x``, ``y`` (pixels) and
+    optionally ``height``, ``zenith``, ``phi``, ``mag`` overriding the satellite's values at
+    that vertex (so width, speed and brightness can change along the track).
+    """
 
     x0: float
     y0: float
     angle: float
     length: float | None = None
+    vertices: tuple | None = None
 
 
 @dataclass(frozen=True)
@@ -140,7 +148,9 @@ def _satellite(i, spec):
     where = f"satellites[{i}]"
     _check_keys(where, spec, _SATELLITE_KEYS, {"height", "shape", "mag", "track"})
     track = spec["track"]
-    _check_keys(f"{where}.track", track, _TRACK_KEYS, {"x0", "y0", "angle"})
+    if isinstance(track, dict) and "vertices" in track:
+        track = _polyline_track(f"{where}.track", track)
+    _check_keys(f"{where}.track", track, _TRACK_KEYS | {"vertices"}, {"x0", "y0", "angle"})
     length = track.get("length")
     try:
         height = _number(f"{where}.height", spec["height"])
@@ -152,11 +162,28 @@ def _satellite(i, spec):
             phi=_number(f"{where}.phi", spec.get("phi", 90.0)),
             ref_range=_number(f"{where}.ref_range", spec.get("ref_range", 550.0)),
             track=Track(*(_number(f"{where}.track.{k}", track[k]) for k in ("x0", "y0", "angle")),
-                        None if length is None else _number(f"{where}.track.length", length)))
+                        None if length is None else _number(f"{where}.track.length", length),
+                        track.get("vertices")))
     except SceneError:
         raise
     except InjectError as err:
         raise SceneError(f"{where}: {err}") from None
+
+
+def _polyline_track(where, track):
+    """Validate a ``{vertices: [...]}`` track; return it with x0, y0, angle of its first piece."""
+    _check_keys(where, track, {"vertices"}, {"vertices"})
+    vertices = track["vertices"]
+    if not isinstance(vertices, list) or len(vertices) < 2:
+        raise SceneError(f"{where}.vertices: needs a list of at least two vertices")
+    checked = []
+    for j, vertex in enumerate(vertices):
+        here = f"{where}.vertices[{j}]"
+        _check_keys(here, vertex, _VERTEX_KEYS, {"x", "y"})
+        checked.append({k: _number(f"{here}.{k}", v) for k, v in vertex.items()})
+    first, second = checked[0], checked[1]
+    angle = float(np.degrees(np.arctan2(second["y"] - first["y"], second["x"] - first["x"])))
+    return {"x0": first["x"], "y0": first["y"], "angle": angle, "vertices": tuple(checked)}
 
 
 def parse_scene(raw):

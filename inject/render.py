@@ -430,3 +430,53 @@ def render_streak(image, model, segment, budget=Budget()):
     """Render a :class:`~inject.streak.StreakModel` along a segment into ``image``."""
     swept = SweptProfile(model.profile, model.pixel_scale, segment.angle_deg, budget)
     return render_segment(image, swept, segment, model.flux_per_px)
+
+
+def render_polyline(image, polyline, models, budget=Budget()):
+    """Render a track through vertices whose streak models differ (width, speed, brightness).
+
+    Each piece between two vertices is split at its middle: the first half is swept with the
+    first vertex's profile, the second half with the second's, while the charge per pixel of
+    track varies linearly from one vertex's value to the next (exactly, see
+    :meth:`SweptProfile.pixel_values`). Profiles are built once per model and angle.
+
+    Parameters
+    ----------
+    image : ndarray
+    polyline : Polyline
+    models : list of StreakModel
+        One per vertex.
+    budget : Budget
+
+    Returns
+    -------
+    float
+        Charge added.
+    """
+    if len(models) != len(polyline.xs):
+        raise InputError("models", len(models), f"need one per vertex ({len(polyline.xs)})")
+    swept = {}
+
+    def profile_for(model, angle):
+        key = (id(model), round(angle, 9))
+        if key not in swept:
+            swept[key] = SweptProfile(model.profile, model.pixel_scale, angle, budget)
+        return swept[key]
+
+    total, vertex = 0.0, 0
+    for seg in polyline.segments():
+        while (polyline.xs[vertex], polyline.ys[vertex]) != (seg.x0, seg.y0):
+            vertex += 1  # skip repeated vertices (zero-length pieces)
+        first, second = models[vertex], models[vertex + 1]
+        f0, f1 = first.flux_per_px, second.flux_per_px
+        mid = 0.5 * (f0 + f1)
+        half = seg.length / 2
+        c, s = seg.direction
+        halves = ((first, seg.x0, seg.y0, f0, mid),
+                  (second, seg.x0 + half * c, seg.y0 + half * s, mid, f1))
+        for model, x, y, fa, fb in halves:
+            piece = type(seg)(x, y, seg.angle_deg, half)
+            total += render_segment(image, profile_for(model, seg.angle_deg), piece,
+                                    fa, fb).charge_added
+        vertex += 1
+    return total

@@ -12,9 +12,9 @@ from .errors import SceneError
 from .instrument import LSST
 from .photometry import sky_per_pixel
 from .profile import Seeing
-from .render import MIN_TOLERANCE, Budget, SweptProfile, render_segment
+from .render import MIN_TOLERANCE, Budget, SweptProfile, render_polyline, render_segment
 from .streak import StreakModel
-from .trajectory import Segment
+from .trajectory import Polyline, Segment
 
 #: Mask planes and their bits (LSST names).
 MASK_PLANES = {"BAD": 0, "SAT": 1, "INTRP": 2, "CR": 3, "EDGE": 4, "DETECTED": 5,
@@ -108,6 +108,9 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0):
             tolerance = max(MIN_TOLERANCE, NOISE_FRACTION * noise_sigma / model.peak_e_per_px)
             if tolerance < budget.tolerance:
                 own = replace(budget, tolerance=tolerance)
+        if track.vertices is not None:
+            truth.append(_render_polyline_track(model_image, model, track, own))
+            continue
         swept = SweptProfile(model.profile, model.pixel_scale, track.angle, own)
         if track.length is None:
             segment = Segment.crossing(shape, track.x0, track.y0, track.angle,
@@ -117,21 +120,43 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0):
         charge = 0.0
         if segment is not None:
             charge = render_segment(model_image, swept, segment, model.flux_per_px).charge_added
-        truth.append(_truth_row(shape, model, segment, swept, charge, track))
+        ends = (track.x0, track.y0, track.x0, track.y0, 0.0) if segment is None else (
+            segment.x0, segment.y0, segment.x1, segment.y1, segment.length)
+        expected = model.flux_per_px * ends[-1]
+        truth.append(_truth_row(model, track, ends, charge, expected, own))
     return model_image, truth
 
 
-def _truth_row(shape, model, segment, swept, charge, track):
+_VERTEX_FIELDS = {"height": "height_km", "zenith": "zenith_deg", "phi": "phi_deg", "mag": "mag"}
+
+
+def _render_polyline_track(image, model, track, budget):
+    """Render a polyline track whose vertices may override the model; return its truth row."""
+    vertex_models = [replace(model, **{_VERTEX_FIELDS[k]: v for k, v in vertex.items()
+                                       if k in _VERTEX_FIELDS})
+                     for vertex in track.vertices]
+    poly = Polyline(tuple(v["x"] for v in track.vertices), tuple(v["y"] for v in track.vertices))
+    charge = render_polyline(image, poly, vertex_models, budget)
+    pieces = poly.segments()
+    fluxes = [m.flux_per_px for m in vertex_models]
+    expected = sum(0.5 * (a + b) * seg.length
+                   for a, b, seg in zip(fluxes[:-1], fluxes[1:], pieces))
+    ends = (poly.xs[0], poly.ys[0], poly.xs[-1], poly.ys[-1], sum(s.length for s in pieces))
+    row = _truth_row(model, track, ends, charge, expected, budget)
+    row["n_vertices"] = len(poly.xs)
+    return row
+
+
+def _truth_row(model, track, ends, charge, expected, budget):
+    """One TRUTH row: geometry and photometry of the model, where the track went
+    (``ends = (x0, y0, x1, y1, length)``) and the charge that landed on the image."""
     g = model.geometry
     flags = 0
     if charge == 0:
         flags |= FLAG_OFF_IMAGE
-    elif charge < model.flux_per_px * segment.length * (1 - 2 * swept.budget.flux_tolerance):
+    elif charge < expected * (1 - 2 * budget.flux_tolerance):
         flags |= FLAG_CLIPPED
-    if segment is None:
-        x0, y0, x1, y1, length = track.x0, track.y0, track.x0, track.y0, 0.0
-    else:
-        x0, y0, x1, y1, length = segment.x0, segment.y0, segment.x1, segment.y1, segment.length
+    x0, y0, x1, y1, length = ends
     return {
         "x0": x0, "y0": y0, "x1": x1, "y1": y1, "angle_deg": track.angle, "length_px": length,
         "height_km": g.height_km, "zenith_deg": g.zenith_deg, "phi_deg": g.phi_deg,
@@ -139,7 +164,7 @@ def _truth_row(shape, model, segment, swept, charge, track):
         "angular_speed_rad_s": g.angular_speed_rad_s, "t_eff_s": g.t_eff_s,
         "apparent_mag": model.apparent_mag, "flux_per_px_e": model.flux_per_px,
         "fwhm_arcsec": model.fwhm_arcsec, "peak_e_per_px": model.peak_e_per_px,
-        "charge_in_image_e": float(charge), "flags": flags,
+        "charge_in_image_e": float(charge), "n_vertices": 2, "flags": flags,
     }
 
 

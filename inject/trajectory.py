@@ -84,3 +84,34 @@ def _clip_line(x0, y0, angle_deg, xlim, ylim):
         ta, tb = sorted(((vmin - origin) / d, (vmax - origin) / d))
         lo, hi = max(lo, ta), min(hi, tb)
     return (lo, hi) if hi > lo else None
+
+
+@dataclass(frozen=True)
+class Polyline:
+    """A track through several vertices (pixels), e.g. a long pass across the focal plane.
+
+    Each vertex may carry its own streak model (range, angular speed, brightness: see
+    :func:`inject.render.render_polyline`).
+    """
+
+    xs: tuple
+    ys: tuple
+
+    def __post_init__(self):
+        xs = tuple(float(v) for v in finite("polyline x", self.xs))
+        ys = tuple(float(v) for v in finite("polyline y", self.ys))
+        if len(xs) != len(ys) or len(xs) < 2:
+            raise InputError("polyline", (self.xs, self.ys),
+                             "needs at least two vertices with one x and one y each")
+        object.__setattr__(self, "xs", xs)
+        object.__setattr__(self, "ys", ys)
+
+    def segments(self):
+        """The straight pieces between consecutive vertices (zero-length ones skipped)."""
+        out = []
+        for x0, y0, x1, y1 in zip(self.xs[:-1], self.ys[:-1], self.xs[1:], self.ys[1:]):
+            length = float(np.hypot(x1 - x0, y1 - y0))
+            if length > 0:
+                out.append(Segment(x0, y0, float(np.degrees(np.arctan2(y1 - y0, x1 - x0))),
+                                   length))
+        return out

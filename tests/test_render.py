@@ -154,3 +154,33 @@ def test_linear_brightness_ramp_matches_fine_constant_pieces(model):
         render_segment(pieces, swept, piece, f0 + (f1 - f0) * (i + 0.5) / n)
     assert ramp.sum() == pytest.approx(0.5 * (f0 + f1) * seg.length, rel=1e-4)
     assert np.abs(ramp - pieces).max() < 2e-5 * ramp.max()
+
+
+def test_polyline_with_equal_models_is_the_straight_track():
+    from inject.render import render_polyline
+    from inject.trajectory import Polyline
+
+    seg = Segment(60.2, 80.7, 25.0, 150.0)
+    mid_x, mid_y = seg.x0 + 70 * np.cos(np.radians(25)), seg.y0 + 70 * np.sin(np.radians(25))
+    poly = Polyline((seg.x0, mid_x, seg.x1), (seg.y0, mid_y, seg.y1))
+    image = np.zeros((300, 320))
+    render_polyline(image, poly, [PAPER_550] * 3)
+    straight = render(PAPER_550, seg, shape=(300, 320))
+    assert np.abs(image - straight).max() < 1e-6 * straight.max()
+
+
+def test_polyline_brightness_ramp_and_bend_conserve_flux():
+    """A bent track whose satellite brightens 4x along it: flux is the trapezoid of its
+    vertices' charge per pixel, and the bend joins without gap or overlap."""
+    from inject.render import render_polyline
+    from inject.trajectory import Polyline
+
+    dim = StreakModel(550, 70, mag=6.5)
+    poly = Polyline((300.0, 420.5, 480.0), (300.0, 350.2, 470.9))
+    image = np.zeros((800, 820))
+    added = render_polyline(image, poly, [dim, PAPER_550, StreakModel(350, 70, mag=5.5)])
+    lengths = [s.length for s in poly.segments()]
+    f = [dim.flux_per_px, PAPER_550.flux_per_px, StreakModel(350, 70, mag=5.5).flux_per_px]
+    expected = 0.5 * (f[0] + f[1]) * lengths[0] + 0.5 * (f[1] + f[2]) * lengths[1]
+    assert added == pytest.approx(expected, rel=1e-4)
+    assert image.sum() == pytest.approx(expected, rel=1e-4)

@@ -82,3 +82,26 @@ def test_override_on_command_line(scene_file, tmp_path):
     truth = Table.read(out, hdu="TRUTH")
     assert fits.getdata(out, "IMAGE").shape == (300, 200)
     assert truth[0]["apparent_mag"] == pytest.approx(StreakModel(550, 70, mag=7.5).apparent_mag)
+
+
+def test_polyline_track_in_a_scene(tmp_path):
+    """A track through vertices that override height and magnitude along it."""
+    scene = dict(SCENE)
+    scene["detector"] = {"type": "itl", "nx": 700, "ny": 600}
+    scene["satellites"] = [SCENE["satellites"][0] | {"track": {"vertices": [
+        {"x": 250, "y": 200}, {"x": 350, "y": 260, "mag": 4.5},
+        {"x": 450, "y": 280, "height": 450, "mag": 4.0}]}}]
+    path = tmp_path / "poly.yaml"
+    path.write_text(yaml.safe_dump(scene))
+    out = tmp_path / "poly.fits"
+    assert main(["simulate", str(path), "-o", str(out)]) == 0
+    truth = Table.read(out, hdu="TRUTH")
+    row = truth[0]
+    assert row["n_vertices"] == 3 and row["flags"] == 0
+    assert (row["x0"], row["y0"], row["x1"], row["y1"]) == (250, 200, 450, 280)
+    f = [StreakModel(550, 70, mag=5.0).flux_per_px, StreakModel(550, 70, mag=4.5).flux_per_px,
+         StreakModel(450, 70, mag=4.0).flux_per_px]
+    lengths = [np.hypot(100, 60), np.hypot(100, 20)]
+    expected = 0.5 * (f[0] + f[1]) * lengths[0] + 0.5 * (f[1] + f[2]) * lengths[1]
+    assert row["charge_in_image_e"] == pytest.approx(expected, rel=1e-4)
+    assert fits.getdata(out, "STREAK_MODEL").sum() == pytest.approx(expected, rel=1e-4)

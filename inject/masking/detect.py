@@ -352,6 +352,31 @@ def erase(prep, work, line, half_width):
     work[yy, xx] = 0
 
 
+#: The search image is erased out to where a found streak's stacked profile drops below this
+#: (binned-noise sigma): a bright streak's wings, tens of pixels out, would otherwise add up
+#: along its length to a second, parallel detection.
+ERASE_LEVEL = 0.1
+
+#: Widest erased band, image pixels (each side).
+MAX_ERASE = 300.0
+
+
+def erase_half_width(prep, line, fwhm_px):
+    """Image-pixel half-width of the band to erase around a found streak (see
+    :data:`ERASE_LEVEL`), plus one FWHM of margin."""
+    from .measure import stack_samples, wing_half_width
+
+    b = prep.to_binned(line)
+    reach = MAX_ERASE / prep.bin
+    yy, xx = band_pixels(prep.binned.shape, b, reach)
+    _, d = b.coordinates(xx, yy)
+    profile, _ = stack_samples(d, prep.binned[yy, xx].astype(np.float64), reach, 0.5, 1.0,
+                               b.angle_deg)
+    wing = wing_half_width(profile, ERASE_LEVEL)
+    wing = reach if wing is None else wing
+    return float(min(MAX_ERASE, prep.bin * wing + fwhm_px))
+
+
 @dataclass
 class Detection:
     """A streak found by :func:`detect_streaks`.
@@ -407,11 +432,22 @@ def detect_streaks(prep, threshold=FALSE_ALARM_Z, max_streaks=MAX_STREAKS):
         if tr is None:
             erase(prep, work, coarse, 2 * width)
             continue
+        hw = erase_half_width(prep, tr.line, tr.fwhm_px)
+        erase(prep, work, tr.line, hw)
+        if any(_same_streak(tr.line, d.line, hw) for d in found):
+            continue  # leftover light of a streak already found
         found.append(Detection(line=tr.line, significance=z, filter_fwhm_px=width, trace=tr))
-        erase(prep, work, tr.line, tr.erase_half_width)
         if len(found) == max_streaks:
             break
     return found
+
+
+def _same_streak(a, b, half_width):
+    """Whether line ``a`` runs along ``b`` within ``half_width`` (wings of one streak)."""
+    from .geometry import angle_difference
+
+    return (angle_difference(a.angle_deg, b.angle_deg) < 1.0
+            and abs(a.offset_from(b)) < half_width)
 
 
 def max_significance(prep):
