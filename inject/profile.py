@@ -84,12 +84,25 @@ def defocus_kernel(range_km, telescope=LSST, gsparams=GSPARAMS):
 
 
 def stationary_profile(shape_profile, range_km, seeing=Seeing(), telescope=LSST,
-                       gsparams=GSPARAMS):
-    """Convolve the projected shape, the defocus annulus and the seeing (unit flux)."""
-    parts = [shape_profile.withGSParams(gsparams), defocus_kernel(range_km, telescope, gsparams)]
+                       gsparams=GSPARAMS, drop=()):
+    """Convolve the projected shape, the defocus annulus and the seeing (unit flux).
+
+    ``drop`` may name ``"shape"`` and/or ``"defocus"`` to leave them out (a point source, a
+    telescope in focus), for components too small to matter (see
+    :meth:`inject.streak.StreakModel.render_profile`).
+    """
+    parts = []
+    if "shape" not in drop:
+        parts.append(shape_profile.withGSParams(gsparams))
+    if "defocus" not in drop:
+        parts.append(defocus_kernel(range_km, telescope, gsparams))
     atmosphere = seeing.profile(gsparams)
     if atmosphere is not None:
         parts.append(atmosphere)
+    if not parts:
+        raise InputError("drop", drop, "nothing left to draw (no seeing either)")
+    if len(parts) == 1:
+        return parts[0]
     return galsim.Convolve(parts, gsparams=gsparams)
 
 

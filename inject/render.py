@@ -14,7 +14,7 @@ tabulated once per profile and angle on a fine grid by an exact spectral antider
 drawn on pixels the streak cannot reach: the support across and along the track follows from an
 accuracy budget.
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import galsim
 import numpy as np
@@ -78,6 +78,9 @@ class RenderPlan:
         Sampling of the interior line-spread function.
     predicted_error : dict
         Predicted largest pixel error of each approximation, relative to the peak.
+    dropped : tuple of str
+        Profile components left out because they cannot change the streak beyond the
+        budget (see :meth:`inject.streak.StreakModel.render_profile`).
     """
 
     support_px: float
@@ -85,6 +88,7 @@ class RenderPlan:
     table_step_px: float
     lsf_step_px: float
     predicted_error: dict = field(default_factory=dict)
+    dropped: tuple = ()
 
     @property
     def total_predicted_error(self):
@@ -426,9 +430,20 @@ def render_segment(image, swept, segment, flux_per_px, flux_end=None):
     return RenderResult(len(values), float(values.sum()), plan)
 
 
+def swept_profile(model, angle_deg, budget=Budget()):
+    """A :class:`SweptProfile` of a :class:`~inject.streak.StreakModel`, with components
+    that cannot matter at this budget dropped, and that decision in its plan."""
+    profile, dropped, error = model.render_profile(budget.tolerance)
+    swept = SweptProfile(profile, model.pixel_scale, angle_deg, budget)
+    if dropped:
+        swept.plan = replace(swept.plan, dropped=dropped,
+                             predicted_error=swept.plan.predicted_error | {"dropped": error})
+    return swept
+
+
 def render_streak(image, model, segment, budget=Budget()):
     """Render a :class:`~inject.streak.StreakModel` along a segment into ``image``."""
-    swept = SweptProfile(model.profile, model.pixel_scale, segment.angle_deg, budget)
+    swept = swept_profile(model, segment.angle_deg, budget)
     return render_segment(image, swept, segment, model.flux_per_px)
 
 
@@ -460,7 +475,7 @@ def render_polyline(image, polyline, models, budget=Budget()):
     def profile_for(model, angle):
         key = (id(model), round(angle, 9))
         if key not in swept:
-            swept[key] = SweptProfile(model.profile, model.pixel_scale, angle, budget)
+            swept[key] = swept_profile(model, angle, budget)
         return swept[key]
 
     total, vertex = 0.0, 0

@@ -12,7 +12,7 @@ from .errors import SceneError
 from .instrument import LSST
 from .photometry import sky_per_pixel
 from .profile import Seeing
-from .render import MIN_TOLERANCE, Budget, SweptProfile, render_polyline, render_segment
+from .render import MIN_TOLERANCE, Budget, render_polyline, render_segment, swept_profile
 from .streak import StreakModel
 from .trajectory import Polyline, Segment
 
@@ -111,7 +111,7 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0):
         if track.vertices is not None:
             truth.append(_render_polyline_track(model_image, model, track, own))
             continue
-        swept = SweptProfile(model.profile, model.pixel_scale, track.angle, own)
+        swept = swept_profile(model, track.angle, own)
         if track.length is None:
             segment = Segment.crossing(shape, track.x0, track.y0, track.angle,
                                        margin=swept.plan.cap_px)

@@ -7,6 +7,7 @@ cross-section across the track, its FWHM and peak.
 from dataclasses import dataclass
 from functools import cached_property
 
+import galsim
 import numpy as np
 
 from .geometry import Geometry
@@ -87,6 +88,44 @@ class StreakModel:
         g = self.geometry
         shape = self.shape.profile(g.range_km, g.nadir_angle_deg, g.phi_deg)
         return stationary_profile(shape, g.range_km, self.seeing, self.telescope)
+
+    def _profile_without(self, drop):
+        g = self.geometry
+        shape = self.shape.profile(g.range_km, g.nadir_angle_deg, g.phi_deg)
+        return stationary_profile(shape, g.range_km, self.seeing, self.telescope, drop=drop)
+
+    def render_profile(self, tolerance):
+        """The simplest profile that draws this streak to within ``tolerance`` of its peak.
+
+        A component (the satellite's shape, the defocus annulus) much smaller than the seeing
+        (e.g. any satellite at GEO) cannot change the streak: it is dropped when the
+        line-spread functions across and along the track, with pixel response, change by at
+        most ``tolerance / 2`` of their peaks without it. That change is the predicted error.
+
+        Returns
+        -------
+        profile : galsim.GSObject
+        dropped : tuple of str
+        predicted_error : float
+            Relative to the peak.
+        """
+        if self.seeing.fwhm_arcsec == 0:
+            return self.profile, (), 0.0
+        p = self.pixel_scale
+        reference = [line_spread(self.profile.rotate(a * galsim.degrees), p)
+                     for a in (0.0, 90.0)]
+        best = (self.profile, (), 0.0)
+        for drop in (("defocus",), ("shape",), ("shape", "defocus")):
+            candidate = self._profile_without(drop)
+            error = 0.0
+            for angle, ref in zip((0.0, 90.0), reference):
+                lsf = line_spread(candidate.rotate(angle * galsim.degrees), p,
+                                  step_arcsec=ref.step)
+                values = np.interp(ref.offset_arcsec, lsf.offset_arcsec, lsf.lsf)
+                error = max(error, np.abs(values - ref.lsf).max() / ref.lsf.max())
+            if error <= tolerance / 2 and len(drop) >= len(best[1]):
+                best = (candidate, drop, float(error))
+        return best
 
     @cached_property
     def lsf(self):

@@ -184,3 +184,24 @@ def test_polyline_brightness_ramp_and_bend_conserve_flux():
     expected = 0.5 * (f[0] + f[1]) * lengths[0] + 0.5 * (f[1] + f[2]) * lengths[1]
     assert added == pytest.approx(expected, rel=1e-4)
     assert image.sum() == pytest.approx(expected, rel=1e-4)
+
+
+@pytest.mark.parametrize("height,tolerance,expect_drop", [
+    (36000.0, 5e-3, ("defocus",)), (550.0, 5e-3, ()), (36000.0, 5e-5, ())])
+def test_dropping_components_and_its_predicted_error(height, tolerance, expect_drop):
+    """At GEO the defocus annulus (0.05") is negligible against 0.67" seeing at a loose budget;
+    the predicted error of dropping it bounds the measured one."""
+    from inject.render import swept_profile
+
+    model = StreakModel(height, 30.0)
+    seg = Segment(100.3, 120.7, 31.0, 80.0)
+    swept = swept_profile(model, seg.angle_deg, Budget(tolerance, flux_tolerance=5e-5))
+    assert set(expect_drop) <= set(swept.plan.dropped)
+    if not expect_drop:
+        assert swept.plan.dropped == ()
+    image = np.zeros((300, 320))
+    render_segment(image, swept, seg, model.flux_per_px)
+    exact = render(model, seg, shape=(300, 320), budget=Budget(1e-5, flux_tolerance=5e-5))
+    measured = np.abs(image - exact).max() / exact.max()
+    predicted = swept.plan.total_predicted_error
+    assert measured <= predicted + 1e-5

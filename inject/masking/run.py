@@ -1,0 +1,413 @@
+"""``inject mask``: detect, measure and mask the streaks of an image.
+
+:func:`mask_image` returns one dict per streak with the keys of CONTRACT.md;
+:func:`write_masked` writes a copy of an input FITS file with the STREAK mask plane set;
+:func:`add_mask_parser` and :func:`run_mask` make the command. Heavy modules are imported
+inside the functions, so registering the command costs nothing.
+"""
+import json
+import math
+import os
+import sys
+from dataclasses import dataclass, field
+
+from . import MaskingError
+
+#: Defaults of the command (the engine's own defaults, repeated here so the parser needs no
+#: NumPy or OpenCV; tests check they agree).
+DEFAULT_PIXEL_SCALE = 0.2
+DEFAULT_RULE = "sb"
+DEFAULT_SB_SIGMA = 1.0
+DEFAULT_FWHM_FACTOR = 3.0
+RULE_CHOICES = ("sb", "fwhm", "lsst", "acstools")
+
+
+@dataclass
+class MaskResult:
+    """Streaks of one image and what masking them costs.
+
+    Attributes
+    ----------
+    streaks : list of dict
+        One per streak, most significant first (keys: see :func:`streak_record`).
+    shape : tuple
+        ``(ny, nx)`` of the image.
+    sky_sigma : float
+        Robust per-pixel noise (image units).
+    pixel_scale : float
+        Arcsec per pixel used for the arcsec values.
+    masked_pixels : int
+        Pixels under any streak's mask (overlaps counted once).
+    lost_pixels : int
+        Of these, pixels not already flagged.
+    """
+
+    streaks: list
+    shape: tuple
+    sky_sigma: float
+    pixel_scale: float
+    masked_pixels: int = 0
+    lost_pixels: int = 0
+    source: str | None = None
+    extra: dict = field(default_factory=dict)
+
+    def to_json(self):
+        """The ``inject mask --json`` object: ``{"streaks": [...], "image": {...}}``."""
+        npix = self.shape[0] * self.shape[1]
+        image = {"path": self.source, "nx": self.shape[1], "ny": self.shape[0],
+                 "sky_sigma": self.sky_sigma, "pixel_scale_arcsec": self.pixel_scale,
+                 "n_streaks": len(self.streaks), "masked_pixels": self.masked_pixels,
+                 "masked_fraction": self.masked_pixels / npix,
+                 "lost_pixels": self.lost_pixels, "lost_fraction": self.lost_pixels / npix}
+        return _json_safe({"streaks": self.streaks, "image": image | self.extra})
+
+
+def _json_safe(value):
+    """NaN and infinities become None (JSON has no NaN); NumPy scalars become Python ones."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _check_options(pixel_scale, rule, sb_sigma, fwhm_factor):
+    from ..errors import InputError
+
+    if pixel_scale is not None and not (math.isfinite(pixel_scale) and pixel_scale > 0):
+        raise InputError("--pixel-scale", pixel_scale, "must be a number > 0 (arcsec)")
+    if rule not in RULE_CHOICES:
+        raise InputError("--mask-rule", rule, f"choose one of {', '.join(RULE_CHOICES)}")
+    if not (math.isfinite(sb_sigma) and sb_sigma > 0):
+        raise InputError("--sb-sigma", sb_sigma, "must be a number > 0")
+    if not (math.isfinite(fwhm_factor) and fwhm_factor > 0):
+        raise InputError("--fwhm-factor", fwhm_factor, "must be a number > 0")
+
+
+def streak_record(measurement, detection, widths, rule, counts, pixel_scale, sky_sigma):
+    """The dict of one streak (CONTRACT keys first).
+
+    The direction of motion cannot be seen in an image: ``angle_deg`` is the line's orientation
+    in ``(-90, 90]`` and ``(x0, y0) -> (x1, y1)`` runs that way.
+    """
+    from .mask import fitted_fwhm
+
+    line = measurement.line
+    at_edge = measurement.at_edge
+    angle = line.angle_deg
+    if not -90 < angle <= 90:
+        line = type(line)(line.x1, line.y1, line.x0, line.y0)
+        at_edge = at_edge[::-1]
+        angle = line.angle_deg
+    fits = fitted_fwhm(measurement)
+    return {
+        "angle_deg": angle, "x0": line.x0, "y0": line.y0, "x1": line.x1, "y1": line.y1,
+        "fwhm_arcsec": measurement.fwhm_px * pixel_scale, "fwhm_px": measurement.fwhm_px,
+        "mask_width_px": widths[rule], **counts,
+        "length_px": line.length, "ends_at_edge": list(at_edge),
+        "fwhm_err_px": measurement.fwhm_err_px,
+        "fwhm_err_arcsec": measurement.fwhm_err_px * pixel_scale,
+        "fwhm_pixelated_px": measurement.fwhm_pixelated_px,
+        "gaussian_fwhm_px": fits["gaussian"], "moffat_fwhm_px": fits["moffat"],
+        "peak": measurement.peak, "peak_snr": measurement.peak / sky_sigma,
+        "snr": measurement.snr, "significance": detection.significance,
+        "mask_rule": rule, "mask_widths_px": widths,
+    }
+
+
+def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
+            rule=DEFAULT_RULE, sb_sigma=DEFAULT_SB_SIGMA, fwhm_factor=DEFAULT_FWHM_FACTOR,
+            threshold=None, max_streaks=None, n_boot=50, source=None):
+    """Detect, measure and size the masks of the streaks of an image array.
+
+    Parameters
+    ----------
+    image : array_like
+        2-D image, any units.
+    bad : array_like of bool, optional
+        Pixels not to use for detection or measurement.
+    flagged : array_like of bool, optional
+        Pixels already flagged (counted apart from the pixels a mask costs); default ``bad``.
+    pixel_scale : float
+        Arcsec per pixel.
+    rule : str
+        Mask-width rule of ``mask_width_px`` (one of ``sb``, ``fwhm``, ``lsst``, ``acstools``).
+    sb_sigma, fwhm_factor : float
+        Parameters of the ``sb`` and ``fwhm`` rules.
+    threshold : float, optional
+        Detection threshold (default :data:`~inject.masking.detect.FALSE_ALARM_Z`).
+    max_streaks : int, optional
+    n_boot : int
+        Bootstrap replicates of the FWHM error.
+    source : str, optional
+        Where the image came from (reported).
+
+    Returns
+    -------
+    MaskResult
+    """
+    import numpy as np
+
+    from .detect import FALSE_ALARM_Z, MAX_STREAKS, detect_streaks, prepare
+    from .mask import lost_pixels, mask_spans, mask_widths, paint
+    from .measure import measure_streak
+
+    _check_options(pixel_scale, rule, sb_sigma, fwhm_factor)
+    prep = prepare(image, bad)
+    flagged = bad if flagged is None else flagged
+    flagged = None if flagged is None else np.asarray(flagged, dtype=bool)
+    detections = detect_streaks(prep, FALSE_ALARM_Z if threshold is None else threshold,
+                                MAX_STREAKS if max_streaks is None else max_streaks)
+    union = np.zeros(prep.shape, dtype=bool)
+    streaks = []
+    for det in detections:
+        m = measure_streak(prep, det.trace, wing_level=sb_sigma * prep.sigma, n_boot=n_boot)
+        widths = mask_widths(m, prep.sigma, sb_sigma, fwhm_factor)
+        width = widths[rule]
+        if not np.isfinite(width):  # a failed fit: fall back on the default rule
+            width = widths[DEFAULT_RULE]
+        counts = lost_pixels(prep.shape, m.line, width, flagged)
+        paint(union, mask_spans(prep.shape, m.line, width))
+        streaks.append(streak_record(m, det, widths, rule, counts, pixel_scale, prep.sigma))
+    masked = int(union.sum())
+    already = int((union & flagged).sum()) if flagged is not None else 0
+    return MaskResult(streaks=streaks, shape=prep.shape, sky_sigma=prep.sigma,
+                      pixel_scale=pixel_scale, masked_pixels=masked, lost_pixels=masked - already,
+                      source=source)
+
+
+def _mask_bits(exposure):
+    """Bit of every mask plane of an exposure's MASK header (``MP_<PLANE>``), or the defaults."""
+    from ..scene import MASK_PLANES
+
+    bits = dict(MASK_PLANES)
+    if exposure.mask_index is not None:
+        header = exposure.hdus[exposure.mask_index].header
+        for key, value in header.items():
+            name = key.split()[-1]
+            if name.startswith("MP_") and isinstance(value, int):
+                bits[name[3:]] = value
+    return bits
+
+
+def _exposure_arrays(exposure):
+    """Image, bad-pixel mask (or None) and pixel scale from WCS (or None) of an exposure."""
+    import numpy as np
+
+    from .detect import BAD_PLANES
+
+    image = exposure.image
+    bad = None
+    if exposure.mask_index is not None:
+        mask = np.asarray(exposure.hdus[exposure.mask_index].data).astype(np.int64)
+        if mask.shape == image.shape:
+            bits = _mask_bits(exposure)
+            planes = sum(1 << bits[p] for p in BAD_PLANES if p in bits)
+            bad = (mask & planes) != 0
+    scale = None
+    wcs = exposure.wcs
+    if wcs is not None:
+        from astropy.wcs.utils import proj_plane_pixel_scales
+
+        scale = float(np.mean(proj_plane_pixel_scales(wcs))) * 3600.0
+    return image, bad, scale
+
+
+def mask_image(source, *, mask=None, pixel_scale=None, **options):
+    """Streaks of an image, one dict each (CONTRACT.md keys and more).
+
+    Parameters
+    ----------
+    source : str, os.PathLike, ndarray or InputExposure
+        A FITS file (any 2-D image HDU, or an LSST-style IMAGE/MASK/VARIANCE file, whose bad
+        planes are ignored), an image array, or an exposure already read.
+    mask : ndarray of bool, optional
+        Pixels not to use (arrays only; a file's MASK HDU is used automatically).
+    pixel_scale : float, optional
+        Arcsec per pixel; default: from the WCS if the file has one, else 0.2.
+    **options
+        Passed to :func:`analyse` (``rule``, ``sb_sigma``, ``fwhm_factor``, ``threshold``,
+        ``max_streaks``, ``n_boot``).
+
+    Returns
+    -------
+    list of dict
+        Each with ``angle_deg, x0, y0, x1, y1, fwhm_arcsec, fwhm_px, mask_width_px,
+        masked_pixels, masked_fraction`` and the extras of :func:`streak_record`.
+    """
+    return _analyse_source(source, mask, pixel_scale, **options).streaks
+
+
+def _analyse_source(source, mask=None, pixel_scale=None, **options):
+    from ..io.reader import InputExposure, read_exposure
+
+    name = None
+    if isinstance(source, (str, os.PathLike)):
+        name = os.fspath(source)
+        source = read_exposure(source)
+    if isinstance(source, InputExposure):
+        image, bad, wcs_scale = _exposure_arrays(source)
+        pixel_scale = pixel_scale or wcs_scale
+    else:
+        image, bad = source, mask
+    return analyse(image, bad=bad, pixel_scale=pixel_scale or DEFAULT_PIXEL_SCALE,
+                   source=name, **options)
+
+
+def _set_streak_plane(exposure, streaks):
+    """Replace the STREAK plane of ``exposure`` (in memory) with the masks of ``streaks``.
+
+    A MASK HDU (int32, with ``MP_<PLANE>`` cards) is added if the file has none. Returns the
+    number of pixels set.
+    """
+    import numpy as np
+    from astropy.io import fits
+
+    from ..scene import MASK_PLANES
+    from .geometry import Line
+    from .mask import mask_spans, paint
+
+    shape = exposure.image_hdu.data.shape
+    if exposure.mask_index is None:
+        header = fits.Header()
+        for name, bit in MASK_PLANES.items():
+            header[f"HIERARCH MP_{name}"] = bit
+        exposure.hdus.append(fits.ImageHDU(np.zeros(shape, dtype=np.int32), header=header,
+                                           name="MASK"))
+        exposure.mask_index = len(exposure.hdus) - 1
+    hdu = exposure.hdus[exposure.mask_index]
+    bit = _mask_bits(exposure).get("STREAK", MASK_PLANES["STREAK"])
+    if "MP_STREAK" not in hdu.header:
+        hdu.header["HIERARCH MP_STREAK"] = bit
+    mask = np.asarray(hdu.data).astype(np.int32)  # native byte order, a copy
+    if mask.shape != shape:
+        raise MaskingError(f"MASK HDU is {mask.shape[1]} x {mask.shape[0]}, the image "
+                           f"{shape[1]} x {shape[0]}")
+    mask &= ~np.int32(1 << bit)
+    plane = np.zeros(shape, dtype=bool)
+    for s in streaks:
+        line = Line(s["x0"], s["y0"], s["x1"], s["y1"])
+        paint(plane, mask_spans(shape, line, s["mask_width_px"]))
+    mask[plane] |= np.int32(1 << bit)
+    hdu.data = mask
+    hdu.header["NSTREAK"] = (len(streaks), "streaks masked by inject mask")
+    return int(plane.sum())
+
+
+def write_masked(in_path, out_path, streaks, overwrite=False):
+    """Write a copy of ``in_path`` whose MASK STREAK plane holds the masks of ``streaks``.
+
+    The input is never modified; any STREAK bits it had are replaced in the copy (e.g. the
+    truth plane of a simulated image). The output is written atomically.
+
+    Parameters
+    ----------
+    in_path, out_path : str or os.PathLike
+    streaks : list of dict
+        As returned by :func:`mask_image` (``x0, y0, x1, y1, mask_width_px``).
+    overwrite : bool
+
+    Returns
+    -------
+    int
+        Pixels in the STREAK plane.
+    """
+    from ..io.reader import read_exposure
+
+    _check_distinct(in_path, out_path)
+    return _write_exposure(read_exposure(in_path), out_path, streaks, overwrite)
+
+
+def _check_distinct(in_path, out_path):
+    from ..errors import InputError
+
+    if os.path.exists(out_path) and os.path.samefile(in_path, out_path):
+        raise InputError("--out", os.fspath(out_path),
+                         "must differ from the input (it is never modified)")
+
+
+def _write_exposure(exposure, out_path, streaks, overwrite):
+    from ..io.atomic import atomic_path
+
+    count = _set_streak_plane(exposure, streaks)
+    with atomic_path(out_path, overwrite) as tmp:
+        exposure.hdus.writeto(tmp, overwrite=True)
+    return count
+
+
+def add_mask_parser(sub):
+    """Register ``inject mask`` on an argparse sub-parser collection."""
+    p = sub.add_parser(
+        "mask", help="detect, measure and mask the streaks of a FITS image",
+        description="Detect satellite streaks (matched filter + fast Hough transform on a "
+                    "binned, star-cleaned image), measure their line and model-free FWHM, and "
+                    "size their masks. The input is never modified.")
+    p.add_argument("image", metavar="IMAGE.fits")
+    p.add_argument("--json", action="store_true",
+                   help='print {"streaks": [...], "image": {...}} as JSON')
+    p.add_argument("-o", "--out", metavar="MASKED.fits",
+                   help="write a copy with the STREAK mask plane set")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing MASKED.fits")
+    p.add_argument("--pixel-scale", type=float, metavar="ARCSEC",
+                   help="arcsec per pixel (default: from the WCS, else 0.2)")
+    p.add_argument("--mask-rule", choices=RULE_CHOICES, default=DEFAULT_RULE,
+                   help="mask width: sb = where the profile drops below --sb-sigma x sky noise "
+                        "(default), fwhm = --fwhm-factor x FWHM, lsst = +-5 alpha of a Moffat "
+                        "beta 2.5 fit (maskStreaks), acstools = 6 sigma of a Gaussian fit "
+                        "(findsat_mrt); all four widths are reported")
+    p.add_argument("--sb-sigma", type=float, default=DEFAULT_SB_SIGMA, metavar="T",
+                   help="surface-brightness threshold of the sb rule, in sky sigma (1)")
+    p.add_argument("--fwhm-factor", type=float, default=DEFAULT_FWHM_FACTOR, metavar="K",
+                   help="k of the fwhm rule (3)")
+    p.add_argument("--threshold", type=float, metavar="Z",
+                   help="detection threshold on the Hough significance (default: calibrated "
+                        "false-alarm level)")
+    p.add_argument("--max-streaks", type=int, metavar="N", help="most streaks to find (8)")
+    p.set_defaults(func=run_mask)
+    return p
+
+
+def run_mask(args):
+    """The ``inject mask`` command (``args`` from :func:`add_mask_parser`)."""
+    from ..io.atomic import check_writable
+    from ..io.reader import read_exposure
+
+    _check_options(args.pixel_scale, args.mask_rule, args.sb_sigma, args.fwhm_factor)
+    if args.out:  # fail before the work, not after it
+        _check_distinct(args.image, args.out)
+        check_writable(args.out, args.overwrite)
+    exposure = read_exposure(args.image)
+    result = _analyse_source(exposure, pixel_scale=args.pixel_scale, rule=args.mask_rule,
+                             sb_sigma=args.sb_sigma, fwhm_factor=args.fwhm_factor,
+                             threshold=args.threshold, max_streaks=args.max_streaks)
+    result.source = os.fspath(args.image)
+    if args.out:
+        _write_exposure(exposure, args.out, result.streaks, args.overwrite)
+    if args.json:
+        json.dump(result.to_json(), sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        _print_table(result)
+    if args.out:
+        print(f"wrote {args.out}", file=sys.stderr)
+
+
+def _print_table(result):
+    print(f"{len(result.streaks)} streak(s) in {result.source or 'image'} "
+          f"({result.shape[1]} x {result.shape[0]} px, sky sigma {result.sky_sigma:.4g})")
+    if result.streaks:
+        names = ("angle", "x0", "y0", "x1", "y1", "FWHM\"", "+-", "width", "masked", "frac", "z")
+        widths = (8, 8, 8, 8, 8, 7, 6, 7, 9, 7, 7)
+        print(" ".join(name.rjust(w) for name, w in zip(names, widths)))
+    for s in result.streaks:
+        print(f"{s['angle_deg']:8.3f} {s['x0']:8.1f} {s['y0']:8.1f} {s['x1']:8.1f} "
+              f"{s['y1']:8.1f} {s['fwhm_arcsec']:7.3f} {s['fwhm_err_arcsec']:6.3f} "
+              f"{s['mask_width_px']:7.1f} {s['masked_pixels']:9d} {s['masked_fraction']:7.4f} "
+              f"{s['significance']:7.1f}")
+    npix = result.shape[0] * result.shape[1]
+    print(f"masked {result.masked_pixels} px ({result.masked_pixels / npix:.4%}), "
+          f"{result.lost_pixels} not already flagged")
