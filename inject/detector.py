@@ -22,6 +22,8 @@ class Detector:
         Imaging pixels along x (columns) and y (rows).
     amp_nx, amp_ny : int
         Amplifier segment size; the sensor has ``(nx / amp_nx) x (ny / amp_ny)`` amplifiers.
+    prescan, serial_overscan, parallel_overscan : int
+        Pixels the raw layout adds to each amplifier segment (obs_lsst).
     gain : float
         Median gain, e-/ADU.
     read_noise : float
@@ -31,6 +33,9 @@ class Detector:
     amp_gains, amp_read_noise : tuple of float, optional
         Per-amplifier values (16, amplifier 0 at the origin, row-major over the 2 x 8 grid);
         every amplifier takes the median value when not given.
+    layout : str
+        ``"assembled"`` (the imaging area) or ``"raw"``: also write the amplifiers' readout
+        with prescan, overscan and ``bias`` (ADU); see :func:`raw_layout`.
     """
 
     kind: str
@@ -38,11 +43,16 @@ class Detector:
     ny: int
     amp_nx: int
     amp_ny: int
+    prescan: int
+    serial_overscan: int
+    parallel_overscan: int
     gain: float
     read_noise: float
     full_well: float = 170_000.0
     amp_gains: tuple | None = None
     amp_read_noise: tuple | None = None
+    layout: str = "assembled"
+    bias: float = 1000.0
 
     N_AMP_ROWS, N_AMP_COLS = 2, 8
 
@@ -58,6 +68,8 @@ class Detector:
             object.__setattr__(self, name, values)
         if not self.full_well > 0:
             raise InputError("detector.full_well", self.full_well, "must be > 0")
+        if self.layout not in ("assembled", "raw"):
+            raise InputError("detector.layout", self.layout, "choose assembled or raw")
 
     @property
     def shape(self):
@@ -97,9 +109,9 @@ class Detector:
 
 
 #: ITL STA3800: 4072 x 4000, 16 amplifiers of 509 x 2000.
-ITL = Detector("itl", 4072, 4000, 509, 2000, gain=1.671, read_noise=6.40)
+ITL = Detector("itl", 4072, 4000, 509, 2000, 3, 64, 48, gain=1.671, read_noise=6.40)
 #: e2v CCD250: 4096 x 4004, 16 amplifiers of 512 x 2002.
-E2V = Detector("e2v", 4096, 4004, 512, 2002, gain=1.476, read_noise=5.41)
+E2V = Detector("e2v", 4096, 4004, 512, 2002, 10, 54, 46, gain=1.476, read_noise=5.41)
 DETECTORS = {"itl": ITL, "e2v": E2V}
 
 
@@ -109,7 +121,8 @@ def detector_from_spec(spec):
         spec = {"type": spec}
     if not isinstance(spec, dict):
         raise InputError("detector", spec, "must be itl, e2v or a mapping with a type")
-    unknown = set(spec) - {"type", "nx", "ny", "gains", "read_noise", "full_well"}
+    unknown = set(spec) - {"type", "nx", "ny", "gains", "read_noise", "full_well", "layout",
+                           "bias"}
     if unknown:
         raise InputError("detector", spec, f"unknown keys {sorted(unknown)}")
     kind = spec.get("type", "itl")
@@ -123,8 +136,9 @@ def detector_from_spec(spec):
         if key in spec:
             value = spec[key]
             changes[field] = tuple([value] * 16) if isinstance(value, (int, float)) else value
-    if "full_well" in spec:
-        changes["full_well"] = spec["full_well"]
+    for key in ("full_well", "layout", "bias"):
+        if key in spec:
+            changes[key] = spec[key]
     try:
         return replace(det, **changes) if changes else det
     except (TypeError, ValueError) as err:
@@ -204,3 +218,54 @@ def add_cosmic_rays(image, n_expected, rng, charge_per_px=1500.0, mean_length_px
         np.add.at(image, (y[inside], x[inside]), charge * 0.25)
         mask[y[inside], x[inside]] = True
     return mask
+
+
+def raw_layout(image_e, detector, rng, bias=1000.0):
+    """The CCD as its amplifiers read it out: ADU with bias, prescan and overscan.
+
+    Each amplifier's segment (``amp_ny`` rows by ``amp_nx`` columns of the image, in
+    electrons) becomes ``prescan + amp_nx + serial_overscan`` columns by ``amp_ny +
+    parallel_overscan`` rows, divided by the amplifier's gain, plus ``bias`` ADU and read
+    noise everywhere (the overscan holds bias and read noise only). Segments are laid out
+    in sensor orientation, 2 rows of 8: the lower amplifiers read out through the bottom
+    edge and the upper ones through the top edge, so every segment's parallel overscan rows
+    lie towards the midline, after its last data row in readout order. Cut-outs keep the
+    amplifiers they overlap, clipped.
+
+    Returns
+    -------
+    raw : ndarray
+        float32 ADU mosaic.
+    sections : list of dict
+        Per amplifier: ``amp``, ``datasec`` (FITS ``[x1:x2,y1:y2]`` in the mosaic, 1-based),
+        ``imagesec`` (the same pixels in the image), ``gain``, ``read_noise``.
+    """
+    gains = detector.per_pixel("gain")
+    noise = detector.per_pixel("read_noise")
+    seg_w = detector.prescan + detector.amp_nx + detector.serial_overscan
+    seg_h = detector.amp_ny + detector.parallel_overscan
+    ny, nx = image_e.shape
+    rows = -(-ny // detector.amp_ny)
+    cols = -(-nx // detector.amp_nx)
+    raw = np.empty((rows * seg_h, cols * seg_w), dtype=np.float32)
+    sections = []
+    for r in range(rows):
+        for c in range(cols):
+            y0, x0 = r * detector.amp_ny, c * detector.amp_nx
+            block = image_e[y0:y0 + detector.amp_ny, x0:x0 + detector.amp_nx]
+            h, w = block.shape
+            amp = r * detector.N_AMP_COLS + c
+            gain, sigma = float(gains[y0, x0]), float(noise[y0, x0])
+            upper = r % 2 == 1  # read out through the top edge: overscan rows below the data
+            first_row = seg_h - h if upper else 0
+            segment = np.zeros((seg_h, seg_w))
+            segment[first_row:first_row + h, detector.prescan:detector.prescan + w] = block / gain
+            segment += bias + rng.standard_normal(segment.shape) * sigma / gain
+            raw[r * seg_h:(r + 1) * seg_h, c * seg_w:(c + 1) * seg_w] = segment
+            data_y0 = r * seg_h + first_row
+            data_x0 = c * seg_w + detector.prescan
+            sections.append({
+                "amp": amp, "gain": gain, "read_noise": sigma,
+                "datasec": f"[{data_x0 + 1}:{data_x0 + w},{data_y0 + 1}:{data_y0 + h}]",
+                "imagesec": f"[{x0 + 1}:{x0 + w},{y0 + 1}:{y0 + h}]"})
+    return raw, sections

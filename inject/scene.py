@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .detector import add_cosmic_rays, bleed_saturation
+from .detector import add_cosmic_rays, bleed_saturation, raw_layout
 from .errors import SceneError
 from .instrument import LSST
 from .photometry import sky_per_pixel
@@ -26,7 +26,7 @@ FLAG_CLIPPED = 2      # part of the track (or its end caps) lies outside the ima
 FLAG_SATURATED = 4    # some streak pixel reached full well
 
 #: Random streams, one per purpose, spawned from the scene seed (numpy SeedSequence).
-STREAMS = {"stars": 0, "noise": 1, "cosmic_rays": 2}
+STREAMS = {"stars": 0, "noise": 1, "cosmic_rays": 2, "raw": 3}
 
 #: Truth mask threshold: STREAK is set where the noise-free streak exceeds this many sigma of
 #: the per-pixel noise (or this fraction of its peak in a noise-free image).
@@ -51,6 +51,8 @@ class SceneResult:
     truth: list
     sky_level: float
     noise_sigma: float
+    raw: np.ndarray | None = None
+    raw_sections: list | None = None
 
 
 def streak_models(scene):
@@ -227,6 +229,9 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None):
         cr_rng = rng(scene.seed, "cosmic_rays", detector_index)
         cosmic = add_cosmic_rays(image, scene.cosmic_rays * scene.exptime, cr_rng)
         mask[cosmic] |= 1 << MASK_PLANES["CR"]
+    raw = sections = None
+    if det.layout == "raw":  # the amplifiers read the collected charge, adding their own noise
+        raw, sections = raw_layout(image, det, rng(scene.seed, "raw", detector_index), det.bias)
     if scene.noise:
         # float32 normals: half the memory traffic, and far finer than the read noise.
         image += gen.standard_normal(size=image.shape, dtype=np.float32) * read_noise
@@ -250,4 +255,5 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None):
         gain = det.per_pixel("gain")
         image, variance = image / gain, variance / gain ** 2
     return SceneResult(image=image, mask=mask, variance=variance, streak_model=streaks,
-                       truth=truth, sky_level=sky, noise_sigma=noise_sigma)
+                       truth=truth, sky_level=sky, noise_sigma=noise_sigma, raw=raw,
+                       raw_sections=sections)

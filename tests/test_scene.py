@@ -94,3 +94,28 @@ def test_cosmic_rays_and_dark_current():
     cr = (res.mask & (1 << MASK_PLANES["CR"])) != 0
     assert cr.any()
     assert np.median(res.image[~cr]) == pytest.approx(15.0, abs=1.0)
+
+
+def test_raw_layout_with_bias_and_overscan():
+    from astropy.io import fits
+
+    res = simulate(scene("detector.type=e2v", "detector.nx=1024", "detector.ny=2100",
+                         "detector.layout=raw", "detector.bias=1200", "stars=false"))
+    det = detector_from_spec({"type": "e2v"})
+    seg_w = det.prescan + det.amp_nx + det.serial_overscan
+    assert res.raw.shape == (2 * (det.amp_ny + det.parallel_overscan), 2 * seg_w)
+    first = res.raw_sections[0]
+    x = slice(det.prescan, det.prescan + det.amp_nx)
+    data = res.raw[:det.amp_ny, x]
+    overscan = res.raw[:det.amp_ny, det.prescan + det.amp_nx:seg_w]
+    # Overscan: bias plus read noise in ADU; data: bias plus collected charge over the gain.
+    assert overscan.mean() == pytest.approx(1200, abs=0.1)
+    assert overscan.std() == pytest.approx(det.read_noise / det.gain, rel=0.05)
+    sky_adu = res.sky_level / det.gain
+    assert np.median(data) == pytest.approx(1200 + sky_adu, rel=2e-3)
+    assert first["datasec"] == f"[{det.prescan + 1}:{det.prescan + det.amp_nx},1:{det.amp_ny}]"
+    # The upper amplifiers read out through the top edge: overscan rows lie below their data.
+    upper = next(s for s in res.raw_sections if s["amp"] == det.N_AMP_COLS)
+    rows_in_cutout = 2100 - det.amp_ny
+    top = 2 * (det.amp_ny + det.parallel_overscan)
+    assert upper["datasec"].endswith(f",{top - rows_in_cutout + 1}:{top}]")

@@ -40,6 +40,21 @@ def truth_table(rows):
     return hdu
 
 
+def raw_hdu(raw, sections, bias):
+    """The amplifiers' readout (ADU, bias, prescan and overscan) with each amplifier's data
+    section, image section, gain and read noise as header cards."""
+    hdu = fits.ImageHDU(raw, name="RAW")
+    hdu.header["BUNIT"] = "adu"
+    hdu.header["BIAS"] = (bias, "[adu] bias level added to every pixel")
+    for sec in sections:
+        key = f"A{sec['amp']:02d}"
+        hdu.header[f"HIERARCH {key} DATASEC"] = sec["datasec"]
+        hdu.header[f"HIERARCH {key} IMAGESEC"] = sec["imagesec"]
+        hdu.header[f"HIERARCH {key} GAIN"] = sec["gain"]
+        hdu.header[f"HIERARCH {key} RDNOISE"] = sec["read_noise"]
+    return hdu
+
+
 def write_truth_csv(path, rows, overwrite=False):
     """The truth table as CSV (one row per streak), written atomically."""
     table = Table(truth_table(rows).data)
@@ -64,6 +79,8 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False):
         truth_table(result.truth),
     ])
     hdus["VARIANCE"].header["BUNIT"] = f"{scene.units}2"
+    if result.raw is not None:
+        hdus.append(raw_hdu(result.raw, result.raw_sections, scene.detector.bias))
     hdus["STREAK_MODEL"].header["BUNIT"] = "electron"
     with atomic_path(path, overwrite) as tmp:
         hdus.writeto(tmp, overwrite=True)

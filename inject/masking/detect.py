@@ -8,9 +8,9 @@ line and a full CCD costs milliseconds per transform:
    interpolation between box centres.
 2. **Binning** :data:`BIN` x :data:`BIN` (mean of the usable pixels), in units of the binned
    noise.
-3. **Star suppression**: connected regions above :data:`STAR_SIGMA` that are compact (short, or
-   round) are set to zero with a margin growing with their peak; a streak is a long, thin
-   region and survives. What is left is clipped to +-:data:`CLIP_SIGMA`, so that no faint
+3. **Star suppression**: connected regions above :data:`STAR_LOW_SIGMA` that reach
+   :data:`STAR_SIGMA` and are compact (short, or round) are set to zero with a margin growing
+   with their peak; a streak is a long, thin region and survives. What is left is clipped to +-:data:`CLIP_SIGMA`, so that no faint
    star, cosmic ray or bright streak dominates a line sum.
 4. **Matched filter**: Gaussian smoothing at the widths :data:`FILTER_SIGMAS` (binned pixels).
    Smoothing a line isotropically is the same as smoothing its cross-section, so this is the
@@ -44,16 +44,20 @@ BACKGROUND_BOX = 256
 #: widths differ by a factor of 2, which costs at most ~6% of the matched-filter S/N.
 FILTER_SIGMAS = (0.7, 1.4, 2.8)
 
-#: Connected regions above this many binned-noise sigma are star candidates.
+#: Connected regions above :data:`STAR_LOW_SIGMA` (binned-noise sigma) that reach
+#: :data:`STAR_SIGMA` are star candidates.
 STAR_SIGMA = 5.0
+STAR_LOW_SIGMA = 2.5
 
 #: The binned image is clipped at +-this many sigma before the transform.
 CLIP_SIGMA = 3.0
 
 #: A region whose major axis is shorter than this (binned px), or whose axis ratio is below
-#: :data:`STAR_AXIS_RATIO`, is compact: a star, a galaxy or a cosmic ray, not a streak.
+#: :data:`STAR_AXIS_RATIO`, is compact: a star, a galaxy or a cosmic ray, not a streak. The
+#: ratio allows for a star cut by the image edge (a half disk is 1.9 times longer than wide)
+#: and for two overlapping stars (up to 2).
 STAR_MAX_LENGTH = 6.0
-STAR_AXIS_RATIO = 2.0
+STAR_AXIS_RATIO = 3.0
 
 #: Hough cells summing fewer binned pixels than this are ignored (short corner lines carry
 #: little signal and their noise is far from Gaussian).
@@ -192,36 +196,42 @@ def _background(grid, cy, cx, ys, xs):
 
 
 def _star_mask(z):
-    """Compact regions above :data:`STAR_SIGMA` in a significance image, with margins."""
-    hot = z > STAR_SIGMA
-    labels, n = ndimage.label(hot, structure=np.ones((3, 3)))
+    """Compact sources in a significance image: regions above :data:`STAR_LOW_SIGMA` holding a
+    pixel above :data:`STAR_SIGMA` (hysteresis: a streak of moderate brightness stays one long
+    region instead of breaking into compact fragments), with margins growing with their
+    peak."""
+    zp = z
+    labels, n = ndimage.label(zp > STAR_LOW_SIGMA, structure=np.ones((3, 3)))
     if n == 0:
         return np.zeros(z.shape, dtype=bool)
     yy, xx = np.nonzero(labels)
     lab = labels[yy, xx]
-    count = np.bincount(lab, minlength=n + 1).astype(float)
-    mean_x = np.bincount(lab, xx, n + 1) / np.maximum(count, 1)
-    mean_y = np.bincount(lab, yy, n + 1) / np.maximum(count, 1)
+    peak = np.zeros(n + 1)
+    np.maximum.at(peak, lab, zp[yy, xx])
+    bright = peak > STAR_SIGMA
+    bright[0] = False
+    keep = bright[lab]
+    yy, xx, lab = yy[keep], xx[keep], lab[keep]
+    count = np.maximum(np.bincount(lab, minlength=n + 1), 1).astype(float)
+    mean_x = np.bincount(lab, xx, n + 1) / count
+    mean_y = np.bincount(lab, yy, n + 1) / count
     dx, dy = xx - mean_x[lab], yy - mean_y[lab]
     # 1/12 px^2: a pixel's own extent, so single pixels have a non-zero size.
-    cxx = np.bincount(lab, dx * dx, n + 1) / np.maximum(count, 1) + 1 / 12
-    cyy = np.bincount(lab, dy * dy, n + 1) / np.maximum(count, 1) + 1 / 12
-    cxy = np.bincount(lab, dx * dy, n + 1) / np.maximum(count, 1)
+    cxx = np.bincount(lab, dx * dx, n + 1) / count + 1 / 12
+    cyy = np.bincount(lab, dy * dy, n + 1) / count + 1 / 12
+    cxy = np.bincount(lab, dx * dy, n + 1) / count
     root = np.sqrt(0.25 * (cxx - cyy) ** 2 + cxy ** 2)
     major = np.sqrt(0.5 * (cxx + cyy) + root)
     minor = np.sqrt(np.maximum(0.5 * (cxx + cyy) - root, 1 / 12))
     # A uniform bar of length L has an rms of L / sqrt(12) along it.
-    compact = (np.sqrt(12) * major <= STAR_MAX_LENGTH) | (major <= STAR_AXIS_RATIO * minor)
-    compact[0] = False
-    peak = np.zeros(n + 1)
-    np.maximum.at(peak, lab, z[yy, xx])
+    compact = bright & ((np.sqrt(12) * major <= STAR_MAX_LENGTH)
+                        | (major <= STAR_AXIS_RATIO * minor))
     # Margin grows with the peak: a bright star's wings stay above the noise further out.
     margin = np.clip(1 + np.round(2 * np.log10(np.maximum(peak, STAR_SIGMA) / STAR_SIGMA)),
                      1, 8).astype(int)
-    stars = np.zeros(z.shape, dtype=bool)
+    stars = np.zeros(zp.shape, dtype=bool)
     for r in np.unique(margin[compact]):
-        selected = compact & (margin == r)
-        region = selected[labels].astype(np.uint8)
+        region = (compact & (margin == r))[labels].astype(np.uint8)
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
         stars |= cv2.dilate(region, kernel).astype(bool)
     return stars
