@@ -105,3 +105,19 @@ def test_polyline_track_in_a_scene(tmp_path):
     expected = 0.5 * (f[0] + f[1]) * lengths[0] + 0.5 * (f[1] + f[2]) * lengths[1]
     assert row["charge_in_image_e"] == pytest.approx(expected, rel=1e-4)
     assert fits.getdata(out, "STREAK_MODEL").sum() == pytest.approx(expected, rel=1e-4)
+
+
+def test_pointing_gives_a_celestial_wcs(tmp_path):
+    from astropy.wcs import WCS
+
+    scene = dict(SCENE) | {"pointing": {"ra": 150.0, "dec": -30.0, "rotation": 20.0}}
+    path = tmp_path / "wcs.yaml"
+    path.write_text(yaml.safe_dump(scene))
+    out = tmp_path / "wcs.fits"
+    assert main(["simulate", str(path), "-o", str(out)]) == 0
+    wcs = WCS(fits.getheader(out, "IMAGE"))
+    assert wcs.has_celestial
+    ra, dec = wcs.pixel_to_world_values(199.5, 149.5)  # the centre of the 400 x 300 cut-out
+    assert (float(ra), float(dec)) == pytest.approx((150.0, -30.0), abs=1e-9)
+    scales = wcs.proj_plane_pixel_scales()
+    assert [s.to_value("arcsec") for s in scales] == pytest.approx([0.2, 0.2], rel=1e-9)
