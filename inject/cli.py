@@ -231,6 +231,9 @@ def build_parser():
     _add_profile_parser(sub)
     _add_simulate_parser(sub)
     _add_add_streak_parser(sub)
+    from .masking.run import add_mask_parser
+
+    add_mask_parser(sub)
     return parser
 
 

@@ -21,7 +21,7 @@ class MaskingError(InjectError):
     """An image cannot be searched for streaks (not 2-D, too small, no usable pixels...)."""
 
 
-_LAZY = {"mask_image": "run", "write_masked": "run", "run_mask": "run",
+_LAZY = {"mask_image": "run", "analyse": "run", "write_masked": "run", "run_mask": "run",
          "add_mask_parser": "run", "detect_streaks": "detect", "prepare": "detect",
          "measure_streak": "measure", "mask_widths": "mask", "lost_pixels": "mask"}
 

@@ -9,20 +9,22 @@ line and a full CCD costs milliseconds per transform:
 2. **Binning** :data:`BIN` x :data:`BIN` (mean of the usable pixels), in units of the binned
    noise.
 3. **Star suppression**: connected regions above :data:`STAR_LOW_SIGMA` that reach
-   :data:`STAR_SIGMA` and are compact (short, or round) are set to zero with a margin growing
-   with their peak; a streak is a long, thin region and survives. What is left is clipped to +-:data:`CLIP_SIGMA`, so that no faint
-   star, cosmic ray or bright streak dominates a line sum.
-4. **Matched filter**: Gaussian smoothing at the widths :data:`FILTER_SIGMAS` (binned pixels).
-   Smoothing a line isotropically is the same as smoothing its cross-section, so this is the
-   matched filter across the track, whatever the angle; the transform does the sum along it.
-5. **Fast Hough transform** (OpenCV ``ximgproc``): every line sum, divided by the square root
-   of its pixel count and standardised per angle (median and interquartile range over
-   offsets), is a significance ``z`` with unit noise.
-6. **Peaks**: the best ``z`` over widths is compared with :data:`FALSE_ALARM_Z`. Above it, the
-   line is refined and its extent found (:mod:`.measure`), the streak is erased from the
+   :data:`STAR_SIGMA` and are compact (short, or round and filled) are set to zero with a
+   margin growing with their peak; a streak is a long, thin region and survives. What is left
+   is clipped to +-:data:`CLIP_SIGMA`, so that no faint star, cosmic ray or bright streak
+   dominates a line sum.
+4. **Matched filter**: Gaussian smoothing (sigma :data:`FILTER_SIGMA` binned pixels) on a
+   pyramid of the binned image (:data:`LEVELS` levels, each binned 2 x 2 more). Smoothing a
+   line isotropically is the same as smoothing its cross-section, so this is the matched
+   filter across the track, whatever the angle, for streak FWHMs of ~7, 13 and 26 image
+   pixels; the wider filters run on smaller images, so all three cost 1.3 times the first.
+5. **Fast Hough transform** (OpenCV ``ximgproc``) of each level: every line sum, divided by
+   the square root of its pixel count and standardised per angle (median and interquartile
+   range over offsets), is a significance ``z`` with unit noise.
+6. **Peaks**: the best ``z`` over levels is compared with :data:`FALSE_ALARM_Z`. Above it,
+   the line is refined and its extent found (:mod:`.measure`), the streak is erased from the
    binned image, and the search repeats, so several streaks are found one after the other.
 """
-import warnings
 from dataclasses import dataclass
 
 import cv2
@@ -30,7 +32,8 @@ import numpy as np
 from scipy import ndimage
 
 from . import MaskingError
-from .geometry import Line, band_pixels
+from .geometry import Line, angle_difference, band_pixels
+from .measure import stack_samples, trace_streak, wing_half_width
 
 #: Binning factor of the search image (4: a 7-10 px wide LSSTCam streak is ~2 binned px).
 BIN = 4
@@ -39,10 +42,16 @@ BIN = 4
 #: clipped median is not pulled by it; small compared with a CCD so sky gradients are followed.
 BACKGROUND_BOX = 256
 
-#: Gaussian matched-filter widths (sigma, binned pixels): streak FWHMs of ~7, 13 and 26 image
-#: pixels (1.3", 2.6" and 5.3" at 0.2"/px), from far orbits to low ones near zenith. Adjacent
-#: widths differ by a factor of 2, which costs at most ~6% of the matched-filter S/N.
-FILTER_SIGMAS = (0.7, 1.4, 2.8)
+#: Gaussian matched-filter sigma, in pixels of each pyramid level. At binnings 4, 8 and 16 it
+#: matches streak FWHMs of ~7, 13 and 26 image pixels (1.3", 2.6" and 5.3" at 0.2"/px), from
+#: far orbits to low ones near zenith; neighbouring levels differ by 2 in width, which costs
+#: at most ~6% of the matched-filter S/N.
+FILTER_SIGMA = 0.7
+LEVELS = 3
+
+#: Smallest side of a pyramid level: on fewer cells the per-angle standardisation of the
+#: transform rests on too few offsets and its tail grows (a 1024 px cut-out keeps 2 levels).
+MIN_LEVEL_SIZE = 128
 
 #: Connected regions above :data:`STAR_LOW_SIGMA` (binned-noise sigma) that reach
 #: :data:`STAR_SIGMA` are star candidates.
@@ -59,20 +68,25 @@ CLIP_SIGMA = 3.0
 STAR_MAX_LENGTH = 6.0
 STAR_AXIS_RATIO = 3.0
 
-#: Hough cells summing fewer binned pixels than this are ignored (short corner lines carry
-#: little signal and their noise is far from Gaussian).
-MIN_LINE_BINNED = 32
+#: A round region must also fill this fraction of the ellipse of its second moments to be
+#: compact: a star fills ~1 (a noisy edge ~0.7), two crossing streaks ~12 w / (pi L).
+STAR_MIN_FILL = 0.4
 
-#: False-alarm threshold on the Hough significance ``z`` (see the module docstring).
+#: Hough cells of lines shorter than this (image pixels; at least 16 cells) are ignored: short
+#: corner lines carry little signal and their noise is far from Gaussian.
+MIN_LINE_PX = 128
+
+#: False-alarm threshold on the Hough significance ``z``.
 #:
-#: How it was obtained: ``scripts/bench_mask.py --calibrate`` runs :func:`detect_streaks` with
-#: no threshold on streak-free simulated ITL images (g band, 30 s, dark sky at zenith 70 deg,
-#: 0.67" seeing, Poisson and read noise, stars to mag 24 where :mod:`inject.stars` provides
-#: them) and records the largest ``z`` of each image. Over 40 full 4072 x 4000 CCDs (seeds
-#: 1-40) and 100 1024 x 1024 cut-outs (seeds 1-100) the largest value was 5.83 (full CCD; the
-#: 99th percentile 5.71; cut-outs: 5.36 max). The threshold adds a margin of 0.5 to the largest
-#: value, so a false alarm needs a noise excursion well beyond anything seen in 140 images.
-FALSE_ALARM_Z = 6.3
+#: How it was obtained: ``python scripts/bench_mask.py --calibrate --full 40 --cutouts 100``
+#: simulates streak-free scenes (the default field: ITL CCD, g band, 30 s, dark sky, zenith
+#: 70 deg, 0.67" seeing, Poisson and read noise, stars to mag 24 with saturated cores flagged)
+#: and records the largest ``z`` of each image (:func:`max_significance`). Over 40 full
+#: 4072 x 4000 CCDs (seeds 1-40) the largest was 6.04 (99th percentile 5.93, median 5.10);
+#: over 100 1024 x 1024 cut-outs (seeds 1-100) 5.83 (median 4.76). The threshold is the
+#: largest value plus 0.5: a false alarm needs a noise excursion beyond anything seen in those
+#: 140 images (and must then survive the refinement of :func:`.measure.trace_streak`).
+FALSE_ALARM_Z = 6.5
 
 #: Most streaks searched for in one image.
 MAX_STREAKS = 8
@@ -80,16 +94,10 @@ MAX_STREAKS = 8
 #: Planes of an LSST-style mask whose pixels are not used (as LSST ``maskStreaks`` does).
 BAD_PLANES = ("BAD", "SAT", "CR", "EDGE", "NO_DATA", "INTRP", "SUSPECT")
 
-_FHT_OPTIONS = {}  # filled on first use: OpenCV constants
-
-
 def _fht_options():
     # OpenCV 5 silently puts positional angleRange/op/makeSkew into the output argument:
     # always pass them by keyword.
-    if not _FHT_OPTIONS:
-        x = cv2.ximgproc
-        _FHT_OPTIONS.update(angleRange=x.ARO_315_135, makeSkew=x.HDO_DESKEW)
-    return _FHT_OPTIONS
+    return {"angleRange": cv2.ximgproc.ARO_315_135, "makeSkew": cv2.ximgproc.HDO_DESKEW}
 
 
 def fast_hough(image):
@@ -130,15 +138,17 @@ class Prepared:
     def shape(self):
         return self.residual.shape
 
-    def to_binned(self, line):
-        """The same line in binned-pixel coordinates."""
-        b, o = self.bin, (self.bin - 1) / 2
+    def to_binned(self, line, factor=None):
+        """The same line in the coordinates of an image binned ``factor`` (default ``bin``)."""
+        b = self.bin if factor is None else factor
+        o = (b - 1) / 2
         return Line((line.x0 - o) / b, (line.y0 - o) / b, (line.x1 - o) / b, (line.y1 - o) / b)
 
-    def from_binned(self, x, y):
-        """Image-pixel coordinates of binned-pixel coordinates."""
-        return self.bin * np.asarray(x, float) + (self.bin - 1) / 2, \
-            self.bin * np.asarray(y, float) + (self.bin - 1) / 2
+    def from_binned(self, x, y, factor=None):
+        """Image-pixel coordinates of coordinates in an image binned ``factor``."""
+        b = self.bin if factor is None else factor
+        o = (b - 1) / 2
+        return b * np.asarray(x, float) + o, b * np.asarray(y, float) + o
 
 
 def robust_sigma(values):
@@ -150,13 +160,30 @@ def robust_sigma(values):
 
 
 def _bin(image, valid, factor):
-    ny, nx = (n // factor * factor for n in image.shape)
-    shape = (ny // factor, factor, nx // factor, factor)
-    total = image[:ny, :nx].reshape(shape).sum(axis=(1, 3), dtype=np.float64)
-    count = valid[:ny, :nx].reshape(shape).sum(axis=(1, 3))
-    out = np.full(count.shape, np.nan, dtype=np.float32)
-    np.divide(total, count, out=out, where=count > 0, casting="unsafe")
+    """Mean of the usable pixels of every ``factor x factor`` block (NaN if none); a partial
+    last row or column of blocks is left out. ``image`` is 0 where not ``valid``."""
+    ny, nx = (n // factor for n in image.shape)
+    # OpenCV's area resampling is a block mean, ~20x faster than a NumPy reshape-sum here.
+    mean = cv2.resize(image[:ny * factor, :nx * factor], (nx, ny),
+                      interpolation=cv2.INTER_AREA)
+    # Unusable pixels are few: count them per block rather than resample a full mask.
+    yy, xx = np.nonzero(~valid[:ny * factor, :nx * factor])
+    bad = np.zeros((ny, nx))
+    np.add.at(bad, (yy // factor, xx // factor), 1)
+    frac = 1 - bad / factor ** 2
+    out = np.full((ny, nx), np.nan, dtype=np.float32)
+    np.divide(mean, frac, out=out, where=frac > 0, casting="unsafe")
     return out
+
+
+def _row_medians(a):
+    """Median of the finite values of each row (NaN for none): NaNs sort last, so each row's
+    median is read at its own count (np.nanmedian loops over rows in Python)."""
+    a = np.sort(a, axis=1)
+    n = np.isfinite(a).sum(axis=1)
+    rows = np.arange(a.shape[0])
+    lo, hi = np.maximum((n - 1) // 2, 0), np.maximum(n // 2, 0)
+    return np.where(n > 0, 0.5 * (a[rows, lo] + a[rows, hi]), np.nan)
 
 
 def _box_medians(binned, box):
@@ -166,33 +193,34 @@ def _box_medians(binned, box):
     by, bx = -(-ny // gy), -(-nx // gx)
     padded = np.full((gy * by, gx * bx), np.nan, dtype=np.float32)
     padded[:ny, :nx] = binned
-    blocks = padded.reshape(gy, by, gx, bx).transpose(0, 2, 1, 3).reshape(gy, gx, by * bx)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN boxes: filled below
-        med = np.nanmedian(blocks, axis=2)
-        for _ in range(2):
-            spread = 1.4826 * np.nanmedian(np.abs(blocks - med[..., None]), axis=2)
-            clipped = np.where(np.abs(blocks - med[..., None]) <= 3 * spread[..., None],
-                               blocks, np.nan)
-            med = np.nanmedian(clipped, axis=2)
+    blocks = padded.reshape(gy, by, gx, bx).transpose(0, 2, 1, 3).reshape(gy * gx, by * bx)
+    med = _row_medians(blocks)
+    # Two passes of 3-sigma clipping (MAD): a star or a streak in a box does not pull it.
+    for _ in range(2):
+        dev = np.abs(blocks - med[:, None])
+        spread = 1.4826 * _row_medians(dev)
+        blocks = np.where(dev <= 3 * spread[:, None], blocks, np.nan)
+        med = _row_medians(blocks)
+    med = med.reshape(gy, gx)
     if np.all(np.isnan(med)):
         raise MaskingError("no usable pixels for the background")
     med[np.isnan(med)] = np.nanmedian(med)
     if gy >= 3 and gx >= 3:
         med = ndimage.median_filter(med, size=3, mode="nearest")
-    # Box centres, binned pixels.
-    return med, (np.arange(gy) + 0.5) * by - 0.5, (np.arange(gx) + 0.5) * bx - 0.5
+    return med.astype(np.float32), (by, bx)
 
 
-def _interpolation_matrix(centres, positions):
-    """Weights ``W`` such that ``W @ values`` interpolates linearly (flat beyond the ends)."""
-    eye = np.eye(len(centres))
-    return np.stack([np.interp(positions, centres, col) for col in eye], axis=1)
+def _background(grid, box, shape, factor=1):
+    """Bilinear interpolation between box centres (flat beyond the outer ones) on an image of
+    ``shape`` binned ``factor`` times less than the grid's boxes of ``box`` binned pixels.
 
-
-def _background(grid, cy, cx, ys, xs):
-    """Bilinear interpolation of a box grid at the rows ``ys`` and columns ``xs``."""
-    return (_interpolation_matrix(cy, ys) @ grid @ _interpolation_matrix(cx, xs).T)
+    OpenCV's linear resize puts source pixel ``k`` at ``(k + 0.5) * scale - 0.5``, exactly
+    where box ``k``'s centre falls; the boxes may overhang the image, which is cropped.
+    """
+    (gy, gx), (by, bx) = grid.shape, box
+    full = cv2.resize(grid, (gx * bx * factor, gy * by * factor),
+                      interpolation=cv2.INTER_LINEAR)
+    return full[:shape[0], :shape[1]]
 
 
 def _star_mask(z):
@@ -223,9 +251,11 @@ def _star_mask(z):
     root = np.sqrt(0.25 * (cxx - cyy) ** 2 + cxy ** 2)
     major = np.sqrt(0.5 * (cxx + cyy) + root)
     minor = np.sqrt(np.maximum(0.5 * (cxx + cyy) - root, 1 / 12))
-    # A uniform bar of length L has an rms of L / sqrt(12) along it.
+    # A uniform bar of length L has an rms of L / sqrt(12) along it; a uniform ellipse of rms
+    # a, b covers 4 pi a b. Two crossing streaks make a round region too, but a hollow one.
+    fill = count / (4 * np.pi * major * minor)
     compact = bright & ((np.sqrt(12) * major <= STAR_MAX_LENGTH)
-                        | (major <= STAR_AXIS_RATIO * minor))
+                        | ((major <= STAR_AXIS_RATIO * minor) & (fill >= STAR_MIN_FILL)))
     # Margin grows with the peak: a bright star's wings stay above the noise further out.
     margin = np.clip(1 + np.round(2 * np.log10(np.maximum(peak, STAR_SIGMA) / STAR_SIGMA)),
                      1, 8).astype(int)
@@ -275,19 +305,17 @@ def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
         raise MaskingError(f"only {valid.sum()} of {valid.size} pixels are usable")
     img[~valid] = 0
     binned = _bin(img, valid, bin_factor)
-    grid, cy, cx = _box_medians(binned, max(4, box // bin_factor))
-    ny, nx = img.shape
-    o = (bin_factor - 1) / 2
-    residual = img - _background(grid, cy, cx, (np.arange(ny) - o) / bin_factor,
-                                 (np.arange(nx) - o) / bin_factor).astype(np.float32)
+    grid, boxes = _box_medians(binned, max(4, box // bin_factor))
+    residual = img  # in place: img is our own copy
+    residual -= _background(grid, boxes, img.shape, bin_factor)
     residual[~valid] = np.nan
-    # Every 7th pixel is plenty for the noise and keeps this fast on a full CCD.
-    sigma = robust_sigma(residual.ravel()[::7])
+    # Half a million pixels pin the noise to ~0.2% and keep this fast on a full CCD.
+    sigma = robust_sigma(residual.ravel()[::max(1, residual.size // 500_000)])
     if not sigma > 0:
-        raise MaskingError("image noise is zero: nothing to detect against")
-    rb = binned - _background(grid, cy, cx, np.arange(binned.shape[0]),
-                              np.arange(binned.shape[1])).astype(np.float32)
-    z = rb / robust_sigma(rb.ravel())
+        raise MaskingError("image has no noise (median absolute deviation 0): detection "
+                           "thresholds and mask widths are set against the sky noise")
+    rb = binned - _background(grid, boxes, binned.shape)
+    z = rb / robust_sigma(rb.ravel()[::max(1, rb.size // 300_000)])
     z[~np.isfinite(z)] = 0
     stars_b = _star_mask(z)
     work = np.where(stars_b, 0, np.clip(z, -CLIP_SIGMA, CLIP_SIGMA)).astype(np.float32)
@@ -298,7 +326,8 @@ def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
 
 
 def _standardise_rows(h, usable, every=8):
-    """Subtract each row's median and divide by its robust spread (over usable cells).
+    """In place: subtract each row's median and divide by its robust spread (over the usable
+    cells); unusable cells become 0.
 
     Sampled every ``every`` rows and interpolated: the spread changes smoothly with angle.
     """
@@ -307,59 +336,106 @@ def _standardise_rows(h, usable, every=8):
     # +inf, and each row's quartiles are read at its own count (nanpercentile loops in Python).
     sample = np.sort(np.where(usable[rows], h[rows], np.inf), axis=1)
     n = usable[rows].sum(axis=1)
-    ok = n >= 8
     idx = np.arange(rows.size)
 
     def quantile(q):
         return sample[idx, np.clip((q * (n - 1)).round().astype(int), 0, h.shape[1] - 1)]
 
     q1, med, q3 = quantile(0.25), quantile(0.5), quantile(0.75)
-    ok &= q3 > q1
+    ok = (n >= 8) & (q3 > q1)
     if not ok.any():
-        return np.zeros_like(h)
+        h[:] = 0
+        return h
     all_rows = np.arange(h.shape[0])
-    med = np.interp(all_rows, rows[ok], med[ok])
-    spread = np.interp(all_rows, rows[ok], (q3 - q1)[ok] / 1.349)
-    return (h - med[:, None]) / spread[:, None]
+    med = np.interp(all_rows, rows[ok], med[ok]).astype(np.float32)
+    spread = np.interp(all_rows, rows[ok], (q3 - q1)[ok] / 1.349).astype(np.float32)
+    h -= med[:, None]
+    h /= spread[:, None]
+    h[~usable] = 0
+    return h
 
 
-_COUNTS = {}
+_NORM = {}
 
 
-def hough_significance(work, sigmas=FILTER_SIGMAS, min_length=MIN_LINE_BINNED):
-    """Significance of every line in the binned image, best over the matched-filter widths.
+def _line_norm(shape, min_length):
+    """``1 / sqrt(pixels)`` of every Hough cell (0 for lines shorter than ``min_length``) and
+    which cells are usable."""
+    key = (shape, min_length)
+    if key not in _NORM:
+        if len(_NORM) >= 3 * LEVELS:  # a run needs one image shape per level
+            _NORM.clear()
+        counts = fast_hough(np.ones(shape, dtype=np.float32))
+        usable = counts >= min_length
+        _NORM[key] = (np.where(usable, 1 / np.sqrt(np.maximum(counts, 1)), 0)
+                      .astype(np.float32), usable)
+    return _NORM[key]
+
+
+def pyramid(work, levels=LEVELS):
+    """The search image and its 2 x 2 block means, ``levels`` images in all, with their
+    binning relative to the first."""
+    images = [(work, 1)]
+    for _ in range(levels - 1):
+        img, f = images[-1]
+        ny, nx = img.shape[0] // 2, img.shape[1] // 2
+        if min(ny, nx) < MIN_LEVEL_SIZE:
+            break
+        images.append((cv2.resize(img[:2 * ny, :2 * nx], (nx, ny),
+                                  interpolation=cv2.INTER_AREA), 2 * f))
+    return images
+
+
+def hough_significance(image, min_length):
+    """Significance ``z`` of every line of one (already binned) image.
 
     Returns
     -------
-    z : ndarray
-        Hough-space significance (float32); cells of short lines are 0.
-    width_index : ndarray
-        Index into ``sigmas`` of the best width of each cell.
+    ndarray
+        float32, rows = angles, columns = offsets; cells of lines shorter than
+        ``min_length`` cells are 0.
     """
-    key = work.shape
-    if key not in _COUNTS:
-        _COUNTS.clear()  # one shape at a time is what a run needs
-        _COUNTS[key] = fast_hough(np.ones(work.shape, dtype=np.float32))
-    counts = _COUNTS[key]
-    usable = counts >= min_length
-    norm = 1 / np.sqrt(np.maximum(counts, 1))
-    best = np.zeros(counts.shape, dtype=np.float32)
-    which = np.zeros(counts.shape, dtype=np.int8)
-    for k, s in enumerate(sigmas):
-        z = _standardise_rows(fast_hough(cv2.GaussianBlur(work, (0, 0), s)) * norm, usable)
-        better = (z > best) & usable
-        best[better], which[better] = z[better], k
-    return best, which
+    norm, usable = _line_norm(image.shape, min_length)
+    h = fast_hough(cv2.GaussianBlur(image, (0, 0), FILTER_SIGMA))
+    h *= norm
+    return _standardise_rows(h, usable)
 
 
-def _peak_line(prep, zmap):
-    """Image-pixel chord of the line of the highest cell, and its (row, col)."""
-    row, col = np.unravel_index(int(np.argmax(zmap)), zmap.shape)
-    x1, y1, x2, y2 = cv2.ximgproc.HoughPoint2Line((int(col), int(row)), prep.binned,
+@dataclass
+class Candidate:
+    """The most significant line of the search image.
+
+    Attributes
+    ----------
+    z : float
+        Its significance.
+    line : Line or None
+        Its chord across the image (image pixels).
+    fwhm_px : float
+        FWHM of the matched filter that found it (image pixels).
+    """
+
+    z: float
+    line: Line | None
+    fwhm_px: float
+
+
+def best_line(prep, work):
+    """The most significant line over all pyramid levels of ``work`` (a binned image)."""
+    best = None
+    for image, f in pyramid(work):
+        factor = prep.bin * f
+        z = hough_significance(image, max(16, MIN_LINE_PX // factor))
+        i = int(np.argmax(z))
+        if best is None or z.flat[i] > best[0]:
+            best = (float(z.flat[i]), np.unravel_index(i, z.shape), image, factor)
+    z, (row, col), image, factor = best
+    x1, y1, x2, y2 = cv2.ximgproc.HoughPoint2Line((int(col), int(row)), image,
                                                   **_fht_options())
-    (xa, xb), (ya, yb) = prep.from_binned([x1, x2], [y1, y2])
+    (xa, xb), (ya, yb) = prep.from_binned([x1, x2], [y1, y2], factor)
     angle = np.degrees(np.arctan2(yb - ya, xb - xa))
-    return Line.crossing(prep.shape, xa, ya, angle), (row, col)
+    return Candidate(z=z, line=Line.crossing(prep.shape, xa, ya, angle),
+                     fwhm_px=2.3548 * FILTER_SIGMA * factor)
 
 
 def erase(prep, work, line, half_width):
@@ -381,8 +457,6 @@ MAX_ERASE = 300.0
 def erase_half_width(prep, line, fwhm_px):
     """Image-pixel half-width of the band to erase around a found streak (see
     :data:`ERASE_LEVEL`), plus one FWHM of margin."""
-    from .measure import stack_samples, wing_half_width
-
     b = prep.to_binned(line)
     reach = MAX_ERASE / prep.bin
     yy, xx = band_pixels(prep.binned.shape, b, reach)
@@ -431,18 +505,14 @@ def detect_streaks(prep, threshold=FALSE_ALARM_Z, max_streaks=MAX_STREAKS):
     list of Detection
         In order of decreasing significance.
     """
-    from .measure import trace_streak
-
     work = prep.binned.copy()
     found = []
     # Candidates that refinement rejects are erased too; a few spare rounds allow for them.
     for _ in range(max_streaks + 4):
-        zmap, which = hough_significance(work)
-        coarse, cell = _peak_line(prep, zmap)
-        z = float(zmap[cell])
-        if not z >= threshold:
+        cand = best_line(prep, work)
+        if not cand.z >= threshold:
             break
-        width = 2.3548 * FILTER_SIGMAS[which[cell]] * prep.bin
+        coarse, width, z = cand.line, cand.fwhm_px, cand.z
         if coarse is None:  # cannot happen for a cell of this image's transform
             break
         tr = trace_streak(prep, coarse, width)
@@ -461,13 +531,10 @@ def detect_streaks(prep, threshold=FALSE_ALARM_Z, max_streaks=MAX_STREAKS):
 
 def _same_streak(a, b, half_width):
     """Whether line ``a`` runs along ``b`` within ``half_width`` (wings of one streak)."""
-    from .geometry import angle_difference
-
     return (angle_difference(a.angle_deg, b.angle_deg) < 1.0
             and abs(a.offset_from(b)) < half_width)
 
 
 def max_significance(prep):
     """Largest Hough significance of an image (for calibrating :data:`FALSE_ALARM_Z`)."""
-    zmap, _ = hough_significance(prep.binned)
-    return float(zmap.max())
+    return best_line(prep, prep.binned).z

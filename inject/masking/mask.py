@@ -64,7 +64,7 @@ def mask_widths(measurement, sky_sigma, sb_sigma=STREAK_MASK_SIGMA, fwhm_factor=
     reach = wing_half_width(measurement.profile, sb_sigma * sky_sigma)
     if reach is None:  # still above the level at the window's edge: mask the whole window
         reach = float(measurement.profile.distance[-1])
-    floor = 0.5 * MIN_FWHM * fwhm if np.isfinite(fwhm) else 0.0
+    floor = 0.5 * MIN_FWHM * measurement.width_px
     return {
         "sb": 2 * max(reach, floor),
         "fwhm": fwhm_factor * fwhm,
@@ -116,13 +116,11 @@ def lost_pixels(shape, line, width, flagged=None):
         flagged), ``lost_pixels`` (the difference: what the streak mask costs) and
         ``masked_fraction`` (``masked_pixels`` over the image's pixel count).
     """
-    rows, start, stop = mask_spans(shape, line, width)
-    masked = int(np.sum(stop - start))
+    spans = mask_spans(shape, line, width)
+    masked = int(np.sum(spans[2] - spans[1]))
     already = 0
     if flagged is not None and masked:
-        # Prefix sums per row give each run's flagged count without building the mask.
-        cum = np.zeros((len(rows), shape[1] + 1), dtype=np.int64)
-        np.cumsum(flagged[rows], axis=1, out=cum[:, 1:])
-        already = int(np.sum(cum[np.arange(len(rows)), stop] - cum[np.arange(len(rows)), start]))
+        yy, xx = span_indices(*spans)
+        already = int(np.count_nonzero(flagged[yy, xx]))
     return {"masked_pixels": masked, "already_flagged_pixels": already,
             "lost_pixels": masked - already, "masked_fraction": masked / float(np.prod(shape))}

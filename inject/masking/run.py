@@ -9,8 +9,9 @@ import json
 import math
 import os
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
+from ..errors import InputError
 from . import MaskingError
 
 #: Defaults of the command (the engine's own defaults, repeated here so the parser needs no
@@ -49,7 +50,6 @@ class MaskResult:
     masked_pixels: int = 0
     lost_pixels: int = 0
     source: str | None = None
-    extra: dict = field(default_factory=dict)
 
     def to_json(self):
         """The ``inject mask --json`` object: ``{"streaks": [...], "image": {...}}``."""
@@ -59,7 +59,7 @@ class MaskResult:
                  "n_streaks": len(self.streaks), "masked_pixels": self.masked_pixels,
                  "masked_fraction": self.masked_pixels / npix,
                  "lost_pixels": self.lost_pixels, "lost_fraction": self.lost_pixels / npix}
-        return _json_safe({"streaks": self.streaks, "image": image | self.extra})
+        return _json_safe({"streaks": self.streaks, "image": image})
 
 
 def _json_safe(value):
@@ -75,9 +75,7 @@ def _json_safe(value):
     return value
 
 
-def _check_options(pixel_scale, rule, sb_sigma, fwhm_factor):
-    from ..errors import InputError
-
+def _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold=None, max_streaks=None):
     if pixel_scale is not None and not (math.isfinite(pixel_scale) and pixel_scale > 0):
         raise InputError("--pixel-scale", pixel_scale, "must be a number > 0 (arcsec)")
     if rule not in RULE_CHOICES:
@@ -86,10 +84,14 @@ def _check_options(pixel_scale, rule, sb_sigma, fwhm_factor):
         raise InputError("--sb-sigma", sb_sigma, "must be a number > 0")
     if not (math.isfinite(fwhm_factor) and fwhm_factor > 0):
         raise InputError("--fwhm-factor", fwhm_factor, "must be a number > 0")
+    if threshold is not None and not math.isfinite(threshold):
+        raise InputError("--threshold", threshold, "must be a finite number")
+    if max_streaks is not None and max_streaks < 1:
+        raise InputError("--max-streaks", max_streaks, "must be >= 1")
 
 
 def streak_record(measurement, detection, widths, rule, counts, pixel_scale, sky_sigma):
-    """The dict of one streak (CONTRACT keys first).
+    """The dict of one streak (CONTRACT keys first); ``rule`` is the mask-width rule applied.
 
     The direction of motion cannot be seen in an image: ``angle_deg`` is the line's orientation
     in ``(-90, 90]`` and ``(x0, y0) -> (x1, y1)`` runs that way.
@@ -156,7 +158,7 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
     from .mask import lost_pixels, mask_spans, mask_widths, paint
     from .measure import measure_streak
 
-    _check_options(pixel_scale, rule, sb_sigma, fwhm_factor)
+    _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold, max_streaks)
     prep = prepare(image, bad)
     flagged = bad if flagged is None else flagged
     flagged = None if flagged is None else np.asarray(flagged, dtype=bool)
@@ -167,12 +169,11 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
     for det in detections:
         m = measure_streak(prep, det.trace, wing_level=sb_sigma * prep.sigma, n_boot=n_boot)
         widths = mask_widths(m, prep.sigma, sb_sigma, fwhm_factor)
-        width = widths[rule]
-        if not np.isfinite(width):  # a failed fit: fall back on the default rule
-            width = widths[DEFAULT_RULE]
-        counts = lost_pixels(prep.shape, m.line, width, flagged)
-        paint(union, mask_spans(prep.shape, m.line, width))
-        streaks.append(streak_record(m, det, widths, rule, counts, pixel_scale, prep.sigma))
+        # A Gaussian or Moffat fit can fail, or the FWHM be unmeasurable: then the sb rule.
+        applied = rule if np.isfinite(widths[rule]) else DEFAULT_RULE
+        counts = lost_pixels(prep.shape, m.line, widths[applied], flagged)
+        paint(union, mask_spans(prep.shape, m.line, widths[applied]))
+        streaks.append(streak_record(m, det, widths, applied, counts, pixel_scale, prep.sigma))
     masked = int(union.sum())
     already = int((union & flagged).sum()) if flagged is not None else 0
     return MaskResult(streaks=streaks, shape=prep.shape, sky_sigma=prep.sigma,
@@ -323,8 +324,6 @@ def write_masked(in_path, out_path, streaks, overwrite=False):
 
 
 def _check_distinct(in_path, out_path):
-    from ..errors import InputError
-
     if os.path.exists(out_path) and os.path.samefile(in_path, out_path):
         raise InputError("--out", os.fspath(out_path),
                          "must differ from the input (it is never modified)")
@@ -376,7 +375,8 @@ def run_mask(args):
     from ..io.atomic import check_writable
     from ..io.reader import read_exposure
 
-    _check_options(args.pixel_scale, args.mask_rule, args.sb_sigma, args.fwhm_factor)
+    _check_options(args.pixel_scale, args.mask_rule, args.sb_sigma, args.fwhm_factor,
+                   args.threshold, args.max_streaks)
     if args.out:  # fail before the work, not after it
         _check_distinct(args.image, args.out)
         check_writable(args.out, args.overwrite)

@@ -1,0 +1,257 @@
+#!/usr/bin/env python
+"""Benchmark of ``inject mask`` against a Canny + probabilistic Hough baseline.
+
+On full LSSTCam ITL CCDs (4072 x 4000 px; g band, 30 s, dark sky, zenith 70 deg, 0.67"
+seeing, Poisson and read noise, stars to mag 24) with the paper's satellite (7.25 x 2.65 m box):
+
+1. **timing**: detect + measure + mask (:func:`inject.masking.run.analyse`) and the baseline
+   (:func:`inject.masking.baseline.canny_hough`, the acstools ``satdet`` approach) on the same
+   image, in one run;
+2. **completeness** of both at decreasing magnitudes (seeded random tracks crossing the CCD);
+3. **FWHM accuracy** at peak S/N = 1 per pixel for 350 and 550 km;
+4. **false positives** on streak-free CCDs.
+
+``--calibrate`` instead records the largest Hough significance of streak-free images, from
+which :data:`inject.masking.detect.FALSE_ALARM_Z` was set.
+
+Usage::
+
+    python scripts/bench_mask.py [--seeds 5] [--out out/bench_mask.json]
+    python scripts/bench_mask.py --calibrate --full 40 --cutouts 100
+"""
+import argparse
+import json
+import time
+
+import numpy as np
+
+from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
+from inject.masking.baseline import canny_hough, segments_match
+from inject.masking.detect import BAD_PLANES, FALSE_ALARM_Z, max_significance, prepare
+from inject.masking.evaluate import match_streaks, truth_line
+from inject.masking.run import analyse
+from inject.scene import MASK_PLANES, simulate, sky_level, streak_models
+
+#: Magnitudes of the completeness run (paper satellite at 550 km, zenith 70: peak S/N per
+#: pixel 4.4, 1.7, 0.69, 0.28, 0.17, 0.11, 0.069, 0.044, 0.028).
+MAGS = (10.0, 11.0, 12.0, 13.0, 13.5, 14.0, 14.5, 15.0, 15.5)
+
+BAD_BITS = sum(1 << MASK_PLANES[p] for p in BAD_PLANES)
+
+SECTIONS = ("timing", "completeness", "fwhm", "false_positives")
+
+
+def make_scene(seed, satellites, size=None, stars=True):
+    """A validated scene: the default field with these satellites (``size``: square cut-out)."""
+    over = [f"seed={seed}", f"stars={'{mag_limit: 24}' if stars else 'false'}"]
+    if size:
+        over += [f"detector.nx={size}", f"detector.ny={size}"]
+    raw = apply_overrides(DEFAULT_SCENE, over)
+    raw["satellites"] = satellites
+    return parse_scene(raw)
+
+
+def satellite(height, mag, x0, y0, angle, length=None):
+    track = {"x0": float(x0), "y0": float(y0), "angle": float(angle)}
+    if length:
+        track["length"] = float(length)
+    return {"height": height, "shape": {"type": "box", "length": 7.25, "width": 2.65},
+            "mag": float(mag), "track": track}
+
+
+def random_track(seed, shape):
+    """A track through the central 60% of the image at a random angle."""
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(99,)))
+    ny, nx = shape
+    return (rng.uniform(0.2, 0.8) * nx, rng.uniform(0.2, 0.8) * ny, rng.uniform(0, 180))
+
+
+def snr_of(scene):
+    """Peak S/N per pixel of each satellite of a scene (peak over the sky + read noise)."""
+    sigma = np.sqrt(sky_level(scene) + scene.detector.read_noise ** 2)
+    return [m.peak_e_per_px / sigma for m in streak_models(scene)]
+
+
+def mag_for_snr(height, snr, size=None):
+    """Stationary magnitude giving a peak S/N per pixel of ``snr`` for the paper satellite."""
+    scene = make_scene(1, [satellite(height, 5.0, 0, 0, 0)], size)
+    return 5.0 + 2.5 * np.log10(snr_of(scene)[0] / snr)
+
+
+def image_of(scene):
+    r = simulate(scene)
+    return r, (r.mask & BAD_BITS) != 0
+
+
+def timed(func, repeat):
+    """Result of the last call and the median wall time over ``repeat`` calls."""
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        out = func()
+        times.append(time.perf_counter() - t)
+    return out, float(np.median(times))
+
+
+def bench_timing(seed, mag, repeat):
+    scene = make_scene(seed, [satellite(550, mag, 300, 200, 33.0)])
+    r, bad = image_of(scene)
+    ours, t_ours = timed(lambda: analyse(r.image, bad=bad), repeat)
+    prep_time = timed(lambda: prepare(r.image, bad), repeat)[1]
+    segs, t_base = timed(lambda: canny_hough(r.image, seed=seed), repeat)
+    true = truth_line(r.truth[0], r.image.shape)
+    return {"mag": mag, "peak_snr": snr_of(scene)[0], "ours_s": t_ours, "ours_prepare_s": prep_time,
+            "baseline_s": t_base, "ours_found": len(ours.streaks),
+            "baseline_segments": len(segs),
+            "baseline_matching_segments": len(segments_match(segs, true))}
+
+
+def bench_completeness(mags, seeds, baseline=True):
+    rows = []
+    for mag in mags:
+        found_ours = found_base = strict = 0
+        snr = None
+        for seed in seeds:
+            shape = (4000, 4072)
+            x0, y0, angle = random_track(seed, shape)
+            scene = make_scene(seed, [satellite(550, mag, x0, y0, angle)])
+            snr = snr_of(scene)[0]
+            r, bad = image_of(scene)
+            res = analyse(r.image, bad=bad, n_boot=0)
+            m, _ = match_streaks(res.streaks, r.truth, shape)
+            found_ours += m[0].found_index is not None
+            m, _ = match_streaks(res.streaks, r.truth, shape, 0.2, 1.0)
+            strict += m[0].found_index is not None
+            if baseline:
+                segs = canny_hough(r.image, seed=seed)
+                found_base += bool(segments_match(segs, truth_line(r.truth[0], shape)))
+        n = len(seeds)
+        rows.append({"mag": mag, "peak_snr": snr, "ours": found_ours / n,
+                     "ours_strict": strict / n, "baseline": found_base / n if baseline else None})
+        print(f"  mag {mag:5.2f}  S/N {snr:6.3f}  ours {found_ours}/{n} (strict {strict}/{n})"
+              + (f"  baseline {found_base}/{n}" if baseline else ""), flush=True)
+    return rows
+
+
+def bench_fwhm(seeds, size=None):
+    rows = []
+    for height in (350, 550):
+        mag = mag_for_snr(height, 1.0, size)
+        errors, boot = [], []
+        for seed in seeds:
+            shape = (size, size) if size else (4000, 4072)
+            x0, y0, angle = random_track(seed, shape)
+            scene = make_scene(seed, [satellite(height, mag, x0, y0, angle)], size)
+            r, bad = image_of(scene)
+            res = analyse(r.image, bad=bad)
+            m, _ = match_streaks(res.streaks, r.truth, shape)
+            if m[0].found_index is None:
+                errors.append(np.nan)
+                continue
+            s = res.streaks[m[0].found_index]
+            errors.append(100 * (s["fwhm_arcsec"] / r.truth[0]["fwhm_arcsec"] - 1))
+            boot.append(100 * s["fwhm_err_px"] / s["fwhm_px"])
+        e = np.array(errors)
+        rows.append({"height_km": height, "mag": mag, "errors_pct": e.tolist(),
+                     "mean_pct": float(np.nanmean(e)),
+                     "rms_pct": float(np.sqrt(np.nanmean(e ** 2))),
+                     "max_abs_pct": float(np.nanmax(np.abs(e))),
+                     "within_3pct": int(np.sum(np.abs(e) <= 3)), "n": len(e),
+                     "bootstrap_pct": float(np.mean(boot)) if boot else None})
+        print(f"  {height} km mag {mag:.2f}: FWHM error % {np.round(e, 2)} "
+              f"(rms {rows[-1]['rms_pct']:.2f}, bootstrap {rows[-1]['bootstrap_pct']:.2f})",
+              flush=True)
+    return rows
+
+
+#: Streak-free images for false positives use seeds from here on, apart from those of the
+#: calibration (1-100), so they test the threshold rather than repeat its derivation.
+FALSE_POSITIVE_SEED0 = 1000
+
+
+def bench_false_positives(seeds, baseline=True):
+    ours = base = 0
+    for seed in (FALSE_POSITIVE_SEED0 + s for s in seeds):
+        r, bad = image_of(make_scene(seed, []))
+        ours += len(analyse(r.image, bad=bad, n_boot=0).streaks)
+        if baseline:
+            base += len(canny_hough(r.image, seed=seed)) > 0
+    return {"images": len(seeds), "ours_detections": ours,
+            "baseline_images_with_segments": base if baseline else None}
+
+
+def calibrate(n_full, n_cut):
+    """Largest Hough significance of streak-free full CCDs and 1024 x 1024 cut-outs."""
+    out = {}
+    for label, size, n in (("full", None, n_full), ("cutout_1024", 1024, n_cut)):
+        z = []
+        for seed in range(1, n + 1):
+            r, bad = image_of(make_scene(seed, [], size))
+            z.append(max_significance(prepare(r.image, bad)))
+        z = np.array(z)
+        out[label] = {"n": n, "max": float(z.max()), "p99": float(np.percentile(z, 99)),
+                      "median": float(np.median(z))}
+        print(f"  {label}: {n} images, largest z {z.max():.3f}, 99th percentile "
+              f"{np.percentile(z, 99):.3f}, median {np.median(z):.3f}", flush=True)
+    worst = max(v["max"] for v in out.values())
+    out["suggested_threshold"] = round(worst + 0.5, 1)
+    print(f"  suggested FALSE_ALARM_Z = {out['suggested_threshold']} (current {FALSE_ALARM_Z})")
+    return out
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seeds", type=int, default=5, help="images per magnitude / case (5)")
+    p.add_argument("--repeat", type=int, default=3, help="timing repeats (median)")
+    p.add_argument("--mags", type=float, nargs="*", default=MAGS)
+    p.add_argument("--no-baseline", action="store_true", help="skip the baseline's completeness")
+    p.add_argument("--calibrate", action="store_true", help="calibrate the false-alarm level")
+    p.add_argument("--full", type=int, default=40, help="--calibrate: full CCDs (40)")
+    p.add_argument("--cutouts", type=int, default=100, help="--calibrate: 1024 cut-outs (100)")
+    p.add_argument("--sections", nargs="*", default=SECTIONS, choices=SECTIONS,
+                   help="what to run (all)")
+    p.add_argument("--out", help="write the results as JSON")
+    args = p.parse_args(argv)
+    seeds = list(range(1, args.seeds + 1))
+    if args.calibrate:
+        print("calibration (streak-free images):")
+        results = {"calibration": calibrate(args.full, args.cutouts)}
+    else:
+        results = {}
+        if "timing" in args.sections:
+            print("timing, full ITL CCD (4072 x 4000), one streak, stars to mag 24:")
+            rows = [bench_timing(1, mag, args.repeat) for mag in (9.0, 12.0)]
+            print(f"  {'mag':>5s} {'S/N':>7s} {'ours s':>8s} {'(prepare)':>10s} "
+                  f"{'baseline s':>11s} {'ours found':>11s} {'baseline segs (on streak)':>26s}")
+            for r in rows:
+                print(f"  {r['mag']:5.1f} {r['peak_snr']:7.3f} {r['ours_s']:8.3f} "
+                      f"{r['ours_prepare_s']:10.3f} {r['baseline_s']:11.3f} "
+                      f"{r['ours_found']:11d} {r['baseline_segments']:15d} "
+                      f"({r['baseline_matching_segments']})")
+            results["timing"] = rows
+        if "completeness" in args.sections:
+            print("completeness (fraction of seeded random tracks found; ours: within 0.5 deg "
+                  "and 5 px, strict: 0.2 deg and 1 px; baseline: a segment within 1 deg and "
+                  "10 px):")
+            results["completeness"] = bench_completeness(args.mags, seeds, not args.no_baseline)
+        if "fwhm" in args.sections:
+            print("FWHM at peak S/N = 1 per pixel (full CCD, random tracks):")
+            results["fwhm"] = bench_fwhm(seeds)
+            print("FWHM at peak S/N = 1 per pixel (1024 x 1024 cut-outs):")
+            results["fwhm_cutout"] = bench_fwhm(seeds, 1024)
+        if "false_positives" in args.sections:
+            print(f"false positives on streak-free full CCDs (seeds {FALSE_POSITIVE_SEED0 + 1}-"
+                  f"{FALSE_POSITIVE_SEED0 + len(seeds)}):")
+            results["false_positives"] = bench_false_positives(seeds, not args.no_baseline)
+            print(f"  {results['false_positives']}")
+    if args.out:
+        import os
+
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+        with open(args.out, "w", encoding="utf-8") as f:
+            json.dump(results, f, indent=1)
+        print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
