@@ -3,6 +3,8 @@
 The engine takes a validated :class:`~inject.config.Scene` and returns arrays and a truth
 table; writing files is :mod:`inject.io`'s job.
 """
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -170,6 +172,45 @@ def _truth_row(model, track, ends, charge, expected, budget):
     }
 
 
+class AmplifierNoise:
+    """Poisson and read noise drawn amplifier by amplifier, on a thread pool.
+
+    Each amplifier has its own random stream (spawned from the scene seed, the detector and
+    the amplifier), so the result is the same whatever the number of threads; numpy's
+    generators release the GIL, so two cores draw twice as fast.
+    """
+
+    def __init__(self, detector, seed, detector_index=0, threads=None):
+        ny, nx = detector.shape
+        self.blocks = [(slice(y, y + detector.amp_ny), slice(x, x + detector.amp_nx))
+                       for y in range(0, ny, detector.amp_ny)
+                       for x in range(0, nx, detector.amp_nx)]
+        root = np.random.SeedSequence(seed, spawn_key=(detector_index, STREAMS["noise"]))
+        self.generators = [np.random.default_rng(s) for s in root.spawn(len(self.blocks))]
+        self.threads = threads or min(len(self.blocks), os.cpu_count() or 1)
+
+    def _each(self, work):
+        with ThreadPoolExecutor(self.threads) as pool:
+            list(pool.map(work, self.generators, self.blocks))
+
+    def poisson(self, expected):
+        """Collected charge (float64) for the expected charge; negatives count as 0 (the
+        model can dip a few 1e-6 of its peak below zero by interpolation)."""
+        image = np.empty(expected.shape)
+
+        def draw(gen, block):
+            image[block] = gen.poisson(np.clip(expected[block], 0, None))
+        self._each(draw)
+        return image
+
+    def add_read_noise(self, image, read_noise):
+        """Add Gaussian read noise (float32 normals: far finer than the noise itself)."""
+        def draw(gen, block):
+            image[block] += gen.standard_normal(
+                size=image[block].shape, dtype=np.float32) * read_noise[block]
+        self._each(draw)
+
+
 def sky_level(scene):
     """Sky background in e-/px for the scene (0 when ``sky`` is false).
 
@@ -219,9 +260,8 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None):
     read_noise = det.per_pixel("read_noise")
     mask = np.zeros(det.shape, dtype=np.int32)
     if scene.noise:
-        gen = rng(scene.seed, "noise", detector_index)
-        # The model can dip a few 1e-6 of its peak below zero (interpolation): not a charge.
-        image = gen.poisson(np.clip(expected, 0, None)).astype(np.float64)
+        noise = AmplifierNoise(det, scene.seed, detector_index)
+        image = noise.poisson(expected)
     else:
         image = expected.copy()
     saturated = bleed_saturation(image, det.full_well, det.midline)
@@ -233,8 +273,7 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None):
     if det.layout == "raw":  # the amplifiers read the collected charge, adding their own noise
         raw, sections = raw_layout(image, det, rng(scene.seed, "raw", detector_index), det.bias)
     if scene.noise:
-        # float32 normals: half the memory traffic, and far finer than the read noise.
-        image += gen.standard_normal(size=image.shape, dtype=np.float32) * read_noise
+        noise.add_read_noise(image, read_noise)
         variance = expected.astype(np.float32)
         np.maximum(variance, 0, out=variance)
         variance += read_noise ** 2
