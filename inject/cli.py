@@ -231,9 +231,11 @@ def build_parser():
     _add_profile_parser(sub)
     _add_simulate_parser(sub)
     _add_add_streak_parser(sub)
+    from .masking.cli_evaluate import add_evaluate_parser
     from .masking.run import add_mask_parser
 
     add_mask_parser(sub)
+    add_evaluate_parser(sub)
     return parser
 
 

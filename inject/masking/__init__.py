@@ -9,6 +9,9 @@
   from the rasterised mask.
 - :mod:`~inject.masking.run`: :func:`mask_image`, :func:`write_masked` and the ``inject mask``
   command.
+- :mod:`~inject.masking.evaluate`: scoring any masking function against injected truth;
+  :mod:`~inject.masking.cli_evaluate`: the ``inject evaluate`` campaign;
+  :mod:`~inject.masking.external`: the acstools ``findsat_mrt`` adapter (optional).
 
 Submodules are imported on first use, so that building the command-line parser stays cheap.
 """
@@ -23,7 +26,9 @@ class MaskingError(InjectError):
 
 _LAZY = {"mask_image": "run", "analyse": "run", "write_masked": "run", "run_mask": "run",
          "add_mask_parser": "run", "detect_streaks": "detect", "prepare": "detect",
-         "measure_streak": "measure", "mask_widths": "mask", "lost_pixels": "mask"}
+         "measure_streak": "measure", "mask_widths": "mask", "lost_pixels": "mask",
+         "load_masker": "evaluate", "Masker": "evaluate",
+         "add_evaluate_parser": "cli_evaluate", "findsat_mrt_mask": "external"}
 
 __all__ = ["MaskingError", *_LAZY]
 

@@ -1,8 +1,21 @@
-"""Scoring detections against a simulation's TRUTH rows: matches, errors, false positives."""
+"""Scoring masking functions against a simulation's truth.
+
+:func:`match_streaks` matches detected lines to TRUTH rows. :func:`evaluate` runs any masking
+function (:class:`Masker`: ``f(image) -> bool mask``; the built-in one is :func:`inject_masker`)
+on simulated images and scores it per streak and per image (:func:`score_image`): completeness
+against peak surface brightness and integrated S/N, false positives, angle, offset and FWHM
+errors, mask recall, over-masking and IoU against the true region ``{streak_model > t x sky
+sigma}``, and the streak charge left outside the mask; :func:`summarise` aggregates.
+"""
+import importlib
+import inspect
+import time
 from dataclasses import dataclass
 
+import numpy as np
+
 from ..trajectory import Segment
-from .geometry import Line, angle_difference
+from .geometry import Line, angle_difference, band_pixels
 
 
 def truth_line(row, shape):
@@ -67,3 +80,358 @@ def match_streaks(found, truth, shape, max_angle_deg=0.5, max_offset_px=5.0):
             used.add(best[0])
             matches.append(Match(i, *best))
     return matches, [j for j in range(len(found)) if j not in used]
+
+
+# ---------------------------------------------------------------------------------------------
+# Scoring any masking function against injected truth
+
+#: ``t`` of the true region ``{streak_model > t x sky sigma}`` that masks are scored against
+#: (the simulator's STREAK plane uses the same level, :data:`inject.scene.STREAK_MASK_SIGMA`).
+TRUTH_SIGMA = 1.0
+
+#: A streak counts as found by a mask when the mask covers at least this fraction of its core
+#: (pixel centres within half a true FWHM of its line). Unlike the true region, the core exists
+#: however faint the streak, and every masker is judged on the same footing.
+CORE_COVER = 0.5
+
+#: Names accepted by :func:`load_masker` besides ``module:function``.
+BUILTIN_MASKERS = ("inject", "findsat_mrt")
+
+
+@dataclass
+class MaskerOutput:
+    """What a masking function returns: a boolean mask, and its streaks when it reports them.
+
+    Attributes
+    ----------
+    mask : ndarray of bool
+        Pixels masked, same shape as the image.
+    streaks : list of dict or None
+        Lines found (``x0, y0, x1, y1``; ``fwhm_arcsec`` where measured), or None for a
+        masker that gives only a mask (its angle, offset and FWHM errors are then NaN).
+    """
+
+    mask: np.ndarray
+    streaks: list | None = None
+
+
+class Masker:
+    """A masking function, called as ``func(image)`` or ``func(image, bad=bad)``.
+
+    The function gets the image array and returns a boolean mask (or a :class:`MaskerOutput`).
+    It is given the bad-pixel mask only if it takes a ``bad`` keyword, so plain ``f(image)``
+    functions work unchanged.
+
+    Parameters
+    ----------
+    func : callable
+    name : str, optional
+        Label in tables and plots (default: the function's name).
+    """
+
+    def __init__(self, func, name=None):
+        self.func = func
+        self.name = name or getattr(func, "__name__", repr(func))
+        try:
+            self._takes_bad = "bad" in inspect.signature(func).parameters
+        except (TypeError, ValueError):  # some builtins have no signature
+            self._takes_bad = False
+
+    def __call__(self, image, bad=None):
+        """Run the function on ``image``: ``(MaskerOutput, wall seconds)``."""
+        start = time.perf_counter()
+        out = self.func(image, bad=bad) if self._takes_bad else self.func(image)
+        seconds = time.perf_counter() - start
+        if not isinstance(out, MaskerOutput):
+            out = MaskerOutput(np.asarray(out))
+        mask = np.asarray(out.mask, dtype=bool)
+        if mask.shape != np.shape(image):
+            raise ValueError(f"masker {self.name} returned a mask of shape {mask.shape} for an "
+                             f"image of shape {np.shape(image)}")
+        return MaskerOutput(mask, out.streaks), seconds
+
+    def __repr__(self):
+        return f"Masker({self.name!r})"
+
+
+def inject_masker(image, bad=None, pixel_scale=0.2, n_boot=0):
+    """The built-in masker (:func:`~inject.masking.run.analyse`) as a masking function.
+
+    ``n_boot`` is 0 by default: the bootstrap only gives the FWHM's error bar, which scoring
+    against truth does not need.
+    """
+    from .mask import mask_spans, paint
+    from .run import analyse
+
+    res = analyse(image, bad=bad, pixel_scale=pixel_scale, n_boot=n_boot)
+    mask = np.zeros(np.shape(image), dtype=bool)
+    for s in res.streaks:
+        paint(mask, mask_spans(mask.shape, Line(s["x0"], s["y0"], s["x1"], s["y1"]),
+                               s["mask_width_px"]))
+    return MaskerOutput(mask, res.streaks)
+
+
+def load_masker(spec):
+    """A :class:`Masker` from a callable, a built-in name or ``"module:function"``.
+
+    Built-in names: ``inject`` (ours) and ``findsat_mrt`` (acstools, optional dependency).
+    A module is imported only when a ``module:function`` spec names it.
+
+    Raises
+    ------
+    InputError
+        For a spec that is neither, or a function that cannot be imported.
+    """
+    from ..errors import InputError
+
+    if isinstance(spec, Masker):
+        return spec
+    if callable(spec):
+        return Masker(spec)
+    if spec == "inject":
+        return Masker(inject_masker, "inject")
+    if spec == "findsat_mrt":
+        from .external import findsat_mrt_mask
+
+        return Masker(findsat_mrt_mask, "findsat_mrt")
+    module, sep, name = str(spec).partition(":")
+    if not sep or not module or not name:
+        raise InputError("--masker", spec, "give module:function or one of "
+                         + ", ".join(BUILTIN_MASKERS))
+    try:
+        func = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as err:
+        raise InputError("--masker", spec, f"cannot be loaded ({err})") from None
+    if not callable(func):
+        raise InputError("--masker", spec, "is not callable")
+    return Masker(func, spec)
+
+
+def _distance_to(line, xx, yy):
+    """Distance of points from a line segment's infinite line, and whether they lie within
+    its extent along it."""
+    t, d = line.coordinates(xx, yy)
+    return np.abs(d), np.abs(t) <= 0.5 * line.length
+
+
+def streak_regions(streak_model, truth, shape, pixel_scale=0.2):
+    """Which truth streak each pixel of a streak-model image belongs to, and each one's core.
+
+    Pixels with charge go to the nearest truth line (exact for one streak; for crossing
+    streaks the charge near the crossing is shared out by distance).
+
+    Returns
+    -------
+    owner : ndarray of int
+        Index of the truth row owning each pixel, -1 for none (no charge, or a row whose track
+        misses the image).
+    cores : dict
+        ``{row index: (yy, xx)}`` pixels within half the true FWHM of the line, inside its
+        extent.
+    """
+    owner = np.full(shape, -1, dtype=np.int32)
+    lines = {i: truth_line(row, shape) for i, row in enumerate(truth)}
+    lines = {i: line for i, line in lines.items() if line is not None}
+    yy, xx = np.nonzero(streak_model > 0)
+    best = np.full(yy.size, np.inf)
+    cores = {}
+    for i, line in lines.items():
+        d, inside = _distance_to(line, xx, yy)
+        closer = d < best
+        owner[yy[closer], xx[closer]] = i
+        best[closer] = d[closer]
+        half = max(0.5, 0.5 * truth[i]["fwhm_arcsec"] / pixel_scale)
+        cores[i] = band_pixels(shape, line, half)
+    return owner, cores
+
+
+def _sum(values):
+    return float(np.sum(values, dtype=np.float64))
+
+
+def score_image(sim, output, seconds=float("nan"), truth_sigma=TRUTH_SIGMA, pixel_scale=0.2,
+                max_angle_deg=0.5, max_offset_px=5.0):
+    """Score one masker's output on one simulated image.
+
+    Parameters
+    ----------
+    sim : inject.scene.SceneResult
+        Simulated image with ``streak_model``, ``truth`` and ``noise_sigma``.
+    output : MaskerOutput
+    seconds : float
+        Wall time the masker took (reported).
+    truth_sigma : float
+        ``t`` of the true region ``{streak_model > t x noise_sigma}``.
+    pixel_scale : float
+        Arcsec per pixel (true FWHM to pixels).
+    max_angle_deg, max_offset_px : float
+        Tolerances of :func:`match_streaks` for maskers that report lines.
+
+    Returns
+    -------
+    image : dict
+        Image-level numbers: ``masked_px``, ``false_positives`` (mask components touching no
+        streak core, or unmatched lines for maskers that report them), ``recall``,
+        ``overmask`` (masked pixels outside the true region over its size), ``iou``,
+        ``flux_left`` (fraction of the injected streak charge outside the mask), ``time_s``.
+    streaks : list of dict
+        One per truth streak crossing the image: ``peak_sb`` (peak charge per pixel over the
+        sky sigma), ``int_snr`` (matched-filter S/N, ``sqrt(sum model^2) / sigma``),
+        ``core_cover``, ``found`` (core covered >= :data:`CORE_COVER`), ``line_found`` (None
+        for mask-only maskers), ``angle_err_deg``, ``offset_px``, ``fwhm_true``,
+        ``fwhm_meas`` (arcsec), ``recall`` (of that streak's true region).
+    """
+    from scipy import ndimage
+
+    mask, model, sigma = output.mask, sim.streak_model, sim.noise_sigma
+    shape = mask.shape
+    truth = list(sim.truth)
+    owner, cores = streak_regions(model, truth, shape, pixel_scale)
+    region = model > truth_sigma * sigma
+    n_region, n_mask = int(region.sum()), int(mask.sum())
+    inter = int((mask & region).sum())
+    union = n_region + n_mask - inter
+    total = _sum(model)
+    image = {
+        "masked_px": n_mask, "region_px": n_region,
+        "recall": inter / n_region if n_region else float("nan"),
+        "overmask": (n_mask - inter) / n_region if n_region else float("nan"),
+        "iou": inter / union if union else float("nan"),
+        "flux_left": _sum(model[~mask]) / total if total > 0 else float("nan"),
+        "time_s": seconds,
+    }
+    matches = None
+    if output.streaks is not None:
+        matches, false = match_streaks(output.streaks, truth, shape, max_angle_deg,
+                                       max_offset_px)
+        image["false_positives"] = len(false)
+        matches = {m.truth_index: m for m in matches}
+    else:
+        # A mask component is a false positive if it touches no streak's core.
+        labels, n = ndimage.label(mask, structure=np.ones((3, 3)))
+        hit = np.zeros(n + 1, dtype=bool)
+        for yy, xx in cores.values():
+            hit[labels[yy, xx]] = True
+        image["false_positives"] = int(n - hit[1:].sum())
+    rows = []
+    for i, (yy, xx) in cores.items():
+        own = owner == i
+        cover = float(mask[yy, xx].mean()) if yy.size else float("nan")
+        own_region = region & own
+        n_own = int(own_region.sum())
+        row = {"truth_index": i, "peak_sb": truth[i]["peak_e_per_px"] / sigma,
+               "int_snr": float(np.sqrt(_sum(model[own] ** 2))) / sigma,
+               "core_cover": cover, "found": bool(cover >= CORE_COVER),
+               "recall": int((mask & own_region).sum()) / n_own if n_own else float("nan"),
+               "fwhm_true": float(truth[i]["fwhm_arcsec"]), "fwhm_meas": float("nan"),
+               "line_found": None, "angle_err_deg": float("nan"), "offset_px": float("nan")}
+        if matches is not None:
+            m = matches[i]
+            row["line_found"] = m.found_index is not None
+            if m.found_index is not None:
+                row["angle_err_deg"], row["offset_px"] = m.angle_error_deg, m.offset_px
+                row["fwhm_meas"] = float(output.streaks[m.found_index].get("fwhm_arcsec",
+                                                                           float("nan")))
+        rows.append(row)
+    return image, rows
+
+
+def evaluate(images, maskers, truth_sigma=TRUTH_SIGMA, pixel_scale=0.2, bad=None):
+    """Score maskers on simulated images: one record per (image, masker, truth streak).
+
+    Parameters
+    ----------
+    images : iterable of SceneResult or (SceneResult, dict)
+        Simulated images, optionally with labels copied into their records (e.g. height, mag,
+        seed).
+    maskers : list
+        Anything :func:`load_masker` accepts.
+    truth_sigma, pixel_scale : float
+        See :func:`score_image`.
+    bad : callable, optional
+        ``bad(sim)`` -> bool array of unusable pixels, given to maskers that take ``bad``.
+
+    Returns
+    -------
+    list of dict
+        Image-level numbers (see :func:`score_image`) merged with each streak's; a streak-free
+        image gives one record with ``found`` None, so its false positives still count.
+    """
+    maskers = [load_masker(m) for m in maskers]
+    records = []
+    for item in images:
+        sim, labels = item if isinstance(item, tuple) else (item, {})
+        flags = bad(sim) if bad is not None else None
+        for masker in maskers:
+            out, seconds = masker(sim.image, flags)
+            image, rows = score_image(sim, out, seconds, truth_sigma, pixel_scale)
+            base = {"masker": masker.name, **labels, **image}
+            for row in rows or [{"found": None}]:
+                records.append(base | row)
+    return records
+
+
+def summarise(records, by=("masker", "height_km", "mag")):
+    """Aggregate records per group: completeness, errors, mask quality, time.
+
+    Returns
+    -------
+    list of dict
+        One per group (sorted), with the group keys and ``n``, ``peak_sb`` and ``int_snr``
+        (medians), ``completeness`` (fraction with the core covered), ``line_completeness``
+        (maskers reporting lines), ``fp_per_ccd``, ``angle_err_deg`` (median |error|),
+        ``offset_px`` (median |offset|), ``fwhm_bias_pct`` and ``fwhm_scatter_pct`` (mean and
+        standard deviation of measured / true - 1), ``recall``, ``overmask``, ``iou``,
+        ``flux_left`` (means), ``masked_px`` and ``time_s`` (means).
+    """
+    groups = {}
+    for r in records:
+        groups.setdefault(tuple(r.get(k) for k in by), []).append(r)
+    out = []
+    for key in sorted(groups, key=lambda k: tuple((v is None, v) for v in k)):
+        rs = groups[key]
+        streaky = [r for r in rs if r.get("found") is not None]
+
+        def col(name, rows=streaky):
+            return np.array([np.nan if r.get(name) is None else r[name] for r in rows], float)
+
+        def stat(func, values):
+            values = values[np.isfinite(values)]
+            return float(func(values)) if values.size else float("nan")
+
+        lines = [r["line_found"] for r in streaky if r.get("line_found") is not None]
+        ratio = 100 * (col("fwhm_meas") / col("fwhm_true") - 1)
+        out.append({
+            **dict(zip(by, key)), "n": len(streaky),
+            "peak_sb": stat(np.median, col("peak_sb")), "int_snr": stat(np.median, col("int_snr")),
+            "completeness": stat(np.mean, col("found")),
+            "line_completeness": float(np.mean(lines)) if lines else float("nan"),
+            "fp_per_ccd": stat(np.mean, col("false_positives", rs)),
+            "angle_err_deg": stat(np.median, np.abs(col("angle_err_deg"))),
+            "offset_px": stat(np.median, np.abs(col("offset_px"))),
+            "fwhm_bias_pct": stat(np.mean, ratio), "fwhm_scatter_pct": stat(np.std, ratio),
+            "recall": stat(np.mean, col("recall")), "overmask": stat(np.mean, col("overmask")),
+            "iou": stat(np.mean, col("iou")), "flux_left": stat(np.mean, col("flux_left")),
+            "masked_px": stat(np.mean, col("masked_px", rs)),
+            "time_s": stat(np.mean, col("time_s", rs)),
+        })
+    return out
+
+
+def completeness_point(peak_sb, completeness, level=0.5):
+    """Peak surface brightness (sky sigma) where completeness first reaches ``level``, by
+    linear interpolation in log brightness between neighbouring points; NaN if never reached
+    (the faintest value if already reached there)."""
+    x, c = np.asarray(peak_sb, float), np.asarray(completeness, float)
+    keep = np.isfinite(x) & np.isfinite(c) & (x > 0)
+    x, c = x[keep], c[keep]
+    order = np.argsort(x)
+    x, c = x[order], c[order]
+    if x.size == 0 or not (c >= level).any():
+        return float("nan")
+    k = int(np.argmax(c >= level))
+    if k == 0:
+        return float(x[0])
+    lx = np.log(x[k - 1:k + 1])
+    f = (level - c[k - 1]) / (c[k] - c[k - 1])
+    return float(np.exp(lx[0] + f * (lx[1] - lx[0])))

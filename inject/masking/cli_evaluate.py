@@ -1,0 +1,301 @@
+"""``inject evaluate``: a seeded campaign scoring streak maskers against injected truth.
+
+The paper's satellite (7.25 x 2.65 m box) is simulated on a detector cut-out of the default
+field (g band, 30 s, zenith 70 deg, stars, noise) at every height and magnitude, on seeded
+random tracks crossing the image; every masker runs on the same images and is scored by
+:func:`inject.masking.evaluate.evaluate`. Writes ``records.csv`` (one row per image, masker
+and streak), ``summary.csv`` and ``summary.md`` (per masker, height and magnitude) and three
+PNG plots; prints the markdown table (or JSON with ``--json``) and progress on stderr.
+"""
+import csv
+import io
+import json
+import math
+import os
+import sys
+
+from ..errors import InputError
+
+#: Defaults of the campaign: magnitudes spanning peak S/N per pixel ~1.7 to ~0.03 at 550 km.
+DEFAULT_MAGS = (11.0, 12.0, 13.0, 13.5, 14.0, 14.5, 15.0, 15.5)
+DEFAULT_HEIGHTS = (550.0, 350.0)
+DEFAULT_SIZE = 1024
+DEFAULT_SEEDS = 5
+
+#: Columns of the summary table, with their markdown headers and formats.
+COLUMNS = (("masker", "masker", "{}"), ("height_km", "km", "{:.0f}"), ("mag", "mag", "{:.2f}"),
+           ("n", "n", "{}"), ("peak_sb", "peak/σ", "{:.3f}"), ("int_snr", "S/N", "{:.1f}"),
+           ("completeness", "compl.", "{:.2f}"), ("line_completeness", "line", "{:.2f}"),
+           ("fp_per_ccd", "FP", "{:.2f}"), ("angle_err_deg", "Δangle°", "{:.3f}"),
+           ("offset_px", "Δoff px", "{:.2f}"), ("fwhm_bias_pct", "FWHM bias%", "{:+.1f}"),
+           ("fwhm_scatter_pct", "FWHM sd%", "{:.1f}"), ("recall", "recall", "{:.3f}"),
+           ("overmask", "overmask", "{:.2f}"), ("iou", "IoU", "{:.3f}"),
+           ("flux_left", "flux left", "{:.3f}"), ("masked_px", "masked px", "{:.0f}"),
+           ("time_s", "time s", "{:.3f}"))
+
+
+def paper_satellite(height, mag, x0, y0, angle):
+    """The paper's satellite (7.25 x 2.65 m box) on a track crossing the image."""
+    return {"height": float(height), "shape": {"type": "box", "length": 7.25, "width": 2.65},
+            "mag": float(mag), "track": {"x0": float(x0), "y0": float(y0),
+                                         "angle": float(angle)}}
+
+
+def campaign_images(heights, mags, seeds, size, progress=None):
+    """Simulated images of the campaign, with labels: ``(SceneResult, {height_km, mag,
+    seed})``, generated lazily (one image in memory at a time).
+
+    Seed ``s`` fixes the track (through the central 60% of the image, any angle) and the
+    noise, stars and sky, so the same seed gives the same field at every height and magnitude.
+    """
+    import numpy as np
+
+    from ..config import DEFAULT_SCENE, apply_overrides, parse_scene
+    from ..scene import simulate
+
+    total = len(heights) * len(mags) * len(seeds)
+    k = 0
+    for height in heights:
+        for mag in mags:
+            for seed in seeds:
+                rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(99,)))
+                x0, y0, angle = (rng.uniform(0.2, 0.8) * size, rng.uniform(0.2, 0.8) * size,
+                                 rng.uniform(0, 180))
+                raw = apply_overrides(DEFAULT_SCENE, [f"seed={seed}", f"detector.nx={size}",
+                                                      f"detector.ny={size}"])
+                raw["satellites"] = [paper_satellite(height, mag, x0, y0, angle)]
+                k += 1
+                if progress:
+                    progress(f"[{k}/{total}] {height:.0f} km mag {mag:.2f} seed {seed}")
+                yield simulate(parse_scene(raw)), {"height_km": height, "mag": mag,
+                                                   "seed": seed}
+
+
+def bad_pixels(sim):
+    """Unusable pixels of a simulated image (the LSST bad planes of its mask)."""
+    from ..scene import MASK_PLANES
+    from .detect import BAD_PLANES
+
+    bits = sum(1 << MASK_PLANES[p] for p in BAD_PLANES if p in MASK_PLANES)
+    return (sim.mask & bits) != 0
+
+
+def pixel_loss(summary, masker, heights=(550.0, 350.0)):
+    """Mean masked pixels per image of ``masker`` at each magnitude for two heights, and
+    their ratio (second over first): ``[{mag, px_<h>..., ratio}]``."""
+    a, b = heights
+    by = {(r["height_km"], r["mag"]): r for r in summary if r["masker"] == masker}
+    rows = []
+    for mag in sorted({m for (_, m) in by}):
+        if (a, mag) in by and (b, mag) in by:
+            pa, pb = by[(a, mag)]["masked_px"], by[(b, mag)]["masked_px"]
+            rows.append({"mag": mag, f"px_{a:.0f}": pa, f"px_{b:.0f}": pb,
+                         "ratio": pb / pa if pa else float("nan")})
+    return rows
+
+
+def fifty_percent_points(summary):
+    """Peak surface brightness (sky sigma) of 50% completeness per masker and height."""
+    from .evaluate import completeness_point
+
+    out = {}
+    for key in sorted({(r["masker"], r["height_km"]) for r in summary}):
+        rows = [r for r in summary if (r["masker"], r["height_km"]) == key]
+        out[key] = completeness_point([r["peak_sb"] for r in rows],
+                                      [r["completeness"] for r in rows])
+    return out
+
+
+def _fmt(value, spec):
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "–"
+    return spec.format(value)
+
+
+def markdown_table(summary):
+    """The summary as a markdown table."""
+    lines = ["| " + " | ".join(h for _, h, _ in COLUMNS) + " |",
+             "|" + "|".join("---" for _ in COLUMNS) + "|"]
+    for r in summary:
+        lines.append("| " + " | ".join(_fmt(r.get(k), f) for k, _, f in COLUMNS) + " |")
+    return "\n".join(lines)
+
+
+def _write_text(path, text):
+    from ..io.atomic import atomic_path
+
+    with atomic_path(path, overwrite=True) as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="") as f:
+            f.write(text)
+
+
+def _csv_text(rows):
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=keys)
+    w.writeheader()
+    w.writerows(rows)
+    return buf.getvalue()
+
+
+def write_plots(summary, loss, outdir, masker):
+    """Completeness vs peak SB, FWHM bias vs integrated S/N, pixel loss 550 vs 350 km (PNG,
+    written atomically); returns the paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..io.atomic import atomic_path
+
+    paths = []
+
+    def save(fig, name):
+        path = os.path.join(outdir, name)
+        with atomic_path(path, overwrite=True) as tmp:
+            fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png")
+        plt.close(fig)
+        paths.append(path)
+
+    groups = sorted({(r["masker"], r["height_km"]) for r in summary})
+
+    def series(key, x, y):
+        rows = sorted((r for r in summary if (r["masker"], r["height_km"]) == key),
+                      key=lambda r: r[x])
+        return [r[x] for r in rows], [r[y] for r in rows]
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for key in groups:
+        ax.plot(*series(key, "peak_sb", "completeness"), "o-", label=f"{key[0]} {key[1]:.0f} km")
+    ax.set(xscale="log", xlabel="peak surface brightness / sky σ per pixel",
+           ylabel="completeness", ylim=(-0.03, 1.03))
+    ax.axhline(0.5, color="0.7", lw=0.8)
+    ax.legend(fontsize=8)
+    save(fig, "completeness.png")
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for key in groups:
+        x, y = series(key, "int_snr", "fwhm_bias_pct")
+        if any(math.isfinite(v) for v in y):
+            ax.plot(x, y, "o-", label=f"{key[0]} {key[1]:.0f} km")
+    ax.set(xscale="log", xlabel="integrated (matched-filter) S/N",
+           ylabel="FWHM bias, % (measured / true − 1)")
+    ax.axhline(0, color="0.7", lw=0.8)
+    ax.legend(fontsize=8)
+    save(fig, "fwhm_bias.png")
+
+    if loss:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        keys = [k for k in loss[0] if k.startswith("px_")]
+        for k in keys:
+            ax.plot([r["mag"] for r in loss], [r[k] for r in loss], "o-",
+                    label=f"{k[3:]} km")
+        ax.set(xlabel="stationary magnitude (550 km, face-on)", ylabel="masked pixels per image",
+               title=f"{masker}: pixel loss, same satellite at two heights")
+        ax.legend(fontsize=8)
+        save(fig, "pixel_loss.png")
+    return paths
+
+
+def run_campaign(maskers, heights=DEFAULT_HEIGHTS, mags=DEFAULT_MAGS, seeds=DEFAULT_SEEDS,
+                 size=DEFAULT_SIZE, truth_sigma=None, progress=None):
+    """Run a seeded campaign; returns ``(records, summary)`` (see
+    :func:`inject.masking.evaluate.evaluate` and :func:`~inject.masking.evaluate.summarise`)."""
+    from .evaluate import TRUTH_SIGMA, evaluate, load_masker, summarise
+
+    maskers = [load_masker(m) for m in maskers]  # fail on a bad name before simulating
+    images = campaign_images(heights, mags, range(1, seeds + 1), size, progress)
+    records = evaluate(images, maskers, TRUTH_SIGMA if truth_sigma is None else truth_sigma,
+                       bad=bad_pixels)
+    return records, summarise(records)
+
+
+def add_evaluate_parser(sub):
+    """Register ``inject evaluate`` on an argparse sub-parser collection."""
+    p = sub.add_parser(
+        "evaluate", help="score streak maskers against injected truth (seeded campaign)",
+        description=__doc__.split("\n\n")[1].replace("\n", " "))
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created)")
+    p.add_argument("--seeds", type=int, default=DEFAULT_SEEDS, metavar="N",
+                   help=f"images per height and magnitude ({DEFAULT_SEEDS})")
+    p.add_argument("--mags", type=float, nargs="+", default=list(DEFAULT_MAGS), metavar="MAG",
+                   help="stationary AB magnitudes at 550 km, face-on")
+    p.add_argument("--heights", type=float, nargs="+", default=list(DEFAULT_HEIGHTS),
+                   metavar="KM", help="orbit heights (550 350)")
+    p.add_argument("--detector", type=int, default=DEFAULT_SIZE, metavar="PX",
+                   help=f"side of the square detector cut-out ({DEFAULT_SIZE}; 4000 for ~a CCD)")
+    p.add_argument("--masker", action="append", metavar="NAME",
+                   help="masker to score: inject (ours), findsat_mrt (acstools) or "
+                        "module:function taking an image and returning a bool mask; "
+                        "repeatable (default: inject)")
+    p.add_argument("--truth-sigma", type=float, default=1.0, metavar="T",
+                   help="true region = streak model > T x sky sigma (1)")
+    p.add_argument("--json", action="store_true",
+                   help="print the summary, 50%% points and pixel loss as JSON")
+    p.set_defaults(func=run_evaluate)
+    return p
+
+
+def _check(args):
+    if args.seeds < 1:
+        raise InputError("--seeds", args.seeds, "must be >= 1")
+    if args.detector < 64:
+        raise InputError("--detector", args.detector, "must be >= 64 px")
+    for h in args.heights:
+        if not (math.isfinite(h) and h > 0):
+            raise InputError("--heights", h, "must be > 0 km")
+    for m in args.mags:
+        if not math.isfinite(m):
+            raise InputError("--mags", m, "must be finite")
+    if not (math.isfinite(args.truth_sigma) and args.truth_sigma > 0):
+        raise InputError("--truth-sigma", args.truth_sigma, "must be > 0")
+
+
+def run_evaluate(args):
+    """The ``inject evaluate`` command (``args`` from :func:`add_evaluate_parser`)."""
+    from ..errors import OutputError
+    from .run import _json_safe as json_rows
+
+    _check(args)
+    try:
+        os.makedirs(args.out, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"{args.out}: cannot create ({err.strerror or err})") from None
+    maskers = args.masker or ["inject"]
+
+    def progress(msg):
+        print(msg, file=sys.stderr, flush=True)
+
+    records, summary = run_campaign(maskers, args.heights, args.mags, args.seeds,
+                                    args.detector, args.truth_sigma, progress)
+    from .evaluate import load_masker
+
+    names = [load_masker(maskers[0]).name]  # pixel loss: the first masker given
+    loss = pixel_loss(summary, names[0], tuple(args.heights[:2])) \
+        if len(args.heights) >= 2 else []
+    points = fifty_percent_points(summary)
+    _write_text(os.path.join(args.out, "records.csv"), _csv_text(records))
+    _write_text(os.path.join(args.out, "summary.csv"), _csv_text(summary))
+    table = markdown_table(summary)
+    _write_text(os.path.join(args.out, "summary.md"), table + "\n")
+    if loss:
+        _write_text(os.path.join(args.out, "pixel_loss.csv"), _csv_text(loss))
+    plots = write_plots(summary, loss, args.out, names[0])
+    if args.json:
+        out = {"summary": summary,
+               "completeness_50": [{"masker": m, "height_km": h, "peak_sb": v}
+                                   for (m, h), v in points.items()],
+               "pixel_loss": loss, "files": plots}
+        json.dump(json_rows(out), sys.stdout)
+        sys.stdout.write("\n")
+        return
+    print(table)
+    print()
+    for (m, h), v in points.items():
+        print(f"50% completeness: {m} at {h:.0f} km: peak {_fmt(v, '{:.3f}')} sky sigma per px")
+    for r in loss:
+        a, b = [k for k in r if k.startswith("px_")]
+        print(f"pixel loss ({names[0]}) mag {r['mag']:.2f}: {a[3:]} km {r[a]:.0f} px, "
+              f"{b[3:]} km {r[b]:.0f} px, ratio {b[3:]}/{a[3:]} = {_fmt(r['ratio'], '{:.2f}')}")
+    print(f"wrote {args.out}/records.csv, summary.csv, summary.md, "
+          + ", ".join(os.path.basename(p) for p in plots), file=sys.stderr)

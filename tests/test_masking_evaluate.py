@@ -1,0 +1,179 @@
+"""Scoring maskers against injected truth (inject.masking.evaluate), the ``inject evaluate``
+command (inject.masking.cli_evaluate) and the acstools findsat_mrt adapter."""
+import argparse
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from inject.errors import InputError
+from inject.masking.cli_evaluate import (add_evaluate_parser, bad_pixels, campaign_images,
+                                         markdown_table, pixel_loss)
+from inject.masking.evaluate import (Masker, MaskerOutput, completeness_point, evaluate,
+                                     inject_masker, load_masker, score_image, summarise)
+
+
+def one_image(mag=11.0, height=550.0, seed=1, size=512):
+    return next(campaign_images([height], [mag], [seed], size))
+
+
+def everything(image):
+    """A masker that masks the whole image (module:function target of a test)."""
+    return np.ones(np.shape(image), dtype=bool)
+
+
+def nothing(image):
+    return np.zeros(np.shape(image), dtype=bool)
+
+
+@pytest.fixture(scope="module")
+def bright():
+    return one_image()
+
+
+def test_perfect_mask_of_the_true_region(bright):
+    sim, _ = bright
+    region = sim.streak_model > sim.noise_sigma
+    image, rows = score_image(sim, MaskerOutput(region))
+    assert image["recall"] == 1 and image["overmask"] == 0 and image["iou"] == 1
+    assert image["false_positives"] == 0
+    expect = sim.streak_model[~region].sum() / sim.streak_model.sum()
+    assert image["flux_left"] == pytest.approx(expect)
+    (row,) = rows
+    assert row["found"] and row["line_found"] is None and np.isnan(row["fwhm_meas"])
+    assert row["peak_sb"] == pytest.approx(sim.truth[0]["peak_e_per_px"] / sim.noise_sigma)
+    assert row["int_snr"] == pytest.approx(np.sqrt((sim.streak_model ** 2).sum())
+                                           / sim.noise_sigma)
+
+
+def test_empty_and_misplaced_masks(bright):
+    sim, _ = bright
+    image, (row,) = score_image(sim, MaskerOutput(nothing(sim.image)))
+    assert image["recall"] == 0 and image["flux_left"] == 1 and not row["found"]
+    corner = nothing(sim.image)
+    corner[:5, :5] = True  # the track runs through the central 60%
+    region = sim.streak_model > sim.noise_sigma
+    assert not (corner & region).any()
+    image, _ = score_image(sim, MaskerOutput(corner))
+    assert image["false_positives"] == 1 and image["iou"] == 0
+    assert image["overmask"] == pytest.approx(25 / region.sum())
+
+
+def test_truth_sigma_sets_the_region(bright):
+    sim, _ = bright
+    wide = sim.streak_model > 0.5 * sim.noise_sigma
+    image, _ = score_image(sim, MaskerOutput(wide), truth_sigma=0.5)
+    assert image["iou"] == 1
+    image, _ = score_image(sim, MaskerOutput(wide), truth_sigma=1.0)
+    assert image["recall"] == 1 and image["overmask"] > 0
+
+
+def test_builtin_masker_scores_well(bright):
+    sim, labels = bright
+    (rec,) = evaluate([(sim, labels)], ["inject"], bad=bad_pixels)
+    assert rec["masker"] == "inject" and rec["mag"] == 11.0
+    assert rec["found"] and rec["line_found"] and rec["false_positives"] == 0
+    assert rec["angle_err_deg"] < 0.1 and abs(rec["offset_px"]) < 0.5
+    assert rec["fwhm_meas"] == pytest.approx(rec["fwhm_true"], rel=0.05)
+    assert rec["recall"] > 0.99 and rec["iou"] > 0.85 and rec["time_s"] > 0
+
+
+def test_masker_loading():
+    assert load_masker("inject").func is inject_masker
+    m = load_masker("tests.test_masking_evaluate:everything")
+    assert m.name == "tests.test_masking_evaluate:everything"
+    out, seconds = m(np.zeros((8, 8)), bad=np.ones((8, 8), bool))  # no bad keyword: not given
+    assert out.mask.all() and out.streaks is None and seconds >= 0
+    assert load_masker(nothing).name == "nothing"
+    for spec in ("nocolon", "no_such_module_xyz:f", "numpy:no_such_function", "numpy:pi"):
+        with pytest.raises(InputError):
+            load_masker(spec)
+    with pytest.raises(ValueError, match="shape"):
+        Masker(lambda im: np.zeros((2, 2), bool))(np.zeros((4, 4)))
+
+
+def test_summary_and_completeness_point():
+    recs = [{"masker": "a", "height_km": 550, "mag": m, "found": f, "peak_sb": sb,
+             "false_positives": 0, "fwhm_meas": 1.1, "fwhm_true": 1.0, "masked_px": 10,
+             "time_s": 0.1, "line_found": None}
+            for m, sb, fs in ((12, 1.0, (1, 1)), (14, 0.1, (1, 0)), (15, 0.01, (0, 0)))
+            for f in fs]
+    summary = summarise(recs)
+    assert [r["completeness"] for r in summary] == [1.0, 0.5, 0.0]
+    assert summary[0]["fwhm_bias_pct"] == pytest.approx(10.0)
+    assert summary[0]["fwhm_scatter_pct"] == pytest.approx(0.0, abs=1e-9)
+    assert np.isnan(summary[0]["line_completeness"])
+    assert completeness_point([1.0, 0.1, 0.01], [1.0, 0.5, 0.0]) == pytest.approx(0.1)
+    assert completeness_point([1.0, 0.1], [1.0, 0.0]) == pytest.approx(np.sqrt(0.1))
+    assert np.isnan(completeness_point([1.0], [0.2]))
+    assert "| a | 550 | 12.00 |" in markdown_table(summary)
+    loss = pixel_loss([{"masker": "a", "height_km": 550.0, "mag": 12, "masked_px": 100},
+                       {"masker": "a", "height_km": 350.0, "mag": 12, "masked_px": 150}], "a")
+    assert loss == [{"mag": 12, "px_550": 100, "px_350": 150, "ratio": 1.5}]
+
+
+def test_campaign_is_seeded():
+    a = [(s.image.copy(), lab) for s, lab in campaign_images([550], [12.0], [3], 256)]
+    b = [(s.image, lab) for s, lab in campaign_images([550], [12.0], [3], 256)]
+    np.testing.assert_array_equal(a[0][0], b[0][0])
+    assert a[0][1] == {"height_km": 550, "mag": 12.0, "seed": 3}
+
+
+def parse(argv):
+    p = argparse.ArgumentParser()
+    add_evaluate_parser(p.add_subparsers())
+    return p.parse_args(["evaluate", *argv])
+
+
+def test_evaluate_command(tmp_path, capsys):
+    out = tmp_path / "ev"
+    args = parse(["--out", str(out), "--seeds", "1", "--mags", "11", "16", "--detector", "512",
+                  "--masker", "inject", "--masker", "tests.test_masking_evaluate:nothing",
+                  "--json"])
+    args.func(args)
+    captured = capsys.readouterr()
+    result = json.loads(captured.out)
+    assert "[1/4] 550 km mag 11.00 seed 1" in captured.err
+    names = {r["masker"] for r in result["summary"]}
+    assert names == {"inject", "tests.test_masking_evaluate:nothing"}
+    ours = {(r["height_km"], r["mag"]): r for r in result["summary"] if r["masker"] == "inject"}
+    assert ours[(550.0, 11.0)]["completeness"] == 1 and ours[(550.0, 16.0)]["completeness"] == 0
+    loss = result["pixel_loss"]
+    assert loss[0]["mag"] == 11.0 and loss[0]["ratio"] > 1  # lower orbit: wider streak
+    for name in ("records.csv", "summary.csv", "summary.md", "pixel_loss.csv",
+                 "completeness.png", "fwhm_bias.png", "pixel_loss.png"):
+        assert (out / name).stat().st_size > 0
+    with open(out / "records.csv", newline="") as f:
+        assert len(list(csv.DictReader(f))) == 8  # 2 heights x 2 mags x 2 maskers
+    assert not list(out.glob(".inject-*"))  # no temporary files left
+
+
+def test_evaluate_command_rejects_bad_options(tmp_path):
+    for argv in (["--seeds", "0"], ["--heights", "-5"], ["--masker", "nope"],
+                 ["--truth-sigma", "0"]):
+        args = parse(["--out", str(tmp_path / "x"), "--mags", "11", *argv])
+        with pytest.raises(InputError):
+            args.func(args)
+
+
+def test_findsat_mrt_adapter(bright):
+    pytest.importorskip("acstools")
+    from inject.masking.external import findsat_mrt_mask
+
+    sim, _ = bright
+    mask = findsat_mrt_mask(sim.image, bad=bad_pixels(sim))
+    assert mask.shape == sim.image.shape and mask.dtype == bool
+    image, (row,) = score_image(sim, MaskerOutput(mask))
+    assert row["found"] and image["recall"] > 0.9
+
+
+def test_findsat_mrt_missing_gives_a_clear_error(monkeypatch):
+    import sys
+
+    from inject.masking import MaskingError
+    from inject.masking.external import findsat_mrt_mask
+
+    monkeypatch.setitem(sys.modules, "acstools.findsat_mrt", None)  # import fails
+    with pytest.raises(MaskingError, match="pip install acstools"):
+        findsat_mrt_mask(np.zeros((64, 64)))
