@@ -33,6 +33,8 @@ figures: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python scripts/bench_render.py --out out/bench
+	$(BIN)/python scripts/bench_scene.py --repeat 3
+	$(BIN)/python scripts/bench_mask.py --sections timing
 
 clean:
 	rm -rf $(VENV) out build *.egg-info
