@@ -128,9 +128,10 @@ def run_simulate(args):
         check_writable(path, args.overwrite)
     wcs = None
     if scene.pointing is not None:
+        from .instrument import LSST
         from .wcs import pointing_wcs
 
-        wcs = pointing_wcs(scene.pointing, scene.detector.shape, 0.2)
+        wcs = pointing_wcs(scene.pointing, scene.detector.shape, LSST.pixel_scale_arcsec)
     result = simulate(scene, wcs=wcs)
     write_exposure(args.output, scene, result, scene.detector.gain,
                    wcs_header=None if wcs is None else wcs.to_header(relax=True),
