@@ -117,6 +117,8 @@ def _add_simulate_parser(sub):
 
 
 def run_simulate(args):
+    import os
+
     from .config import apply_overrides, load_scene_file, parse_scene
     from .io.atomic import check_writable
     from .io.fits import write_exposure
@@ -125,6 +127,8 @@ def run_simulate(args):
     scene = parse_scene(apply_overrides(load_scene_file(args.scene), args.overrides))
     outputs = [args.output] + [path for path in (args.exr, args.png, args.truth) if path]
     for path in outputs:  # fail before the work, not after it
+        if os.path.exists(path) and os.path.samefile(path, args.scene):
+            raise InputError("-o", path, "would replace the scene file")
         check_writable(path, args.overwrite)
     wcs = None
     if scene.pointing is not None:

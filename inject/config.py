@@ -86,6 +86,8 @@ def load_scene_file(path):
             raw = yaml.safe_load(stream)
     except OSError as err:
         raise SceneError(f"{path}: cannot read scene file ({err.strerror})") from None
+    except UnicodeDecodeError:
+        raise SceneError(f"{path}: not a text (UTF-8) scene file") from None
     except yaml.YAMLError as err:
         raise SceneError(f"{path}: not valid YAML ({err})") from None
     if not isinstance(raw, dict):

@@ -170,7 +170,7 @@ def bleed_saturation(image, full_well, midline=None):
                 break
             lo = hi = over[0]
             floor, ceiling = 0, ny - 1
-            if midline is not None:
+            if midline is not None and midline < ny:
                 floor, ceiling = (0, midline - 1) if lo < midline else (midline, ny - 1)
             charge = column[lo]
             # Grow [lo, hi] until it can hold its charge at full well.

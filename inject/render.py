@@ -425,8 +425,12 @@ def render_segment(image, swept, segment, flux_per_px, flux_end=None):
     plan = swept.plan
     y, x, t, d = footprint(image.shape, segment, plan.support_px, plan.cap_px)
     values = swept.pixel_values(t, d, segment.length, flux_per_px, flux_end)
-    # Footprint pixels are unique, so a plain fancy-indexed add is safe (no np.add.at).
-    image.reshape(-1)[y * image.shape[1] + x] += values
+    # Footprint pixels are unique, so a plain fancy-indexed add is safe (no np.add.at); on a
+    # contiguous image a flat index is faster, and views or Fortran arrays take the 2-D one.
+    if image.flags.c_contiguous:
+        image.reshape(-1)[y * image.shape[1] + x] += values
+    else:
+        image[y, x] += values
     return RenderResult(len(values), float(values.sum()), plan)
 
 

@@ -162,6 +162,9 @@ def shape_from_dict(spec):
         problem = f"unknown keys {sorted(extra)}" if extra else f"missing keys {sorted(missing)}"
         raise InputError("shape", spec, f"{problem} for a {kind}")
     if kind == "composite":
+        if not isinstance(spec["parts"], list) or not all(isinstance(p, dict)
+                                                          for p in spec["parts"]):
+            raise InputError("shape.parts", spec["parts"], "must be a list of shape mappings")
         parts = []
         for part in spec["parts"]:
             part = dict(part)

@@ -117,8 +117,10 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0):
             continue
         swept = swept_profile(model, track.angle, own)
         if track.length is None:
+            # The profile reaches support_px across and cap_px along: a line that far outside
+            # the image still lights it.
             segment = Segment.crossing(shape, track.x0, track.y0, track.angle,
-                                       margin=swept.plan.cap_px)
+                                       margin=swept.plan.support_px + swept.plan.cap_px)
         else:
             segment = Segment(track.x0, track.y0, track.angle, track.length)
         charge = 0.0

@@ -6,6 +6,7 @@ import warnings
 
 import numpy as np
 from astropy.io import fits
+from astropy.utils.exceptions import AstropyUserWarning
 from astropy.wcs import WCS, FITSFixedWarning
 
 from ..errors import FileFormatError
@@ -61,12 +62,14 @@ def read_exposure(path):
         with warnings.catch_warnings():
             # A truncated or corrupt file is an error here, not a warning to scroll past.
             warnings.simplefilter("error", fits.verify.VerifyWarning)
+            warnings.simplefilter("error", AstropyUserWarning)  # e.g. "may have been truncated"
             with fits.open(path, memmap=False) as opened:
                 opened.verify("exception")
                 hdus = fits.HDUList([hdu.copy() for hdu in opened])
     except FileNotFoundError:
         raise FileFormatError(f"{path}: no such file") from None
-    except (OSError, ValueError, fits.VerifyError, TypeError, fits.verify.VerifyWarning) as err:
+    except (OSError, ValueError, fits.VerifyError, TypeError, fits.verify.VerifyWarning,
+            AstropyUserWarning) as err:
         raise FileFormatError(f"{path}: not a readable FITS file ({err})") from None
     names = [hdu.name for hdu in hdus]
     if "IMAGE" in names and _is_image(hdus[names.index("IMAGE")]):

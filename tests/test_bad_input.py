@@ -1,0 +1,741 @@
+"""Bad input everywhere: the CLI, scene files and the Python API.
+
+Every bad value gives an :class:`~inject.errors.InjectError` (also a ``ValueError``); the CLI
+turns it into one line on stderr naming the value and where it came from, exit status 2, no
+traceback unless ``--traceback``. Outputs are written atomically, never replace an existing
+file without ``--overwrite``, and inputs are never modified. Tests marked xfail(strict) show
+bugs still to fix.
+"""
+import errno
+import hashlib
+import math
+import os
+import sys
+
+import numpy as np
+import pytest
+from astropy.io import fits
+
+import inject.io.atomic
+from inject.cli import main
+from inject.config import load_scene_file, parse_scene
+from inject.errors import FileFormatError, InjectError, InputError, OutputError, SceneError
+from inject.geometry import Geometry
+from inject.io.atomic import atomic_path
+from inject.io.reader import read_exposure
+from inject.photometry import band, sky_per_pixel
+from inject.profile import Seeing
+from inject.reference import render_brute_force
+from inject.render import Budget
+from inject.satellite import Box, Disk, shape_from_dict
+from inject.streak import StreakModel
+from inject.trajectory import Polyline, Segment
+
+SCENE = """\
+seed: 1
+band: g
+zenith: 70
+detector: {type: itl, nx: 64, ny: 48}
+sky: false
+stars: false
+noise: false
+satellites:
+  - height: 550
+    shape: {type: box, length: 7.25, width: 2.65}
+    mag: 5.0
+    track: {x0: 10.3, y0: 20.6, angle: 10.0, length: 30.0}
+"""
+STREAK_ARGS = ["--height", "550", "--zenith", "70", "--x0", "10.5", "--y0", "20.2",
+               "--angle", "15", "--track-length", "20", "--no-noise"]
+
+
+def digest(path):
+    with open(path, "rb") as stream:
+        return hashlib.sha256(stream.read()).hexdigest()
+
+
+def leftovers(directory):
+    """Temporary files of inject.io.atomic left in a directory."""
+    return [name for name in os.listdir(directory) if name.startswith(".inject-")]
+
+
+def run(capsys, *argv):
+    """Run the CLI; return (status, stderr) after checking that an error is one clean line."""
+    status = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    if status != 0:
+        assert "Traceback" not in captured.err
+        assert captured.err.count("\n") == 1, captured.err
+        assert captured.err.startswith(f"inject {argv[0]}: error: ")
+    return status, captured.err
+
+
+@pytest.fixture
+def scene(tmp_path):
+    path = tmp_path / "scene.yaml"
+    path.write_text(SCENE)
+    return path
+
+
+@pytest.fixture
+def image(tmp_path):
+    """A small 2-D FITS image in electrons."""
+    rng = np.random.default_rng(2)
+    path = tmp_path / "in.fits"
+    fits.PrimaryHDU(rng.normal(100, 5, (48, 64)).astype(">f4"),
+                    header=fits.Header({"BUNIT": "electron"})).writeto(path)
+    return path
+
+
+# --- The error hierarchy -------------------------------------------------------------------
+
+@pytest.mark.parametrize("cls", [InjectError, InputError, SceneError, FileFormatError,
+                                 OutputError])
+def test_errors_are_value_errors(cls):
+    assert issubclass(cls, InjectError) and issubclass(cls, ValueError)
+
+
+# --- CLI: inject profile -------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv,needle", [
+    (["--height", "-5"], "height_km=-5.0"),
+    (["--height", "0"], "height_km=0.0"),
+    (["--height", "nan"], "height_km=nan"),
+    (["--height", "inf"], "height_km=inf"),
+    (["--height", "550", "--zenith", "90"], "zenith_deg=90.0"),
+    (["--height", "550", "--zenith", "95"], "zenith_deg=95.0"),
+    (["--height", "550", "--zenith", "-1"], "zenith_deg=-1.0"),
+    (["--height", "550", "--zenith", "nan"], "zenith_deg=nan"),
+    (["--height", "550", "--phi", "nan"], "phi_deg=nan"),
+    (["--height", "550", "--band", "w"], "band='w'"),
+    (["--height", "550", "--band", ""], "band=''"),
+    (["--height", "550", "--mag", "nan"], "mag=nan"),
+    (["--height", "550", "--mag=-inf"], "mag=-inf"),
+    (["--height", "550", "--seeing", "-1"], "seeing=-1.0"),
+    (["--height", "550", "--seeing", "nan"], "seeing=nan"),
+    (["--height", "550", "--length", "0"], "length=0.0"),
+    (["--height", "550", "--width", "-2"], "width=-2.0"),
+    (["--height", "550", "--shape", "disk", "--radius", "nan"], "radius=nan"),
+    (["--height", "550", "--radius", "2"], "--radius=2.0"),
+    (["--height", "550", "--shape", "disk", "--length", "2"], "--length/--width"),
+    (["--height", "550", "--ref-range", "0"], "ref_range_km=0.0"),
+    (["--height", "550", "--pixel-scale", "0"], "pixel_scale_arcsec=0.0"),
+])
+def test_profile_bad_values(capsys, argv, needle):
+    status, err = run(capsys, "profile", *argv)
+    assert status == 2
+    assert needle in err
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["--height", "abc"], "'abc'"),
+    (["--height", "550", "--shape", "cone"], "'cone'"),
+    (["--height", "550", "--seeing-model", "gauss"], "'gauss'"),
+    (["--zenith", "10"], "--height"),
+])
+def test_profile_argparse_errors(capsys, argv, needle):
+    """Malformed options are argparse's: usage, then one error line naming the value."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(["profile", *argv])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("inject profile: error:") and needle in last
+
+
+def test_traceback_option_re_raises():
+    with pytest.raises(InputError) as info:
+        main(["--traceback", "profile", "--height", "-5"])
+    assert info.value.name == "height_km" and info.value.value == -5.0
+
+
+def test_traceback_option_re_raises_scene_errors(scene, tmp_path):
+    with pytest.raises(SceneError):
+        main(["--traceback", "simulate", str(scene), "-o", str(tmp_path / "o.fits"),
+              "zenith=95"])
+
+
+def test_errors_print_nothing_on_stdout(capsys):
+    assert main(["profile", "--height", "-5", "--json"]) == 2
+    assert capsys.readouterr().out == ""
+
+
+# --- CLI: inject simulate with bad scene values (dotted overrides) -------------------------
+
+@pytest.mark.parametrize("override,needle", [
+    ("satellites.0.height=-5", "height_km=-5.0"),
+    ("satellites.0.height=0", "height_km=0.0"),
+    ("satellites.0.height=.nan", "satellites[0].height=nan"),
+    ("satellites.0.height=high", "satellites[0].height='high'"),
+    ("satellites.0.mag=.inf", "satellites[0].mag=inf"),
+    ("satellites.0.mag=bright", "satellites[0].mag='bright'"),
+    ("satellites.0.phi=.nan", "satellites[0].phi=nan"),
+    ("satellites.0.track.x0=.inf", "satellites[0].track.x0=inf"),
+    ("satellites.0.track.angle=[1]", "satellites[0].track.angle=[1]"),
+    ("satellites.0.shape.type=cone", "shape.type='cone'"),
+    ("satellites.0.shape.length=-1", "length=-1"),
+    ("satellites.0.shape.width=.nan", "width=nan"),
+    ("zenith=90", "zenith=90"),
+    ("zenith=-1", "zenith=-1"),
+    ("zenith=.nan", "zenith=nan"),
+    ("band=w", "band='w'"),
+    ("band=7", "band=7"),
+    ("seed=abc", "seed='abc'"),
+    ("seed=0", "seed=0"),
+    ("seed=1.5", "seed=1.5"),
+    ("seed=true", "seed=True"),
+    ("exptime=0", "exptime=0"),
+    ("seeing=-1", "seeing=-1"),
+    ("seeing=.nan", "seeing=nan"),
+    ("noise=maybe", "noise='maybe'"),
+    ("units=volts", "units='volts'"),
+    ("detector.nx=-3", "detector.nx=-3"),
+    ("detector.nx=1.5", "detector.nx=1.5"),
+    ("detector.type=ccd", "detector.type='ccd'"),
+    ("detector.full_well=-1", "full_well=-1"),
+    ("sky.level=-3", "sky.level=-3"),
+    ("dark_current=-1", "dark_current=-1"),
+    ("satellites=3", "satellites=3"),
+    ("satellites.0=3", "satellites[0]=3"),
+    ("colour=red", "unknown keys ['colour']"),
+    ("satellites.0.colour=red", "satellites[0]: unknown keys ['colour']"),
+    ("satellites.0.track.speed=3", "satellites[0].track: unknown keys ['speed']"),
+    ("satellites.7.mag=3", "satellites.7"),
+    ("=3", "'=3'"),
+])
+def test_simulate_bad_values(capsys, scene, tmp_path, override, needle):
+    out = tmp_path / "out.fits"
+    status, err = run(capsys, "simulate", scene, "-o", out, override)
+    assert status == 2
+    assert needle in err
+    assert not out.exists() and not leftovers(tmp_path)
+
+
+# --- Scene files ---------------------------------------------------------------------------
+
+BAD_SCENES = {
+    "missing shape": ("satellites:\n  - {height: 550, mag: 5, track: {x0: 1, y0: 1, angle: 0}}\n",
+                      "satellites[0]: missing keys ['shape']"),
+    "missing track x0": ("satellites:\n  - {height: 550, mag: 5, shape: {type: disk, radius: 1},"
+                         " track: {y0: 1, angle: 0}}\n",
+                         "satellites[0].track: missing keys ['x0']"),
+    "missing box width": ("satellites:\n  - {height: 550, mag: 5, shape: {type: box, length: 1},"
+                          " track: {x0: 1, y0: 1, angle: 0}}\n", "missing keys ['width']"),
+    "satellites a mapping": ("satellites: {height: 550}\n", "satellites={'height': 550}"),
+    "track a list": ("satellites:\n  - {height: 550, mag: 5, shape: {type: disk, radius: 1},"
+                     " track: [1, 2]}\n", "satellites[0].track=[1, 2]"),
+    "height a string": ("satellites:\n  - {height: low, mag: 5, shape: {type: disk, radius: 1},"
+                        " track: {x0: 1, y0: 1, angle: 0}}\n", "satellites[0].height='low'"),
+    "unknown top key": ("colour: red\n", "unknown keys ['colour']"),
+    "unknown shape key": ("satellites:\n  - {height: 550, mag: 5, shape: {type: disk, radius: 1,"
+                          " depth: 2}, track: {x0: 1, y0: 1, angle: 0}}\n",
+                          "unknown keys ['depth']"),
+    "unknown shape type": ("satellites:\n  - {height: 550, mag: 5, shape: {type: cone},"
+                           " track: {x0: 1, y0: 1, angle: 0}}\n", "shape.type='cone'"),
+    "unknown band": ("band: w\n", "band='w'"),
+    "negative height": ("satellites:\n  - {height: -550, mag: 5, shape: {type: disk, radius: 1},"
+                        " track: {x0: 1, y0: 1, angle: 0}}\n", "height_km=-550.0"),
+    "nan height": ("satellites:\n  - {height: .nan, mag: 5, shape: {type: disk, radius: 1},"
+                   " track: {x0: 1, y0: 1, angle: 0}}\n", "satellites[0].height=nan"),
+    "zenith 90": ("zenith: 90\n", "zenith=90"),
+    "bad YAML: unclosed bracket": ("seed: [1\n", "not valid YAML"),
+    "bad YAML: tab indent": ("detector:\n\ttype: itl\n", "not valid YAML"),
+    "bad YAML: duplicate anchor use": ("a: *missing\n", "not valid YAML"),
+    "not a mapping: list": ("- 1\n- 2\n", "must be a mapping"),
+    "not a mapping: scalar": ("42\n", "must be a mapping"),
+    "not a mapping: empty": ("", "must be a mapping"),
+}
+
+
+@pytest.mark.parametrize("name", list(BAD_SCENES))
+def test_bad_scene_files(capsys, tmp_path, name):
+    text, needle = BAD_SCENES[name]
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    before = digest(path)
+    out = tmp_path / "out.fits"
+    status, err = run(capsys, "simulate", path, "-o", out)
+    assert status == 2 and needle in err
+    assert not out.exists() and digest(path) == before
+    # The same through the Python API: a SceneError, which is also a ValueError.
+    with pytest.raises(ValueError) as info:
+        parse_scene(load_scene_file(path))
+    assert isinstance(info.value, SceneError) and needle in str(info.value)
+
+
+@pytest.mark.parametrize("tag", [
+    "!!python/object/apply:os.system ['touch {marker}']",
+    "!!python/object/apply:subprocess.call [['touch', '{marker}']]",
+    "!!python/name:os.system",
+    "!!python/object/new:os.system ['touch {marker}']",
+    "!!python/module:os",
+])
+def test_unsafe_yaml_tags_are_refused_and_never_run(capsys, tmp_path, tag):
+    marker = tmp_path / "PWNED"
+    path = tmp_path / "unsafe.yaml"
+    path.write_text(f"seed: 1\nsatellites: {tag.format(marker=marker)}\n")
+    status, err = run(capsys, "simulate", path, "-o", tmp_path / "out.fits")
+    assert status == 2 and "not valid YAML" in err and str(path) in err
+    assert not marker.exists()
+    with pytest.raises(SceneError):
+        load_scene_file(path)
+    assert not marker.exists()
+
+
+def test_missing_scene_file(capsys, tmp_path):
+    status, err = run(capsys, "simulate", tmp_path / "nope.yaml", "-o", tmp_path / "o.fits")
+    assert status == 2 and "nope.yaml" in err and "cannot read" in err
+
+
+def test_scene_file_is_a_directory(capsys, tmp_path):
+    status, err = run(capsys, "simulate", tmp_path, "-o", tmp_path / "o.fits")
+    assert status == 2 and "cannot read" in err
+
+
+# --- A user masking function is imported only when named explicitly ------------------------
+
+@pytest.fixture
+def booby_trapped_module(tmp_path, monkeypatch):
+    """A module that leaves a marker file when imported."""
+    name = "inject_test_user_masker"
+    marker = tmp_path / "IMPORTED"
+    (tmp_path / f"{name}.py").write_text(
+        f"open({str(marker)!r}, 'w').close()\n"
+        "import numpy as np\n"
+        "def mask(image):\n    return np.zeros(image.shape, bool)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    yield name, marker
+    sys.modules.pop(name, None)
+
+
+def test_scene_cannot_name_a_masking_function(capsys, tmp_path, booby_trapped_module):
+    name, marker = booby_trapped_module
+    path = tmp_path / "scene.yaml"
+    path.write_text(SCENE + f"masker: {name}:mask\n")
+    status, err = run(capsys, "simulate", path, "-o", tmp_path / "o.fits")
+    assert status == 2 and "unknown keys ['masker']" in err
+    assert not marker.exists()
+
+
+def test_masking_function_imported_only_when_named(booby_trapped_module):
+    evaluate = pytest.importorskip("inject.masking.evaluate")
+    load_masker = getattr(evaluate, "load_masker", None)
+    if load_masker is None:
+        pytest.skip("inject.masking.evaluate has no load_masker")
+    name, marker = booby_trapped_module
+    load_masker("inject")  # the built-in masker imports nothing of the user's
+    assert not marker.exists()
+    with pytest.raises(InjectError):
+        load_masker(name)  # a bare module name is not a "module:function" spec
+    assert not marker.exists()
+    with pytest.raises(InjectError):
+        load_masker("inject_no_such_module_xyz:mask")
+    masker = load_masker(f"{name}:mask")  # named explicitly: imported
+    assert marker.exists() and callable(masker.func if hasattr(masker, "func") else masker)
+
+
+# --- Python API: every bad value is an InjectError and a ValueError ------------------------
+
+API_CASES = {
+    "negative height": (lambda: StreakModel(-5.0), "height_km=-5.0"),
+    "nan height": (lambda: StreakModel(float("nan")), "height_km=nan"),
+    "zenith 90": (lambda: StreakModel(550.0, 90.0), "zenith_deg=90.0"),
+    "zenith above 90": (lambda: Geometry.from_orbit(550.0, 120.0), "zenith_deg=120.0"),
+    "nan phi": (lambda: StreakModel(550.0, phi_deg=float("nan")), "phi_deg=nan"),
+    "unknown band": (lambda: StreakModel(550.0, band_name="w"), "band='w'"),
+    "band not a string": (lambda: band(None), "band=None"),
+    "height not a number": (lambda: StreakModel("high"), "height_km='high'"),
+    "unknown shape": (lambda: shape_from_dict({"type": "cone"}), "shape.type='cone'"),
+    "shape without type": (lambda: shape_from_dict({"radius": 1}), "shape="),
+    "negative box": (lambda: Box(-1.0, 1.0), "length=-1.0"),
+    "nan disk": (lambda: Disk(float("nan")), "radius=nan"),
+    "negative seeing": (lambda: Seeing(-0.5), "seeing=-0.5"),
+    "unknown seeing model": (lambda: Seeing(0.7, "gauss"), "seeing.model='gauss'"),
+    "negative length": (lambda: Segment(0.0, 0.0, 0.0, -1.0), "length=-1.0"),
+    "nan start": (lambda: Segment(float("nan"), 0.0, 0.0, 1.0), "x0=nan"),
+    "one vertex": (lambda: Polyline((1.0,), (2.0,)), "polyline"),
+    "zero tolerance": (lambda: Budget(tolerance=0.0), "tolerance=0.0"),
+    "tolerance below the LSF accuracy": (lambda: Budget(tolerance=1e-9), "tolerance=1e-09"),
+    "negative exposure": (lambda: sky_per_pixel("g", -30.0), "exptime=-30.0"),
+    "brute force on an empty image": (
+        lambda: render_brute_force((0, 5), StreakModel(550.0).profile, 0.2,
+                                   Segment(0, 0, 0, 1), 1.0), "shape=(0, 5)"),
+    "scene missing keys": (lambda: parse_scene({"satellites": [{"height": 550}]}),
+                           "satellites[0]: missing keys"),
+    "scene unknown key": (lambda: parse_scene({"colour": "red"}), "unknown keys ['colour']"),
+    "scene wrong type": (lambda: parse_scene({"exptime": "long"}), "exptime='long'"),
+}
+
+
+@pytest.mark.parametrize("name", list(API_CASES))
+def test_api_errors_are_inject_and_value_errors(name):
+    call, needle = API_CASES[name]
+    with pytest.raises(InjectError) as info:
+        call()
+    assert needle in str(info.value)
+    with pytest.raises(ValueError):
+        call()
+
+
+# --- Unreadable or truncated FITS for add-streak -------------------------------------------
+
+def _truncated(path, image):
+    path.write_bytes(image.read_bytes()[:4000])
+
+
+def _garbage(path, image):
+    path.write_bytes(b"\x00\xffnot a FITS file at all" * 50)
+
+
+def _empty(path, image):
+    path.write_bytes(b"")
+
+
+def _header_only(path, image):
+    path.write_bytes(image.read_bytes()[:2880])
+
+
+def _table_only(path, image):
+    fits.HDUList([fits.PrimaryHDU(), fits.BinTableHDU.from_columns(
+        [fits.Column(name="a", format="E", array=np.zeros(3))])]).writeto(path)
+
+
+def _cube(path, image):
+    fits.PrimaryHDU(np.zeros((3, 4, 5), np.float32)).writeto(path)
+
+
+@pytest.mark.parametrize("make,needle", [
+    (_truncated, "not a readable FITS file"), (_garbage, "not a readable FITS file"),
+    (_empty, "not a readable FITS file"), (_header_only, "not a readable FITS file"),
+    (_table_only, "no 2-D image"), (_cube, "no 2-D image")])
+def test_add_streak_unreadable_input(capsys, tmp_path, image, make, needle):
+    bad = tmp_path / "bad.fits"
+    make(bad, image)
+    before = digest(bad)
+    out = tmp_path / "out.fits"
+    status, err = run(capsys, "add-streak", bad, "-o", out, *STREAK_ARGS)
+    assert status == 2 and str(bad) in err and needle in err
+    assert not out.exists() and not leftovers(tmp_path)
+    assert digest(bad) == before
+    with pytest.raises(FileFormatError):
+        read_exposure(bad)
+
+
+def test_add_streak_missing_input(capsys, tmp_path):
+    status, err = run(capsys, "add-streak", tmp_path / "nope.fits", "-o", tmp_path / "o.fits",
+                      *STREAK_ARGS)
+    assert status == 2 and "nope.fits: no such file" in err
+
+
+def test_add_streak_input_is_a_directory(capsys, tmp_path):
+    status, err = run(capsys, "add-streak", tmp_path, "-o", tmp_path / "o.fits", *STREAK_ARGS)
+    assert status == 2 and "not a readable FITS file" in err
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["--height", "-5"], "height_km=-5.0"),
+    (["--zenith", "90"], "zenith_deg=90.0"),
+    (["--band", "w"], "band='w'"),
+    (["--gain", "0"], "gain=0.0"),
+    (["--gain", "nan"], "gain=nan"),
+    (["--track-length", "-5"], "length=-5.0"),
+    (["--ra0", "10", "--dec0", "5"], "has no WCS"),
+])
+def test_add_streak_bad_values(capsys, tmp_path, image, argv, needle):
+    base = dict(zip(STREAK_ARGS[:-1:2], STREAK_ARGS[1::2]))
+    for key, value in zip(argv[::2], argv[1::2]):
+        base[key] = value
+    args = [item for pair in base.items() for item in pair] + ["--no-noise"]
+    out = tmp_path / "out.fits"
+    before = digest(image)
+    status, err = run(capsys, "add-streak", image, "-o", out, *args)
+    assert status == 2 and needle in err
+    assert not out.exists() and digest(image) == before
+
+
+def test_add_streak_needs_a_gain(capsys, tmp_path):
+    path = tmp_path / "adu.fits"
+    fits.PrimaryHDU(np.zeros((20, 30), np.float32)).writeto(path)
+    status, err = run(capsys, "add-streak", path, "-o", tmp_path / "o.fits", *STREAK_ARGS)
+    assert status == 2 and "--gain" in err
+
+
+# --- Outputs that cannot be written --------------------------------------------------------
+
+def unwritable_dir(tmp_path):
+    """A directory this process cannot write to; as root (chmod does not stop root) a path
+    under a regular file instead."""
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    probe = locked / "probe"
+    try:
+        probe.write_bytes(b"")
+    except OSError:
+        return locked  # a normal user: the directory is really read-only
+    probe.unlink()
+    locked.chmod(0o700)
+    plain = tmp_path / "file.txt"
+    plain.write_text("a regular file, not a directory")
+    return plain
+
+
+@pytest.mark.parametrize("option", ["-o", "--exr", "--png", "--truth"])
+def test_simulate_output_not_writable(capsys, scene, tmp_path, option):
+    where = unwritable_dir(tmp_path)
+    target = where / "out.bin"
+    argv = ["simulate", scene, "-o", tmp_path / "ok.fits"]
+    if option == "-o":
+        argv[3] = target
+    else:
+        argv += [option, target]
+    status, err = run(capsys, *argv)
+    assert status == 2 and str(target) in err
+    assert not (tmp_path / "ok.fits").exists()  # checked before any work or writing
+    assert not target.exists()
+
+
+def test_add_streak_output_not_writable(capsys, tmp_path, image):
+    target = unwritable_dir(tmp_path) / "out.fits"
+    status, err = run(capsys, "add-streak", image, "-o", target, *STREAK_ARGS)
+    assert status == 2 and str(target) in err
+
+
+def test_output_directory_missing(capsys, scene, tmp_path):
+    target = tmp_path / "no" / "such" / "dir" / "out.fits"
+    status, err = run(capsys, "simulate", scene, "-o", target)
+    assert status == 2 and "does not exist" in err and str(target) in err
+
+
+def test_output_is_a_directory(capsys, scene, tmp_path):
+    (tmp_path / "d").mkdir()
+    status, err = run(capsys, "simulate", scene, "-o", tmp_path / "d", "--overwrite")
+    assert status == 2 and str(tmp_path / "d") in err
+    assert (tmp_path / "d").is_dir() and not leftovers(tmp_path)
+
+
+# --- A full disk ---------------------------------------------------------------------------
+
+def enospc(*args, **kwargs):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def test_atomic_path_full_disk_leaves_target_untouched(tmp_path):
+    target = tmp_path / "out.fits"
+    target.write_bytes(b"the previous result")
+    with pytest.raises(OutputError) as info:
+        with atomic_path(str(target), overwrite=True) as tmp:
+            with open(tmp, "wb") as stream:
+                stream.write(b"half of the new")
+            enospc()
+    assert "No space left on device" in str(info.value) and str(target) in str(info.value)
+    assert target.read_bytes() == b"the previous result"
+    assert not leftovers(tmp_path)
+
+
+def test_simulate_full_disk(capsys, monkeypatch, scene, tmp_path):
+    out = tmp_path / "out.fits"
+    assert main(["simulate", str(scene), "-o", str(out)]) == 0
+    capsys.readouterr()
+    before = digest(out)
+
+    def partial_then_full(self, fileobj, *args, **kwargs):
+        with open(fileobj, "wb") as stream:
+            stream.write(b"SIMPLE  =                    T" + b" " * 100)
+        enospc()
+
+    monkeypatch.setattr(fits.HDUList, "writeto", partial_then_full)
+    status, err = run(capsys, "simulate", scene, "-o", out, "--overwrite")
+    assert status == 2 and "No space left on device" in err and str(out) in err
+    assert digest(out) == before and not leftovers(tmp_path)
+
+
+def test_add_streak_full_disk(capsys, monkeypatch, tmp_path, image):
+    out = tmp_path / "out.fits"
+    out.write_bytes(b"previous")
+    monkeypatch.setattr(fits.HDUList, "writeto", lambda self, *a, **k: enospc())
+    status, err = run(capsys, "add-streak", image, "-o", out, *STREAK_ARGS, "--overwrite")
+    assert status == 2 and "No space left on device" in err
+    assert out.read_bytes() == b"previous" and not leftovers(tmp_path)
+
+
+@pytest.mark.parametrize("option", ["--exr", "--png", "--truth"])
+def test_full_disk_on_the_rename(capsys, monkeypatch, scene, tmp_path, option):
+    """ENOSPC as the finished temporary file is moved into place (EXR, PNG, CSV writers)."""
+    fits_out, other = tmp_path / "out.fits", tmp_path / "out.other"
+    other.write_bytes(b"previous")
+    real_replace = os.replace
+
+    def replace(src, dst):
+        if os.fspath(dst) == str(other):
+            enospc()
+        real_replace(src, dst)
+
+    monkeypatch.setattr(inject.io.atomic.os, "replace", replace)
+    status, err = run(capsys, "simulate", scene, "-o", fits_out, option, other, "--overwrite")
+    assert status == 2 and "No space left on device" in err and str(other) in err
+    assert other.read_bytes() == b"previous" and not leftovers(tmp_path)
+
+
+# --- Existing outputs are not replaced without --overwrite ---------------------------------
+
+@pytest.mark.parametrize("option", ["-o", "--exr", "--png", "--truth"])
+def test_simulate_never_replaces_without_overwrite(capsys, scene, tmp_path, option):
+    existing = tmp_path / "existing.out"
+    existing.write_bytes(b"keep me")
+    fresh = tmp_path / "fresh.fits"
+    argv = ["simulate", scene, "-o", fresh]
+    if option == "-o":
+        argv[3] = existing
+    else:
+        argv += [option, existing]
+    status, err = run(capsys, *argv)
+    assert status == 2 and str(existing) in err and "--overwrite" in err
+    assert existing.read_bytes() == b"keep me"
+    assert not fresh.exists()  # every output is checked before anything is written
+    assert main([str(a) for a in argv] + ["--overwrite"]) == 0
+    assert existing.read_bytes() != b"keep me"
+
+
+def test_add_streak_never_replaces_without_overwrite(capsys, tmp_path, image):
+    out = tmp_path / "out.fits"
+    out.write_bytes(b"keep me")
+    status, err = run(capsys, "add-streak", image, "-o", out, *STREAK_ARGS)
+    assert status == 2 and "--overwrite" in err and out.read_bytes() == b"keep me"
+    assert main(["add-streak", str(image), "-o", str(out), *STREAK_ARGS, "--overwrite"]) == 0
+    with fits.open(out) as hdus:
+        assert "INJECTED_MODEL" in [h.name for h in hdus]
+
+
+# --- Inputs are never modified -------------------------------------------------------------
+
+def test_simulate_never_modifies_the_scene_file(capsys, scene, tmp_path):
+    before, mtime = digest(scene), os.stat(scene).st_mtime_ns
+    assert main(["simulate", str(scene), "-o", str(tmp_path / "a.fits"),
+                 "satellites.0.mag=3"]) == 0
+    capsys.readouterr()
+    run(capsys, "simulate", scene, "-o", tmp_path / "b.fits", "zenith=95")
+    assert digest(scene) == before and os.stat(scene).st_mtime_ns == mtime
+
+
+def test_add_streak_never_modifies_its_input(capsys, tmp_path, image):
+    before, mtime = digest(image), os.stat(image).st_mtime_ns
+    out = tmp_path / "out.fits"
+    assert main(["add-streak", str(image), "-o", str(out), *STREAK_ARGS]) == 0
+    # Injecting again into our own output, and failing runs, leave inputs alone too.
+    out_before = digest(out)
+    assert main(["add-streak", str(out), "-o", str(tmp_path / "twice.fits"), *STREAK_ARGS]) == 0
+    capsys.readouterr()
+    run(capsys, "add-streak", image, "-o", tmp_path / "bad.fits", "--height", "-1",
+        "--x0", "1", "--y0", "1")
+    status, err = run(capsys, "add-streak", image, "-o", image, *STREAK_ARGS, "--overwrite")
+    assert status == 2 and "never modified" in err
+    assert digest(image) == before and os.stat(image).st_mtime_ns == mtime
+    assert digest(out) == out_before
+
+
+# --- Known bugs ----------------------------------------------------------------------------
+
+def test_truncated_fits_gives_one_line_in_a_real_process(tmp_path, image):
+    import subprocess
+
+    bad = tmp_path / "truncated.fits"
+    _truncated(bad, image)
+    proc = subprocess.run([sys.executable, "-m", "inject", "add-streak", str(bad), "-o",
+                           str(tmp_path / "o.fits"), *STREAK_ARGS],
+                          capture_output=True, text=True, cwd=tmp_path)
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1, proc.stderr
+
+
+def test_simulate_refuses_to_replace_its_scene_file(capsys, scene):
+    before = digest(scene)
+    status, err = run(capsys, "simulate", scene, "-o", scene, "--overwrite")
+    assert status == 2 and digest(scene) == before
+
+
+def test_non_utf8_scene_file(capsys, tmp_path):
+    path = tmp_path / "binary.yaml"
+    path.write_bytes(b"\xff\xfe\x00seed: 1\n" + bytes(range(128, 256)))
+    status, err = run(capsys, "simulate", path, "-o", tmp_path / "o.fits")
+    assert status == 2 and str(path) in err
+
+
+@pytest.mark.parametrize("parts", ["5", "[5]"])
+def test_composite_parts_of_the_wrong_type(capsys, scene, tmp_path, parts):
+    status, err = run(capsys, "simulate", scene, "-o", tmp_path / "o.fits",
+                      f"satellites.0.shape={{type: composite, parts: {parts}}}")
+    assert status == 2 and "parts" in err
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "add-streak does not validate --x0/--y0/--angle before rendering: NaN reaches "
+    "Segment.crossing (at angle 0: 'RuntimeWarning: invalid value encountered in scalar "
+    "multiply' on stderr before the message, an exception under -W error) or SweptProfile "
+    "(--angle nan: IndexError in render._extent, exit 1 with a traceback); --y0 nan at "
+    "angle 0 is even accepted (exit 0, the track 'misses' the image, NaN in TRUTH); the "
+    "message that does come names 'x0=np.float64(nan)'. Fix: check them with "
+    "validate.finite (or in Track.__post_init__) before rendering, naming the option."))
+@pytest.mark.parametrize("option", ["--x0", "--y0", "--angle"])
+def test_add_streak_nan_track(capsys, tmp_path, image, option):
+    base = dict(zip(STREAK_ARGS[:-1:2], STREAK_ARGS[1::2])) | {"--angle": "0"} | {option: "nan"}
+    base.pop("--track-length")  # a crossing track
+    args = [item for pair in base.items() for item in pair]
+    status, err = run(capsys, "add-streak", image, "-o", tmp_path / "o.fits", *args)
+    assert status == 2 and f"{option.lstrip('-')}" in err and "nan" in err
+    assert "np.float64" not in err
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "add-streak passes --seed to numpy.random.SeedSequence unchecked: a negative seed raises "
+    "numpy's ValueError (not an InjectError), so the CLI prints a traceback and exits 1. "
+    "Fix: raise InputError('--seed', seed, 'must be >= 1') (0 means random to GalSim)."))
+def test_add_streak_negative_seed(capsys, tmp_path, image):
+    status, err = run(capsys, "add-streak", image, "-o", tmp_path / "o.fits", *STREAK_ARGS,
+                      "--seed", "-1")
+    assert status == 2 and "seed" in err
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "Some scene values are only checked by the engine, so the message lacks where they came "
+    "from: 'ref_range_km=-1.0: must be > 0' instead of 'satellites[0].ref_range=-1', "
+    "'length=-4.0' instead of 'satellites[0].track.length=-4', 'height_km=-4.0' instead of "
+    "'satellites[0].track.vertices[1].height=-4'. Fix: check ref_range > 0, track.length >= 0 "
+    "and the vertex values in config._satellite/_polyline_track (or wrap the engine's "
+    "InputError with the key path, as _satellite already does for shapes)."))
+@pytest.mark.parametrize("override,where", [
+    ("satellites.0.ref_range=-1", "satellites[0].ref_range"),
+    ("satellites.0.track.length=-4", "satellites[0].track.length"),
+    ("satellites.0.track={vertices: [{x: 1, y: 2}, {x: 9, y: 2, height: -4}]}",
+     "satellites[0].track.vertices[1].height"),
+    ("satellites.0.track={vertices: [{x: 1, y: 2}, {x: 9, y: 2, zenith: 95}]}",
+     "satellites[0].track.vertices[1].zenith"),
+])
+def test_scene_errors_name_their_key(capsys, scene, tmp_path, override, where):
+    status, err = run(capsys, "simulate", scene, "-o", tmp_path / "o.fits", override)
+    assert status == 2 and where in err
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "PyYAML resolves numbers by YAML 1.1, where '1e3' and '5e-1' (no dot, no exponent sign) "
+    "are strings, so 'height: 1e3' is refused with \"satellites[0].height='1e3': must be a "
+    "number\" though YAML 1.2 and every user read it as 1000. Fix: a SafeLoader subclass "
+    "with the YAML 1.2 float resolver (or accept numeric strings in config._number)."))
+def test_scene_accepts_exponent_notation(tmp_path):
+    path = tmp_path / "scene.yaml"
+    path.write_text(SCENE.replace("height: 550", "height: 5.5e2").replace("mag: 5.0",
+                                                                          "mag: 5e0"))
+    scene = parse_scene(load_scene_file(path))
+    assert scene.satellites[0].height == 550.0 and scene.satellites[0].mag == 5.0
+
+
+def test_huge_values_stay_finite_or_are_refused(capsys):
+    """Extreme but valid input gives finite numbers, never inf/NaN in the output."""
+    import json
+
+    assert main(["profile", "--height", "1e7", "--zenith", "89.9999", "--mag", "-30",
+                 "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert all(math.isfinite(v) for v in out.values() if isinstance(v, float))
