@@ -192,6 +192,12 @@ def run_add_streak(args):
 
     if os.path.exists(args.output) and os.path.samefile(args.input, args.output):
         raise InputError("-o", args.output, "must differ from the input (it is never modified)")
+    for option in ("x0", "y0", "angle", "track_length", "ra0", "dec0"):
+        value = getattr(args, option)
+        if value is not None and not np.isfinite(value):
+            raise InputError(f"--{option.replace('_', '-')}", value, "must be finite")
+    if args.seed < 1:
+        raise InputError("--seed", args.seed, "must be >= 1")
     check_writable(args.output, args.overwrite)
     exposure = read_exposure(args.input)
     wcs = exposure.wcs

@@ -5,6 +5,8 @@ Every problem is reported as a :class:`~inject.errors.SceneError` naming the key
 """
 from dataclasses import dataclass, field
 
+import re
+
 import numpy as np
 import yaml
 
@@ -79,11 +81,22 @@ class Scene:
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
 
+class _SceneLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` reading floats as YAML 1.2 does: ``1e3`` and ``5e-1`` are numbers
+    (YAML 1.1, PyYAML's default, needs a dot and an exponent sign)."""
+
+
+_SceneLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)?(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789."))
+
+
 def load_scene_file(path):
     """Read a YAML scene file into a mapping (``yaml.safe_load``: no code runs)."""
     try:
         with open(path, encoding="utf-8") as stream:
-            raw = yaml.safe_load(stream)
+            raw = yaml.load(stream, Loader=_SceneLoader)  # safe: no Python tags
     except OSError as err:
         raise SceneError(f"{path}: cannot read scene file ({err.strerror})") from None
     except UnicodeDecodeError:
@@ -154,6 +167,11 @@ def _satellite(i, spec):
         track = _polyline_track(f"{where}.track", track)
     _check_keys(f"{where}.track", track, _TRACK_KEYS | {"vertices"}, {"x0", "y0", "angle"})
     length = track.get("length")
+    ref_range = _number(f"{where}.ref_range", spec.get("ref_range", 550.0))
+    if not ref_range > 0:
+        raise SceneError(f"{where}.ref_range={ref_range}: must be > 0 (km)")
+    if length is not None and not _number(f"{where}.track.length", length) >= 0:
+        raise SceneError(f"{where}.track.length={length}: must be >= 0 (px)")
     try:
         height = _number(f"{where}.height", spec["height"])
         positive("height_km", height)
@@ -182,7 +200,12 @@ def _polyline_track(where, track):
     for j, vertex in enumerate(vertices):
         here = f"{where}.vertices[{j}]"
         _check_keys(here, vertex, _VERTEX_KEYS, {"x", "y"})
-        checked.append({k: _number(f"{here}.{k}", v) for k, v in vertex.items()})
+        values = {k: _number(f"{here}.{k}", v) for k, v in vertex.items()}
+        if "height" in values and not values["height"] > 0:
+            raise SceneError(f"{here}.height={values['height']}: must be > 0 (km)")
+        if "zenith" in values and not 0 <= values["zenith"] < 90:
+            raise SceneError(f"{here}.zenith={values['zenith']}: must be >= 0 and < 90")
+        checked.append(values)
     first, second = checked[0], checked[1]
     angle = float(np.degrees(np.arctan2(second["y"] - first["y"], second["x"] - first["x"])))
     return {"x0": first["x"], "y0": first["y"], "angle": angle, "vertices": tuple(checked)}
