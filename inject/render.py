@@ -191,9 +191,10 @@ class SweptProfile:
         error), and the transform size used.
         """
         p = self.pixel_scale
-        # Cubic-spline interpolation errs by ~ step^4 |f""""| / 384: sample on the scale of the
-        # finest feature GalSim keeps (pi / maxk), never coarser than p / 4.
-        step = min(p / 4, max(np.pi / self.profile.maxk, p / 16))
+        # Cubic-spline interpolation errs by ~ step^4 |f""""| / 384: sample the finest feature
+        # GalSim keeps (pi / maxk, down to p / 16), never coarser than p / 4, and at least 24
+        # samples per FWHM of the pixel-convolved LSF (a 0.3" seeing profile needs ~p / 16).
+        step = min(p / 4, max(np.pi / self.profile.maxk, p / 16), self.lsf.fwhm() / 24)
         # A period three times the table (GalSim samples k on a square grid), so the table
         # stays clear of the tails wrapped around from the other end.
         n = fft.next_fast_len(int(3 * max(self._cap, self._table_d) / step) + 16)

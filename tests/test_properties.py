@@ -290,13 +290,6 @@ def test_render_into_non_contiguous_image(kind):
     np.testing.assert_array_equal(image, expected)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "SweptProfile._build_cap_table samples the end-cap table at min(p/4, max(pi/maxk, p/16)): "
-    "for narrow profiles pi/maxk > p/4, so the step is p/4 whatever the tolerance, and the "
-    "cubic spline errs by ~1e-4 (FWHM 1.5 px, e.g. GEO at 0.3\" seeing) to 2.4e-4 (FWHM 1 px) "
-    "of the peak, above Budget().tolerance = 5e-5 and not in the predicted error. Fix: choose "
-    "the step from the tolerance (p/8 gives 3e-6 here), or halve it until the spline at the "
-    "midpoints matches the spectral antiderivative to tol/8, and report that in the plan."))
 @pytest.mark.parametrize("fwhm_px", [1.0, 1.5])
 def test_narrow_profile_end_caps_within_budget(fwhm_px):
     error, _, _ = gaussian_error(fwhm_px, 30.3, 40.2, 20.0)
