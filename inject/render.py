@@ -446,46 +446,8 @@ def swept_profile(model, angle_deg, budget=Budget()):
     return swept
 
 
-#: Tracks shorter than this (px) are drawn as GalSim's ``Box(L) x profile`` by FFT on a stamp:
-#: for them that is exact (~1e-7 of the peak) and faster than tabulating end caps, whose
-#: errors would not cancel over a sub-pixel track (scripts/bench_render.py, 90 px case).
-SHORT_TRACK_PX = 100.0
-
-#: Width (arcsec) of the thin box of a short track.
-_BOX_WIDTH_ARCSEC = 1e-6
-
-
-def render_short_segment(image, profile, pixel_scale, segment, flux_per_px):
-    """Add a short track's charge as ``Box(L) x profile`` drawn by GalSim on a stamp.
-
-    The stamp is the region the profile can reach (GalSim's good image size at the
-    profile's accuracy), clipped to the image; nothing else is touched.
-    """
-    if segment.length == 0:
-        return RenderResult(0, 0.0, None)
-    streak = galsim.Convolve([galsim.Box(segment.length * pixel_scale, _BOX_WIDTH_ARCSEC),
-                              profile])
-    streak = streak.rotate(segment.angle_deg * galsim.degrees).withFlux(
-        flux_per_px * segment.length)
-    half = streak.getGoodImageSize(pixel_scale) // 2 + 1
-    cx, cy = 0.5 * (segment.x0 + segment.x1), 0.5 * (segment.y0 + segment.y1)
-    ny, nx = image.shape
-    x0, x1 = max(0, int(np.floor(cx)) - half), min(nx - 1, int(np.ceil(cx)) + half)
-    y0, y1 = max(0, int(np.floor(cy)) - half), min(ny - 1, int(np.ceil(cy)) + half)
-    if x1 < x0 or y1 < y0:
-        return RenderResult(0, 0.0, None)
-    stamp = galsim.ImageD(galsim.BoundsI(x0, x1, y0, y1), scale=pixel_scale)
-    streak.drawImage(image=stamp, center=galsim.PositionD(cx, cy))
-    image[y0:y1 + 1, x0:x1 + 1] += stamp.array
-    return RenderResult(stamp.array.size, float(stamp.array.sum()), None)
-
-
 def render_streak(image, model, segment, budget=Budget()):
-    """Render a :class:`~inject.streak.StreakModel` along a segment into ``image``
-    (tracks shorter than :data:`SHORT_TRACK_PX` by :func:`render_short_segment`)."""
-    if segment.length < SHORT_TRACK_PX:
-        return render_short_segment(image, model.profile, model.pixel_scale, segment,
-                                    model.flux_per_px)
+    """Render a :class:`~inject.streak.StreakModel` along a segment into ``image``."""
     swept = swept_profile(model, segment.angle_deg, budget)
     return render_segment(image, swept, segment, model.flux_per_px)
 

@@ -14,8 +14,7 @@ from .errors import SceneError
 from .instrument import LSST
 from .photometry import sky_per_pixel
 from .profile import Seeing
-from .render import (MIN_TOLERANCE, SHORT_TRACK_PX, Budget, render_polyline, render_segment,
-                     render_short_segment, swept_profile)
+from .render import MIN_TOLERANCE, Budget, render_polyline, render_segment, swept_profile
 from .streak import StreakModel
 from .trajectory import Polyline, Segment
 
@@ -115,14 +114,6 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0):
                 own = replace(budget, tolerance=tolerance)
         if track.vertices is not None:
             truth.append(_render_polyline_track(model_image, model, track, own))
-            continue
-        if track.length is not None and track.length < SHORT_TRACK_PX:
-            segment = Segment(track.x0, track.y0, track.angle, track.length)
-            charge = render_short_segment(model_image, model.profile, model.pixel_scale,
-                                          segment, model.flux_per_px).charge_added
-            ends = (segment.x0, segment.y0, segment.x1, segment.y1, segment.length)
-            truth.append(_truth_row(model, track, ends, charge,
-                                    model.flux_per_px * segment.length, own))
             continue
         swept = swept_profile(model, track.angle, own)
         if track.length is None:

@@ -19,13 +19,8 @@ BOX_IDIOM_GSPARAMS = galsim.GSParams(folding_threshold=1e-4, maxk_threshold=1e-6
 
 
 def render(model, segment, shape=(400, 420), budget=Budget()):
-    """The footprint renderer itself, whatever the track length (render_streak would hand
-    tracks shorter than SHORT_TRACK_PX to GalSim)."""
-    from inject.render import swept_profile
-
     image = np.zeros(shape)
-    render_segment(image, swept_profile(model, segment.angle_deg, budget), segment,
-                   model.flux_per_px)
+    render_streak(image, model, segment, budget)
     return image
 
 
@@ -81,22 +76,6 @@ def test_mirror_symmetry_of_box():
     np.testing.assert_allclose(a[201:400], a[199:0:-1], atol=1e-9 * a.max())
 
 
-def test_short_tracks_go_to_galsim_and_agree_with_the_footprint_renderer():
-    """Under SHORT_TRACK_PX render_streak draws Box(L) x profile by GalSim; it agrees with
-    the footprint renderer to the budget and keeps the flux of sub-pixel tracks."""
-    from inject.render import SHORT_TRACK_PX
-
-    seg = Segment(150.3, 200.2, 23.0, 60.0)
-    assert seg.length < SHORT_TRACK_PX
-    via_galsim = np.zeros((400, 420))
-    render_streak(via_galsim, PAPER_550, seg)
-    assert np.abs(via_galsim - render(PAPER_550, seg)).max() < 5e-5 * via_galsim.max()
-    for length in (0.1, 0.3, 1.0):
-        tiny = np.zeros((400, 420))
-        render_streak(tiny, PAPER_550, Segment(200.0, 200.0, 45.0, length))
-        assert tiny.sum() == pytest.approx(PAPER_550.flux_per_px * length, rel=1e-4)
-
-
 def test_additivity_of_streaks():
     s1, s2 = Segment(50.3, 60.2, 10.0, 200.0), Segment(80.1, 300.7, -35.0, 180.0)
     both = np.zeros((400, 420))
@@ -106,11 +85,9 @@ def test_additivity_of_streaks():
 
 
 def test_float32_image_accumulates():
-    from inject.render import swept_profile
-
     image = np.zeros((400, 420), dtype=np.float32)
     seg = Segment(150.2, 200.3, 12.0, 60.0)
-    render_segment(image, swept_profile(PAPER_550, seg.angle_deg), seg, PAPER_550.flux_per_px)
+    render_streak(image, PAPER_550, seg)
     ref = render(PAPER_550, seg)
     assert np.abs(image - ref).max() < 1e-6 * ref.max()
 
@@ -139,9 +116,7 @@ def test_looser_budget_smaller_footprint_and_bounded_error(tolerance):
     ref = render_galsim_box((400, 420), PAPER_550.profile, 0.2, seg, PAPER_550.flux_per_px,
                             BOX_IDIOM_GSPARAMS)
     image = np.zeros((400, 420))
-    swept = SweptProfile(PAPER_550.profile, 0.2, seg.angle_deg,
-                         Budget(tolerance, flux_tolerance=tolerance))
-    result = render_segment(image, swept, seg, PAPER_550.flux_per_px)
+    result = render_streak(image, PAPER_550, seg, Budget(tolerance, flux_tolerance=tolerance))
     # The Box idiom itself is good to ~2e-5 of the peak.
     assert np.abs(image - ref).max() < result.plan.total_predicted_error * ref.max() + 3e-5 * ref.max()
 
