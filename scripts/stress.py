@@ -160,8 +160,13 @@ def brute_reference(model, segment, shape):
 
 
 def render_cell(p):
-    """One model and track: finite outputs, flux on a padded image, float32, brute force."""
-    from inject.render import Budget, render_segment, swept_profile
+    """One model and track: finite outputs, flux on a padded image, float32, brute force.
+
+    The image is drawn as the product draws it (:func:`inject.render.render_streak`: GalSim's
+    Box FFT under SHORT_TRACK_PX, the footprint renderer above); the brute-force check
+    exercises the footprint renderer itself on a short track.
+    """
+    from inject.render import Budget, render_segment, render_streak, swept_profile
     from inject.trajectory import Segment
 
     model = make_model(p["model"])
@@ -177,7 +182,7 @@ def render_cell(p):
     dtype = np.dtype(p.get("dtype", "float64"))
     pedestal = p.get("pedestal", 0.0)
     image = np.full(shape, pedestal, dtype=dtype)
-    result = render_segment(image, swept, seg, model.flux_per_px)
+    result = render_streak(image, model, seg, budget)
     nonfinite = model_nonfinite(model) + count_nonfinite(plan_values, image) + (
         0 if math.isfinite(result.charge_added) else 1)
     checks.append(check("finite", nonfinite, 0))
@@ -190,7 +195,7 @@ def render_cell(p):
         checks.append(check("flux", abs(total) / model.flux_per_px, 1e-12, signed=total))
     if dtype != np.float64:
         ref = np.zeros(shape)
-        render_segment(ref, swept, seg, model.flux_per_px)
+        render_streak(ref, model, seg, budget)
         diff = np.abs(image.astype(np.float64) - pedestal - ref).max()
         ulp = np.finfo(dtype).eps * (pedestal + np.abs(ref).max())
         checks.append(check("float32", diff / ulp, 1.0, rel_to_peak=diff / peak))
