@@ -220,21 +220,9 @@ def render_cell(p):
 
 def exact_gaussian(shape, sigma, seg, flux):
     """Closed form of a unit-flux Gaussian (sigma in px) swept along +x and pixel-integrated."""
-    from scipy import special
+    from inject.reference import swept_gaussian
 
-    def cdf(u):
-        return 0.5 * (1 + special.erf(u / math.sqrt(2)))
-
-    def icdf(u):  # integral of the cdf
-        return u * cdf(u) + np.exp(-u * u / 2) / math.sqrt(2 * math.pi)
-
-    y, x = np.indices(shape, dtype=float)
-    dy, dx = y - seg.y0, x - seg.x0
-    across = cdf((dy + 0.5) / sigma) - cdf((dy - 0.5) / sigma)
-    s, length = sigma, seg.length
-    along = s * (icdf((dx + 0.5) / s) - icdf((dx - 0.5) / s)
-                 - icdf((dx + 0.5 - length) / s) + icdf((dx - 0.5 - length) / s))
-    return flux * across * along
+    return swept_gaussian(shape, sigma, seg, flux)
 
 
 def gaussian_cell(p):

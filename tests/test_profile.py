@@ -6,7 +6,7 @@ from scipy import integrate, optimize
 
 from inject.instrument import ARCSEC_PER_RAD, LSST, Telescope
 from inject.profile import Seeing, defocus_kernel, line_spread
-from inject.satellite import Box, Disk
+from inject.satellite import Disk
 from inject.streak import StreakModel
 
 

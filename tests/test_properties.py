@@ -17,7 +17,6 @@ from astropy.io import fits
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
-from scipy import special
 
 from inject.config import Track, parse_scene
 from inject.io.exr import read_exr, write_exr
@@ -181,19 +180,9 @@ def test_rendered_streak_scales_with_magnitude(m1, dm, angle):
 
 def swept_gaussian(shape, sigma, seg, flux):
     """Closed form: unit-flux Gaussian (sigma px) swept along +x, pixel-integrated."""
-    def cdf(u):
-        return 0.5 * (1 + special.erf(u / math.sqrt(2)))
+    from inject.reference import swept_gaussian as closed_form
 
-    def icdf(u):
-        return u * cdf(u) + np.exp(-u * u / 2) / math.sqrt(2 * math.pi)
-
-    y, x = np.indices(shape, dtype=float)
-    dy, dx = y - seg.y0, x - seg.x0
-    across = cdf((dy + 0.5) / sigma) - cdf((dy - 0.5) / sigma)
-    s, length = sigma, seg.length
-    along = s * (icdf((dx + 0.5) / s) - icdf((dx - 0.5) / s)
-                 - icdf((dx + 0.5 - length) / s) + icdf((dx - 0.5 - length) / s))
-    return flux * across * along
+    return closed_form(shape, sigma, seg, flux)
 
 
 def gaussian_error(fwhm_px, x0, y0, length):

@@ -1,5 +1,4 @@
 """Projected satellite shapes."""
-import galsim
 import numpy as np
 import pytest
 

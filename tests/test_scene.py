@@ -97,7 +97,6 @@ def test_cosmic_rays_and_dark_current():
 
 
 def test_raw_layout_with_bias_and_overscan():
-    from astropy.io import fits
 
     res = simulate(scene("detector.type=e2v", "detector.nx=1024", "detector.ny=2100",
                          "detector.layout=raw", "detector.bias=1200", "stars=false"))
