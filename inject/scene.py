@@ -69,11 +69,17 @@ def streak_models(scene):
 
 def render_streaks(scene, budget=Budget()):
     """Noise-free streak charge of a scene (float64, e-) and one truth row per satellite."""
-    noise = 0.0
-    if scene.noise:
-        noise = np.sqrt(sky_level(scene) + scene.detector.median("read_noise") ** 2)
     return render_tracks(scene.detector.shape, streak_models(scene),
-                         [s.track for s in scene.satellites], budget, noise)
+                         [s.track for s in scene.satellites], budget, pixel_noise(scene))
+
+
+def pixel_noise(scene):
+    """Typical per-pixel noise, e-: sky, dark current and the median read noise (0 without
+    noise)."""
+    if not scene.noise:
+        return 0.0
+    background = sky_level(scene) + scene.dark_current * scene.exptime
+    return float(np.sqrt(background + scene.detector.median("read_noise") ** 2))
 
 
 #: Streak wings are drawn until they fall below this fraction of the per-pixel noise.
@@ -279,7 +285,7 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None):
         variance = expected.astype(np.float32)
         np.maximum(variance, 0, out=variance)
         variance += read_noise ** 2
-        noise_sigma = float(np.sqrt(sky + dark + det.median("read_noise") ** 2))
+        noise_sigma = pixel_noise(scene)
     else:
         variance = np.zeros_like(expected)
         noise_sigma = 0.0
