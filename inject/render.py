@@ -29,6 +29,15 @@ from .validate import positive
 #: (folding_threshold 1e-4) is ~1e-6 of the peak.
 MIN_TOLERANCE = 2e-6
 
+#: Width over which the end-cap table's values at its ends are blended into the cumulative's
+#: limits (0 before the track, LSF(d) after it): C stays continuous there, so pixel sums of
+#: short tracks' charge, C(t) - C(t - L), keep their flux (a step would not).
+BLEND_PX = 4.0
+
+#: Tracks shorter than this (px) have their tolerance checked against their own peak
+#: (:func:`short_track_budget`); no seeing profile is wide enough for longer ones to matter.
+SHORT_TRACK_CHECK_PX = 1000.0
+
 #: Largest end-cap table (samples on a side) before the renderer stops widening it and
 #: reports the mismatch it reached as its predicted error instead.
 MAX_TABLE_SIZE = 4096
@@ -156,8 +165,10 @@ class SweptProfile:
                 break
             self._cap *= 1.5
         self._separable_tails(along)
+        self._blend = BLEND_PX * p
         self.plan = RenderPlan(
-            support_px=support / p, cap_px=self._cap / p, table_step_px=step / p,
+            support_px=support / p, cap_px=(self._cap + self._blend) / p,
+            table_step_px=step / p,
             lsf_step_px=lsf_step / p,
             predicted_error={"support": tol / 2, "lsf_interpolation": tol / 8,
                              "cap_tails": tol / 2, "cap_table": mismatch})
@@ -259,56 +270,85 @@ class SweptProfile:
         g2 = series[1]
         return g2 - g2[:, :1] - g1[:, :1] * tau + lsf * (tau ** 2 / (2 * period))
 
+    def _table_at(self, table, d, t):
+        """Cubic-spline value of an end-cap table (C or K) at track-frame ``(t, d)``."""
+        coords = np.vstack(((d - self._d0) / self._table_step, (t - self._t0) / self._table_step))
+        return ndimage.map_coordinates(table, coords, order=3, prefilter=False, mode="nearest")
+
     def _second_table(self):
-        """Spline coefficients of K, built once, started at 0 at -cap and continued after
-        +cap as ``t LSF(d) - m1(d)``: the exact antiderivative of the C the renderer uses
-        (0 before -cap, the table, LSF(d) after +cap), or linearly varying tracks would not
-        conserve flux."""
+        """Spline coefficients of K, built once: the exact antiderivative of the C the renderer
+        uses (0 before the blend, the blend, the table, the blend, LSF(d) after), so that it
+        continues after ``cap + blend`` as ``t LSF(d) - m1(d)``; otherwise linearly varying
+        tracks would not conserve flux."""
         if self._second is None:
             coeffs, t, keep_t, d, far = self._second_inputs
             second = ndimage.spline_filter(self._antiderivative(coeffs, 2, t)[:, keep_t],
                                            order=3)
-            rows = np.arange(len(far), dtype=float)
-
-            def at(t_cap):
-                cols = np.full_like(rows, (t_cap - self._t0) / self._table_step)
-                return ndimage.map_coordinates(second, [rows, cols], order=3,
-                                               prefilter=False, mode="nearest")
-            second -= at(-self._cap)[:, None]  # spline coefficients shift with a constant
-            self._moment_d, self._moment = d, self._cap * far - at(self._cap)
+            cap, w = self._cap, self._blend
+            ones = np.ones_like(d)
+            # K(-cap) is the blend's integral before the table: C(-cap, d) w / 2. Spline
+            # coefficients shift with a constant, so each row is started there.
+            start = self._table_at(self._table, d, -cap * ones)
+            second += (start * w / 2 - self._table_at(second, d, -cap * ones))[:, None]
+            end = self._table_at(self._table, d, cap * ones)
+            k_end = self._table_at(second, d, cap * ones)
+            self._moment_d = d
+            self._moment = cap * far - k_end - (end - far) * w / 2
             self._second = second
         return self._second
 
     def _cumulatives(self, t, d, inner, want_second):
         """``C(t, d)`` and, if asked, ``K(t, d)`` (arcsec), given ``inner = LSF(d)``.
 
-        Before the cap both vanish; after it ``C = LSF(d)`` and ``K = t LSF(d) - m1(d)``.
+        Near the track ``C`` is the table for ``|t| <= cap``; over the next ``blend`` it goes
+        smoothly (``1 - 3u^2 + 2u^3``) from the table's end values to its limits, 0 before
+        and ``LSF(d)`` after, and stays there. Far from the track a separable model is
+        enough. ``K`` is the exact antiderivative: ``t LSF(d) - m1(d)`` after the blend.
         """
-        first = np.where(t > self._cap, inner, 0.0)
+        cap, w = self._cap, self._blend
+        first = np.where(t > cap + w, inner, 0.0)
         second = None
         if want_second:
-            moment = self._first_moment(d, inner)
-            second = np.where(t > self._cap, t * inner - moment, 0.0)
-        near = np.abs(t) <= self._cap
+            second = np.where(t > cap + w, t * inner - self._first_moment(d, inner), 0.0)
+            table_k = self._second_table()
+        near = np.abs(t) <= cap + w
         if not near.any():
             return first, second
         tn, dn, inn = t[near], d[near], inner[near]
-        in_table = np.abs(dn) <= self._table_d
-        coords = np.vstack(((dn[in_table] - self._d0) / self._table_step,
-                            (tn[in_table] - self._t0) / self._table_step))
+        c_near = np.empty_like(tn)
+        k_near = np.empty_like(tn) if want_second else None
         # Far from the track the cap is below tol/2 of the peak: a separable model is enough.
-        tails = ~in_table
-        along_cdf = np.interp(tn[tails], self._along_t, self._along_cdf)
-        values = np.empty_like(tn)
-        values[in_table] = ndimage.map_coordinates(self._table, coords, order=3,
-                                                   prefilter=False, mode="nearest")
-        values[tails] = inn[tails] * along_cdf
-        first[near] = values
+        tails = np.abs(dn) > self._table_d
+        tt, it = tn[tails], inn[tails]
+        c_near[tails] = it * np.interp(tt, self._along_t, self._along_cdf)
         if want_second:
-            values[in_table] = ndimage.map_coordinates(self._second_table(), coords, order=3,
-                                                       prefilter=False, mode="nearest")
-            values[tails] = inn[tails] * np.interp(tn[tails], self._along_t, self._along_k)
-            second[near] = values
+            k_near[tails] = np.where(tt > cap, it * (tt - self._along_moment),
+                                     it * np.interp(tt, self._along_t, self._along_k))
+        core = ~tails & (np.abs(tn) <= cap)
+        c_near[core] = self._table_at(self._table, dn[core], tn[core])
+        if want_second:
+            k_near[core] = self._table_at(table_k, dn[core], tn[core])
+        for side in (-1.0, 1.0):
+            zone = ~tails & (side * tn > cap)
+            if not zone.any():
+                continue
+            tz, dz, iz = tn[zone], dn[zone], inn[zone]
+            u = np.minimum((side * tz - cap) / w, 1.0)
+            fade, fade_integral = 1 - u * u * (3 - 2 * u), u - u ** 3 + u ** 4 / 2
+            edge = np.full_like(tz, side * cap)
+            c_edge = self._table_at(self._table, dz, edge)
+            if side < 0:
+                c_near[zone] = c_edge * fade
+                if want_second:
+                    k_near[zone] = c_edge * w * (0.5 - fade_integral)
+            else:
+                c_near[zone] = iz + (c_edge - iz) * fade
+                if want_second:
+                    k_near[zone] = (self._table_at(table_k, dz, edge) + iz * (tz - cap)
+                                    + (c_edge - iz) * w * fade_integral)
+        first[near] = c_near
+        if want_second:
+            second[near] = k_near
         return first, second
 
     def _first_moment(self, d, inner):
@@ -336,7 +376,8 @@ class SweptProfile:
         values = flux0 * inner
         if slope:
             values += slope * (t * inner - self._first_moment(d, inner))
-        ends = (t <= self._cap) | (t >= length - self._cap)
+        reach = self._cap + self._blend
+        ends = (t <= reach) | (t >= length - reach)
         if ends.any():
             te, de, ie = t[ends], d[ends], inner[ends]
             c_now, k_now = self._cumulatives(te, de, ie, bool(slope))
@@ -435,9 +476,34 @@ def render_segment(image, swept, segment, flux_per_px, flux_end=None):
     return RenderResult(len(values), float(values.sum()), plan)
 
 
-def swept_profile(model, angle_deg, budget=Budget()):
+def short_track_budget(budget, profile, pixel_scale, angle_deg, length_px):
+    """The budget for a track of ``length_px``, its tolerance relative to its own peak.
+
+    A track shorter than the profile along it peaks below an infinite streak's ``F p
+    max LSF``, which the tables are budgeted against: the tolerance is scaled by the ratio of
+    the two peaks, ``min(1, L max phi)`` (``phi`` the pixel-convolved marginal along the
+    track, exact for separable profiles as ``L -> 0``), down to :data:`MIN_TOLERANCE`.
+    """
+    if not np.isfinite(length_px):
+        return budget
+    along = line_spread(profile.rotate(90 * galsim.degrees), pixel_scale,
+                        pixel_angle_deg=angle_deg + 90)
+    ratio = min(1.0, length_px * pixel_scale * along.lsf.max())
+    if ratio >= 1.0:
+        return budget
+    return replace(budget, tolerance=max(MIN_TOLERANCE, budget.tolerance * ratio))
+
+
+def swept_profile(model, angle_deg, budget=Budget(), length_px=np.inf):
     """A :class:`SweptProfile` of a :class:`~inject.streak.StreakModel`, with components
-    that cannot matter at this budget dropped, and that decision in its plan."""
+    that cannot matter at this budget dropped, and that decision in its plan.
+
+    ``length_px``, if given, tightens the tolerance of a track too short to reach the
+    long streak's peak (:func:`short_track_budget`).
+    """
+    if length_px < SHORT_TRACK_CHECK_PX:
+        budget = short_track_budget(budget, model.profile, model.pixel_scale, angle_deg,
+                                    length_px)
     profile, dropped, error = model.render_profile(budget.tolerance)
     swept = SweptProfile(profile, model.pixel_scale, angle_deg, budget)
     if dropped:
@@ -448,7 +514,7 @@ def swept_profile(model, angle_deg, budget=Budget()):
 
 def render_streak(image, model, segment, budget=Budget()):
     """Render a :class:`~inject.streak.StreakModel` along a segment into ``image``."""
-    swept = swept_profile(model, segment.angle_deg, budget)
+    swept = swept_profile(model, segment.angle_deg, budget, segment.length)
     return render_segment(image, swept, segment, model.flux_per_px)
 
 

@@ -121,7 +121,8 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0):
         if track.vertices is not None:
             truth.append(_render_polyline_track(model_image, model, track, own))
             continue
-        swept = swept_profile(model, track.angle, own)
+        swept = swept_profile(model, track.angle, own,
+                              np.inf if track.length is None else track.length)
         if track.length is None:
             # The profile reaches support_px across and cap_px along: a line that far outside
             # the image still lights it.
