@@ -11,6 +11,7 @@ from .errors import InputError
 from .io.fits import truth_table
 from .render import Budget
 from .scene import MASK_PLANES, STREAK_MASK_SIGMA, render_tracks
+from .validate import positive
 
 
 def _mask_bit(header):
@@ -37,12 +38,15 @@ def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()
     Parameters
     ----------
     exposure : InputExposure
+        From :func:`inject.io.reader.read_exposure`.
     models : list of StreakModel
     tracks : list of Track
+        One per model.
     gain : float
         e- per image unit (1 for images in electrons).
-    rng : numpy.random.Generator
-        Draws the Poisson noise of the injected charge.
+    rng : numpy.random.Generator or int
+        Draws the Poisson noise of the injected charge; anything
+        :func:`numpy.random.default_rng` takes (an int seeds a new generator).
     noise : bool
         Add Poisson noise to the injected charge (else the exact model).
 
@@ -51,9 +55,15 @@ def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()
     model_e : ndarray
         The injected charge, e- (noise-free).
     truth : list of dict
+
+    Raises
+    ------
+    InputError
+        An argument is of the wrong kind, ``models`` and ``tracks`` differ in length, or
+        ``gain`` is not a number > 0.
     """
-    if not (np.isfinite(gain) and gain > 0):
-        raise InputError("gain", gain, "must be > 0 (e- per image unit)")
+    rng = _check_arguments(exposure, models, tracks, rng)
+    positive("gain", gain)
     image = exposure.image
     model_e, truth = render_tracks(image.shape, models, tracks, budget)
     # The model can dip a few 1e-6 of its peak below zero (interpolation): not a charge.
@@ -82,6 +92,31 @@ def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()
     else:
         exposure.hdus.append(fits.ImageHDU(model_e.astype(np.float32), name="INJECTED_MODEL"))
     return model_e, truth
+
+
+def _check_arguments(exposure, models, tracks, rng):
+    """Raise :class:`InputError` for arguments of the wrong kind (which would otherwise fail
+    deep inside the renderer); return ``rng`` as a generator."""
+    from .config import Track
+    from .io.reader import InputExposure
+    from .streak import StreakModel
+
+    if not isinstance(exposure, InputExposure):
+        raise InputError("exposure", type(exposure).__name__,
+                         "must be an InputExposure (inject.io.reader.read_exposure)")
+    models, tracks = list(models), list(tracks)
+    if len(models) != len(tracks):
+        raise InputError("tracks", len(tracks), f"need one per model ({len(models)})")
+    for i, (model, track) in enumerate(zip(models, tracks)):
+        if not isinstance(model, StreakModel):
+            raise InputError(f"models[{i}]", type(model).__name__, "must be a StreakModel")
+        if not isinstance(track, Track):
+            raise InputError(f"tracks[{i}]", type(track).__name__,
+                             "must be an inject.config.Track")
+    try:
+        return np.random.default_rng(rng)  # a Generator is returned as it is
+    except (TypeError, ValueError):
+        raise InputError("rng", rng, "must be a numpy Generator or an integer seed") from None
 
 
 def _append_truth(hdus, rows):

@@ -2,7 +2,8 @@
 
 Each subcommand parses its options, calls the engine and prints or writes the result. Any
 :class:`~inject.errors.InjectError` becomes a one-line message on stderr and exit status 2
-(``--traceback`` shows the full stack instead).
+(``--traceback`` shows the full stack instead); so do argparse's usage errors (without the
+usage block: ``inject simulate --help`` shows it).
 """
 import argparse
 import json
@@ -10,6 +11,29 @@ import sys
 
 from . import __version__
 from .errors import InjectError, InputError
+
+
+def _one_line(text):
+    """``text`` with every run of whitespace (newlines included) as one space."""
+    return " ".join(str(text).split())
+
+
+def _usage_error(prog, message):
+    """Exit with status 2 (argparse's, for usage errors) after ``PROG: error: MESSAGE``."""
+    print(f"{prog}: error: {_one_line(message)}", file=sys.stderr)
+    sys.exit(2)
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line on stderr, exit status 2.
+
+    argparse prints the whole usage block before the error; that block is what ``--help``
+    is for. Sub-parsers are of the same class (``add_subparsers`` uses the parent's), so
+    their errors name the subcommand: ``inject simulate: error: argument --seed: ...``.
+    """
+
+    def error(self, message):
+        _usage_error(self.prog, message)
 
 
 def _add_satellite_options(p):
@@ -111,48 +135,54 @@ def _add_simulate_parser(sub):
     p.add_argument("--png", metavar="OUT.png", help="also write a quicklook PNG")
     p.add_argument("--truth", metavar="OUT.csv", help="also write the truth table as CSV")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    p.add_argument("overrides", nargs="*", metavar="key.path=value",
+    # default=[]: without it argparse lists this optional positional as "required".
+    p.add_argument("overrides", nargs="*", default=[], metavar="key.path=value",
                    help="override scene keys, e.g. satellites.0.mag=6 detector.nx=512")
     p.set_defaults(func=run_simulate)
 
 
 def run_simulate(args):
+    """The ``inject simulate`` command: every output is written, or none (all-or-nothing)."""
     import os
 
     from .config import apply_overrides, load_scene_file, parse_scene
-    from .io.atomic import check_writable
+    from .io.atomic import output_group
     from .io.fits import write_exposure
     from .scene import simulate
 
     scene = parse_scene(apply_overrides(load_scene_file(args.scene), args.overrides))
-    outputs = [args.output] + [path for path in (args.exr, args.png, args.truth) if path]
-    for path in outputs:  # fail before the work, not after it
+    outputs = {option: path for option, path in (("-o", args.output), ("--exr", args.exr),
+                                                 ("--png", args.png), ("--truth", args.truth))
+               if path}
+    for option, path in outputs.items():
         if os.path.exists(path) and os.path.samefile(path, args.scene):
-            raise InputError("-o", path, "would replace the scene file")
-        check_writable(path, args.overwrite)
-    wcs = None
-    if scene.pointing is not None:
-        from .instrument import LSST
-        from .wcs import pointing_wcs
+            raise InputError(option, path, "would replace the scene file")
+    # The group checks every target before the work, and moves the finished files into place
+    # together at its end: a failing EXR leaves no new FITS behind.
+    with output_group(outputs.values(), args.overwrite):
+        wcs = None
+        if scene.pointing is not None:
+            from .instrument import LSST
+            from .wcs import pointing_wcs
 
-        wcs = pointing_wcs(scene.pointing, scene.detector.shape, LSST.pixel_scale_arcsec)
-    result = simulate(scene, wcs=wcs)
-    write_exposure(args.output, scene, result, scene.detector.gain,
-                   wcs_header=None if wcs is None else wcs.to_header(relax=True),
-                   overwrite=args.overwrite)
-    if args.exr:
-        from .io.exr import write_exr
+            wcs = pointing_wcs(scene.pointing, scene.detector.shape, LSST.pixel_scale_arcsec)
+        result = simulate(scene, wcs=wcs)
+        write_exposure(args.output, scene, result, scene.detector.gain,
+                       wcs_header=None if wcs is None else wcs.to_header(relax=True),
+                       overwrite=args.overwrite)
+        if args.exr:
+            from .io.exr import write_exr
 
-        write_exr(args.exr, scene, result, overwrite=args.overwrite)
-    if args.png:
-        from .io.quicklook import write_quicklook
+            write_exr(args.exr, scene, result, overwrite=args.overwrite)
+        if args.png:
+            from .io.quicklook import write_quicklook
 
-        write_quicklook(args.png, result, overwrite=args.overwrite)
-    if args.truth:
-        from .io.fits import write_truth_csv
+            write_quicklook(args.png, result, overwrite=args.overwrite)
+        if args.truth:
+            from .io.fits import write_truth_csv
 
-        write_truth_csv(args.truth, result.truth, overwrite=args.overwrite)
-    for path in outputs:
+            write_truth_csv(args.truth, result.truth, overwrite=args.overwrite)
+    for path in outputs.values():
         print(f"wrote {path}", file=sys.stderr)
 
 
@@ -233,7 +263,7 @@ def run_add_streak(args):
 
 def build_parser():
     """The ``inject`` argument parser with every subcommand."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="inject", description="Realistic satellite streaks for Rubin/LSSTCam images.")
     parser.add_argument("--version", action="version", version=f"inject {__version__}")
     parser.add_argument("--traceback", action="store_true",
@@ -257,15 +287,17 @@ def main(argv=None):
     args, extra = parser.parse_known_args(argv)
     if extra:
         if not hasattr(args, "overrides") or any("=" not in item for item in extra):
-            parser.error(f"unrecognized arguments: {' '.join(extra)}")
+            # The subcommand's error, as argparse itself would word it.
+            _usage_error(f"{parser.prog} {args.command}",
+                         f"unrecognized arguments: {' '.join(extra)}")
         args.overrides = list(args.overrides) + extra
     try:
         args.func(args)
     except InjectError as err:
         if args.traceback:
             raise
-        message = " ".join(str(err).split())  # one line, whatever the library said
-        print(f"inject {args.command}: error: {message}", file=sys.stderr)
+        # One line, whatever the library said.
+        print(f"inject {args.command}: error: {_one_line(err)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("inject: interrupted", file=sys.stderr)

@@ -5,6 +5,7 @@ Every problem is reported as a :class:`~inject.errors.SceneError` naming the key
 """
 from dataclasses import dataclass, field
 
+import numbers
 import re
 
 import numpy as np
@@ -93,10 +94,19 @@ _SceneLoader.add_implicit_resolver(
 
 
 def load_scene_file(path):
-    """Read a YAML scene file into a mapping (``yaml.safe_load``: no code runs)."""
+    """Read a YAML scene file into a mapping (``yaml.safe_load``: no code runs).
+
+    Raises
+    ------
+    SceneError
+        ``path`` is not a file path, cannot be read, is not UTF-8 text or valid YAML, or does
+        not hold a mapping.
+    """
     try:
         with open(path, encoding="utf-8") as stream:
             raw = yaml.load(stream, Loader=_SceneLoader)  # safe: no Python tags
+    except TypeError:  # open() says only "expected str, bytes or os.PathLike object"
+        raise SceneError(f"scene file {path!r}: not a file path") from None
     except OSError as err:
         raise SceneError(f"{path}: cannot read scene file ({err.strerror})") from None
     except UnicodeDecodeError:
@@ -111,14 +121,31 @@ def load_scene_file(path):
 def apply_overrides(raw, overrides):
     """Apply ``key.path=value`` strings to a scene mapping (values parsed as YAML scalars).
 
-    List items are addressed by index: ``satellites.0.mag=6``.
+    List items are addressed by index: ``satellites.0.mag=6``. Values are read as in scene
+    files (``1e3`` is a number).
+
+    Raises
+    ------
+    SceneError
+        An override is not a ``key.path=value`` string, its value is not valid YAML, or its
+        path does not fit the scene.
     """
-    raw = yaml.safe_load(yaml.safe_dump(raw))  # a deep copy of plain data
+    if isinstance(overrides, str):  # would be taken one character at a time
+        raise SceneError(f"overrides={overrides!r}: must be a list of key.path=value strings")
+    try:
+        raw = yaml.safe_load(yaml.safe_dump(raw))  # a deep copy of plain data
+    except yaml.YAMLError as err:
+        raise SceneError(f"scene: not plain data ({err})") from None
     for item in overrides:
+        if not isinstance(item, str):
+            raise SceneError(f"override {item!r}: expected a key.path=value string")
         path, sep, text = item.partition("=")
         if not sep or not path:
             raise SceneError(f"override {item!r}: expected key.path=value")
-        value = yaml.safe_load(text)
+        try:
+            value = yaml.load(text, Loader=_SceneLoader)  # safe, as load_scene_file
+        except yaml.YAMLError as err:
+            raise SceneError(f"override {item!r}: value is not valid YAML ({err})") from None
         node, keys = raw, path.split(".")
         for depth, key in enumerate(keys):
             last = depth == len(keys) - 1
@@ -139,7 +166,8 @@ def apply_overrides(raw, overrides):
 
 
 def _number(where, value, kind=float):
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    # numbers.Real: NumPy scalars from Python callers are numbers too; bools are not.
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise SceneError(f"{where}={value!r}: must be a number")
     if value != value or value in (float("inf"), float("-inf")):
         raise SceneError(f"{where}={value!r}: must be finite")
@@ -226,6 +254,10 @@ def parse_scene(raw):
     for flag in ("sky", "stars"):
         if not isinstance(merged[flag], (bool, dict)):
             raise SceneError(f"{flag}={merged[flag]!r}: must be true, false or a mapping")
+    pointing = merged.get("pointing")
+    if pointing is not None:  # ranges are checked where the WCS is made (inject.wcs)
+        _check_keys("pointing", pointing, {"ra", "dec", "rotation"}, {"ra", "dec"})
+        pointing = {k: _number(f"pointing.{k}", v) for k, v in pointing.items()}
     satellites = merged.get("satellites", [])
     if not isinstance(satellites, list):
         raise SceneError(f"satellites={satellites!r}: must be a list")
@@ -253,4 +285,4 @@ def parse_scene(raw):
                  detector=detector, sky=merged["sky"], stars=merged["stars"],
                  noise=merged["noise"],
                  satellites=tuple(_satellite(i, s) for i, s in enumerate(satellites)),
-                 pointing=merged.get("pointing"), units=units, raw=raw, **rates)
+                 pointing=pointing, units=units, raw=raw, **rates)

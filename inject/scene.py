@@ -9,6 +9,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .config import Scene
 from .detector import add_cosmic_rays, bleed_saturation, raw_layout
 from .errors import SceneError
 from .instrument import LSST
@@ -239,8 +240,11 @@ def sky_level(scene):
         if isinstance(level, bool) or not isinstance(level, (int, float)) or not level >= 0:
             raise SceneError(f"sky.level={level!r}: must be a number >= 0 (e-/px)")
         return float(level)
+    scaling = spec.get("airmass_scaling", False)
+    if not isinstance(scaling, bool):  # "no" or "maybe" would count as true
+        raise SceneError(f"sky.airmass_scaling={scaling!r}: must be true or false")
     level = sky_per_pixel(scene.band, scene.exptime, LSST.pixel_scale_arcsec, spec.get("mag"))
-    if spec.get("airmass_scaling", False):
+    if scaling:
         level /= np.cos(np.radians(scene.zenith))
     return float(level)
 
@@ -255,7 +259,16 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None):
     Returns
     -------
     SceneResult
+
+    Raises
+    ------
+    SceneError
+        ``scene`` is not a :class:`~inject.config.Scene` (a raw mapping goes through
+        :func:`~inject.config.parse_scene` first), or holds a bad sky.
     """
+    if not isinstance(scene, Scene):
+        raise SceneError(f"scene={type(scene).__name__}: pass a Scene "
+                         f"(inject.config.parse_scene of the mapping)")
     det = scene.detector
     streaks, truth = render_streaks(scene, budget)
     sky = sky_level(scene)

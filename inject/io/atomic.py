@@ -1,15 +1,42 @@
-"""Atomic output: write to a temporary file beside the target, then rename it into place."""
+"""Atomic output: write to a temporary file beside the target, then rename it into place.
+
+:func:`atomic_path` makes one file appear whole or not at all. :func:`output_group` does the
+same for several files written by one command: inside it, every :func:`atomic_path` (whichever
+writer calls it) keeps its finished temporary file, and the group moves them all into place
+only when its block ends without an error, undoing the moves already made if a later one
+fails. Temporary files are named ``.inject-*`` and never outlive the call.
+"""
 import contextlib
+import contextvars
 import os
+import shutil
 import tempfile
 
 from ..errors import OutputError
 
+#: The pending ``(path, temporary, overwrite)`` moves of the active :func:`output_group`.
+_GROUP = contextvars.ContextVar("inject_output_group", default=None)
+
 
 def check_writable(path, overwrite):
-    """Raise :class:`OutputError` if ``path`` exists (without ``overwrite``) or its directory
-    cannot be written."""
-    if os.path.exists(path) and not overwrite:
+    """Raise :class:`OutputError` unless ``path`` can be written.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The output file.
+    overwrite : bool
+        Whether an existing file may be replaced.
+
+    Raises
+    ------
+    OutputError
+        ``path`` exists (without ``overwrite``) or is a directory, or its directory is missing
+        or not writable.
+    """
+    if os.path.isdir(path):
+        raise OutputError(f"{path}: is a directory")
+    if os.path.lexists(path) and not overwrite:
         raise OutputError(f"{path}: exists; pass --overwrite to replace it")
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
@@ -18,26 +45,139 @@ def check_writable(path, overwrite):
         raise OutputError(f"{path}: directory {directory} is not writable")
 
 
+def _cannot_write(path, err):
+    return OutputError(f"{path}: cannot write ({err.strerror or err})")
+
+
+def _temporary(path):
+    """A new empty file beside ``path`` (same file system, so the final rename is atomic)."""
+    directory = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".inject-", suffix=os.path.splitext(path)[1],
+                               dir=directory)
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual permissions
+    return tmp
+
+
+def _remove(*paths):
+    for path in paths:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(path)
+
+
 @contextlib.contextmanager
 def atomic_path(path, overwrite=False):
     """Yield a temporary path in the target's directory; on success rename it to ``path``.
 
     On any error (a full disk included) the temporary file is removed and the target is
-    left as it was.
+    left as it was. Inside an :func:`output_group` the rename waits for the group's end.
+
+    Raises
+    ------
+    OutputError
+        ``path`` cannot be written (see :func:`check_writable`), the block fails with an
+        :class:`OSError`, or ``path`` is already an output of the active group.
     """
     check_writable(path, overwrite)
-    directory = os.path.dirname(os.path.abspath(path))
-    suffix = os.path.splitext(path)[1]
-    fd, tmp = tempfile.mkstemp(prefix=".inject-", suffix=suffix, dir=directory)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual permissions
+    group = _GROUP.get()
+    if group is not None and any(os.path.realpath(p) == os.path.realpath(path)
+                                 for p, _, _ in group):
+        raise OutputError(f"{path}: given for two outputs")
+    tmp = _temporary(path)
     try:
         yield tmp
-        os.replace(tmp, path)
+        if group is None:
+            os.replace(tmp, path)
+        else:
+            group.append((path, tmp, overwrite))  # the group moves it, or removes it
+            tmp = None
     except OSError as err:
-        raise OutputError(f"{path}: cannot write ({err.strerror or err})") from None
+        raise _cannot_write(path, err) from None
     finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+        if tmp is not None:
+            _remove(tmp)
+
+
+@contextlib.contextmanager
+def output_group(paths=(), overwrite=False):
+    """Make every output written in the block appear together, or none of them.
+
+    ``paths`` are checked on entry (:func:`check_writable`, and that no file is named twice),
+    so that a command fails before its work rather than after it. Files written in the block
+    through :func:`atomic_path` go to temporary files; when the block ends without an error
+    they are moved into place. If a move fails, the files already moved are put back as they
+    were (new ones removed, replaced ones restored). If the block fails, no target is touched.
+    A group inside another joins it.
+
+    Parameters
+    ----------
+    paths : sequence of str or os.PathLike
+        The outputs known in advance (others may still be written in the block).
+    overwrite : bool
+        Whether existing files among ``paths`` may be replaced.
+
+    Raises
+    ------
+    OutputError
+        A target cannot be written or a move fails.
+    """
+    seen = {}
+    for path in paths:
+        check_writable(path, overwrite)
+        key = os.path.realpath(path)
+        if key in seen:
+            also = "" if os.fspath(seen[key]) == os.fspath(path) else f" (as {seen[key]} too)"
+            raise OutputError(f"{path}: given for two outputs{also}")
+        seen[key] = path
+    if _GROUP.get() is not None:  # nested: the outermost group moves everything
+        yield
+        return
+    pending = []
+    token = _GROUP.set(pending)
+    try:
+        yield
+    except BaseException:
+        _remove(*(tmp for _, tmp, _ in pending))
+        raise
+    finally:
+        _GROUP.reset(token)
+    _commit(pending)
+
+
+def _commit(pending):
+    """Move each ``(path, temporary, overwrite)`` into place: all of them, or none."""
+    moved, backups = [], []
+    try:
+        for path, _, overwrite in pending:  # one may have appeared while the others were written
+            check_writable(path, overwrite)
+        for path, tmp, _ in pending:
+            backup = None
+            if os.path.lexists(path):
+                backup = tmp + ".old"  # .inject-*: never mistaken for an output
+                backups.append(backup)
+                _keep_copy(path, backup)
+            os.replace(tmp, path)
+            moved.append((path, backup))
+    except BaseException as err:  # an interrupt too: never leave half of the outputs moved
+        for done, backup in reversed(moved):
+            with contextlib.suppress(OSError):
+                if backup is None:
+                    os.remove(done)  # it did not exist before
+                else:
+                    os.replace(backup, done)
+        if isinstance(err, OSError):
+            raise _cannot_write(path, err) from None
+        raise
+    finally:
+        _remove(*backups, *(tmp for _, tmp, _ in pending))
+
+
+def _keep_copy(path, backup):
+    """Keep the current ``path`` as ``backup`` (a hard link where the file system allows,
+    so the target itself stays in place until replaced)."""
+    try:
+        os.link(path, backup, follow_symlinks=False)
+    except OSError:
+        shutil.copy2(path, backup, follow_symlinks=False)

@@ -254,6 +254,7 @@ def _check(args):
 def run_evaluate(args):
     """The ``inject evaluate`` command (``args`` from :func:`add_evaluate_parser`)."""
     from ..errors import OutputError
+    from ..io.atomic import output_group
     from .run import _json_safe as json_rows
 
     _check(args)
@@ -274,13 +275,14 @@ def run_evaluate(args):
     loss = pixel_loss(summary, names[0], tuple(args.heights[:2])) \
         if len(args.heights) >= 2 else []
     points = fifty_percent_points(summary)
-    _write_text(os.path.join(args.out, "records.csv"), _csv_text(records))
-    _write_text(os.path.join(args.out, "summary.csv"), _csv_text(summary))
     table = markdown_table(summary)
-    _write_text(os.path.join(args.out, "summary.md"), table + "\n")
-    if loss:
-        _write_text(os.path.join(args.out, "pixel_loss.csv"), _csv_text(loss))
-    plots = write_plots(summary, loss, args.out, names[0])
+    with output_group():  # every file of the campaign appears, or none (a full disk...)
+        _write_text(os.path.join(args.out, "records.csv"), _csv_text(records))
+        _write_text(os.path.join(args.out, "summary.csv"), _csv_text(summary))
+        _write_text(os.path.join(args.out, "summary.md"), table + "\n")
+        if loss:
+            _write_text(os.path.join(args.out, "pixel_loss.csv"), _csv_text(loss))
+        plots = write_plots(summary, loss, args.out, names[0])
     if args.json:
         out = {"summary": summary,
                "completeness_50": [{"masker": m, "height_km": h, "peak_sb": v}
