@@ -104,6 +104,27 @@ class RenderPlan:
         return float(sum(self.predicted_error.values()))
 
 
+class _UniformInterp:
+    """``np.interp`` on a uniform grid by index arithmetic: no binary search, ~5x faster on
+    the millions of footprint pixels that each need ``LSF(d)``. Clamps outside like
+    ``np.interp``."""
+
+    def __init__(self, grid, values):
+        self.start, self.step = float(grid[0]), float(grid[1] - grid[0])
+        self.values = np.asarray(values, dtype=float)
+        self.slopes = np.append(np.diff(self.values), 0.0)
+
+    def __call__(self, x):
+        q = x - self.start
+        q *= 1.0 / self.step
+        np.clip(q, 0.0, len(self.values) - 1, out=q)
+        i = q.astype(np.intp)
+        q -= i
+        q *= self.slopes.take(i)
+        q += self.values.take(i)
+        return q
+
+
 def _extent(cross_section, threshold, flux_fraction):
     """Half-width outside which a cross-section is below ``threshold`` times its peak and
     holds less than ``flux_fraction`` of its integral."""
@@ -146,6 +167,7 @@ class SweptProfile:
         curvature = np.abs(np.diff(coarse.lsf, 2)).max() / coarse.step ** 2
         lsf_step = min(p / 8, np.sqrt(tol * coarse.lsf.max() / curvature))
         self.lsf = line_spread(profile, p, step_arcsec=lsf_step, pixel_angle_deg=self.angle_deg)
+        self._lsf_at = _UniformInterp(self.lsf.offset_arcsec, self.lsf.lsf)
         self._peak = self.lsf.lsf.max()
         # Along the track: the marginal across it, and its cumulative, for the far tails.
         along = line_spread(profile.rotate(90 * galsim.degrees), p,
@@ -206,14 +228,18 @@ class SweptProfile:
         # GalSim keeps (pi / maxk, down to p / 16), never coarser than p / 4, and at least 24
         # samples per FWHM of the pixel-convolved LSF (a 0.3" seeing profile needs ~p / 16).
         step = min(p / 4, max(np.pi / self.profile.maxk, p / 16), self.lsf.fwhm() / 24)
-        # A period three times the table (GalSim samples k on a square grid), so the table
-        # stays clear of the tails wrapped around from the other end.
-        n = fft.next_fast_len(int(3 * max(self._cap, self._table_d) / step) + 16)
-        n_t = n_d = n
-        dk_t = dk_d = 2 * np.pi / (n * step)
+        # Periods three times the table's extents, so the table stays clear of the tails
+        # wrapped around from the other end.
+        n_t = fft.next_fast_len(int(3 * self._cap / step) + 16)
+        n_d = fft.next_fast_len(int(3 * self._table_d / step) + 16)
+        dk_t, dk_d = 2 * np.pi / (n_t * step), 2 * np.pi / (n_d * step)
+        # GalSim draws k-images on square grids: the profile stretched along t by
+        # dk_t / dk_d, sampled every dk_d, is the profile sampled every dk_t along t.
+        stretched = self.profile.transform(dk_t / dk_d, 0.0, 0.0, 1.0)
         # The profile is real, so the half plane kt >= 0 holds its whole transform.
-        kimage = galsim.ImageCD(galsim.BoundsI(0, n // 2, -(n // 2), n - n // 2 - 1))
-        spectrum = self.profile.drawKImage(image=kimage, scale=dk_t, recenter=False).array
+        kimage = galsim.ImageCD(galsim.BoundsI(0, n_t // 2, -(n_d // 2), n_d - n_d // 2 - 1))
+        spectrum = stretched.drawKImage(image=kimage, scale=dk_d, recenter=False).array
+        spectrum *= self.profile.flux / stretched.flux
         kt = np.arange(n_t // 2 + 1)[None, :] * dk_t
         kd = (np.arange(n_d) - n_d // 2)[:, None] * dk_d
         a = np.radians(self.angle_deg)
@@ -244,7 +270,7 @@ class SweptProfile:
         # K = int C is needed only for tracks whose brightness varies: built on first use.
         self._second_inputs = (coeffs, t, keep_t, d[keep_d], far)
         ends = max(np.abs(table[:, -1] - far).max(), np.abs(table[:, 0]).max())
-        return step, float(ends / self._peak), n
+        return step, float(ends / self._peak), max(n_t, n_d)
 
     @staticmethod
     def _antiderivative(coeffs, power, t):
@@ -371,7 +397,7 @@ class SweptProfile:
         t, d, length = t_px * p, d_px * p, length_px * p
         flux1 = flux0 if flux1 is None else flux1
         slope = (flux1 - flux0) / length if length > 0 else 0.0
-        inner = np.interp(d, self.lsf.offset_arcsec, self.lsf.lsf)
+        inner = self._lsf_at(d)
         # Most pixels see the whole profile pass: C(t) = LSF(d), C(t - L) = 0.
         values = flux0 * inner
         if slope:
