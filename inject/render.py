@@ -29,11 +29,6 @@ from .validate import positive
 #: (folding_threshold 1e-4) is ~1e-6 of the peak.
 MIN_TOLERANCE = 2e-6
 
-#: Width over which the end-cap table's values at its ends are blended into the cumulative's
-#: limits (0 before the track, LSF(d) after it): C stays continuous there, so pixel sums of
-#: short tracks' charge, C(t) - C(t - L), keep their flux (a step would not).
-BLEND_PX = 4.0
-
 #: Tracks shorter than this (px) have their tolerance checked against their own peak
 #: (:func:`short_track_budget`); no seeing profile is wide enough for longer ones to matter.
 SHORT_TRACK_CHECK_PX = 1000.0
@@ -182,15 +177,13 @@ class SweptProfile:
         # h(t, d) at fixed d): trim the table where its ends match 0 and LSF(d) within tol/2,
         # and widen it if that was not far enough.
         while True:
-            step, mismatch, size = self._build_cap_table(tol / 2)
+            step, mismatch, size = self._build_cap_table(tol / 2, along.fwhm())
             if mismatch <= tol / 2 or size * 1.5 > MAX_TABLE_SIZE:
                 break
             self._cap *= 1.5
         self._separable_tails(along)
-        self._blend = BLEND_PX * p
         self.plan = RenderPlan(
-            support_px=support / p, cap_px=(self._cap + self._blend) / p,
-            table_step_px=step / p,
+            support_px=support / p, cap_px=self._cap / p, table_step_px=step / p,
             lsf_step_px=lsf_step / p,
             predicted_error={"support": tol / 2, "lsf_interpolation": tol / 8,
                              "cap_tails": tol / 2, "cap_table": mismatch})
@@ -214,7 +207,7 @@ class SweptProfile:
         # K(cap) = cap - m1 per unit LSF: the first moment that keeps K continuous at +cap.
         self._along_moment = float(self._along_t[-1] - self._along_k[-1])
 
-    def _build_cap_table(self, trim):
+    def _build_cap_table(self, trim, fwhm_along):
         """Tabulate ``C(t, d)`` for ``|t| <= cap``, ``|d| <= table_d`` (arcsec), then trim the
         cap to where ``C`` is within ``trim`` (relative to the peak) of 0 before it and of
         ``LSF(d)`` after it.
@@ -259,19 +252,44 @@ class SweptProfile:
         inside = np.abs(t) <= self._cap
         if off[inside].any():
             self._cap = min(self._cap, float(np.abs(t[inside & off]).max()) + step)
-        keep_t = np.abs(t) <= self._cap + 3 * step
-        table = table[:, keep_t]
+        # On the grid (t is symmetric about 0), with three samples beyond it for the spline.
+        self._cap = step * np.ceil(self._cap / step - 1e-9)
+        keep_t = np.abs(t) <= self._cap + 3.5 * step
+        table, t = table[:, keep_t], t[keep_t]
+        edge = np.argmin(np.abs(t + self._cap)), np.argmin(np.abs(t - self._cap))
+        misses = (table[:, edge[0]].copy(), table[:, edge[1]] - far)
+        ends = max(np.abs(misses[0]).max(), np.abs(misses[1]).max())
+        # What the ends miss of 0 and LSF(d) (tails beyond the cap, folding) is taken off
+        # over a ramp of width w at each end, so C meets its limits exactly: no step, flux
+        # kept. A track of length L then sees L / w of the miss, within the tolerance of its
+        # own peak (~ L / FWHM) when w >= (miss / tol) FWHM.
+        width = float(np.clip(ends / self._peak / (2 * trim) * fwhm_along, 4 * p, self._cap))
+        self._ramp = (width, misses)
+        table -= self._ramp_correction(t, 0)
         self._table = ndimage.spline_filter(table, order=3)
-        self._t0, self._d0, self._table_step = t[keep_t][0], d[keep_d][0], step
+        self._t0, self._d0, self._table_step = t[0], d[keep_d][0], step
         self._second = None
         # K = int C is needed only for tracks whose brightness varies: built on first use.
-        self._second_inputs = (coeffs, t, keep_t, d[keep_d], far)
-        ends = max(np.abs(table[:, -1] - far).max(), np.abs(table[:, 0]).max())
+        self._second_inputs = (coeffs, keep_t, d[keep_d], far)
         return step, float(ends / self._peak), max(n_t, n_d)
+
+    def _ramp_correction(self, t, power):
+        """The correction taken off the table (``power`` 0) or its integral from ``-cap``
+        (``power`` 1), per table row: smoothsteps ``S(u) = 3u^2 - 2u^3`` over the first and
+        the last ``width`` of the table."""
+        width, (start, end) = self._ramp
+        u0, u1 = (t + self._cap) / width, (t - self._cap + width) / width
+        c0, c1 = np.clip(u0, 0.0, 1.0), np.clip(u1, 0.0, 1.0)
+        if power == 0:
+            fade_out, fade_in = 1 - c0 * c0 * (3 - 2 * c0), c1 * c1 * (3 - 2 * c1)
+        else:  # integrals of 1 - S and S, continued linearly beyond the ramps (the margins)
+            fade_out = width * np.where(u0 < 0, u0, c0 - c0 ** 3 + c0 ** 4 / 2)
+            fade_in = width * (c1 ** 3 - c1 ** 4 / 2 + np.maximum(u1 - 1, 0.0))
+        return start[:, None] * fade_out + end[:, None] * fade_in
 
     @staticmethod
     def _antiderivative(coeffs, power, t):
-        """First (C) or second (K = int C) antiderivative along t, from t = -period/2, of the
+        """First (C) or second (K = int C) antiderivative along t, from ``t[0]``, of the
         series whose coefficients along the track are ``coeffs[d, m]`` (m >= 0), exactly."""
         n_t = len(t)
         step = t[1] - t[0]
@@ -286,7 +304,7 @@ class SweptProfile:
                 c[:, -1] = 0.0  # the Nyquist term has no antiderivative on the grid
             series.append(fft.fftshift(fft.irfft(c, n=n_t, axis=1), axes=1) * scale)
         lsf = coeffs[:, :1].real  # the kt = 0 term is the integral along t
-        tau = t + period / 2
+        tau = t - t[0]  # from the first sample (-period / 2 only when n_t is even)
         g1 = series[0]
         if power == 1:
             return g1 - g1[:, :1] + lsf * (tau / period)
@@ -299,79 +317,51 @@ class SweptProfile:
         return ndimage.map_coordinates(table, coords, order=3, prefilter=False, mode="nearest")
 
     def _second_table(self):
-        """Spline coefficients of K, built once: the exact antiderivative of the C the renderer
-        uses (0 before the blend, the blend, the table, the blend, LSF(d) after), so that it
-        continues after ``cap + blend`` as ``t LSF(d) - m1(d)``; otherwise linearly varying
-        tracks would not conserve flux."""
+        """Spline coefficients of K, built once, started at 0 at -cap and continued after
+        +cap as ``t LSF(d) - m1(d)``: the antiderivative of the C the renderer uses (0 before
+        -cap, the corrected table, LSF(d) after +cap), or linearly varying tracks would not
+        conserve flux."""
         if self._second is None:
-            coeffs, t, keep_t, d, far = self._second_inputs
-            second = ndimage.spline_filter(self._antiderivative(coeffs, 2, t)[:, keep_t],
-                                           order=3)
-            cap, w = self._cap, self._blend
+            coeffs, keep_t, d, far = self._second_inputs
+            n_t = len(keep_t)
+            t_all = (np.arange(n_t) - n_t // 2) * self._table_step
+            t = t_all[keep_t]
+            second = (self._antiderivative(coeffs, 2, t_all)[:, keep_t]
+                      - self._ramp_correction(t, 1))
+            second = ndimage.spline_filter(second, order=3)
             ones = np.ones_like(d)
-            # K(-cap) is the blend's integral before the table: C(-cap, d) w / 2. Spline
-            # coefficients shift with a constant, so each row is started there.
-            start = self._table_at(self._table, d, -cap * ones)
-            second += (start * w / 2 - self._table_at(second, d, -cap * ones))[:, None]
-            end = self._table_at(self._table, d, cap * ones)
-            k_end = self._table_at(second, d, cap * ones)
+            # Spline coefficients shift with a constant: start each row at 0 at -cap.
+            second -= self._table_at(second, d, -self._cap * ones)[:, None]
             self._moment_d = d
-            self._moment = cap * far - k_end - (end - far) * w / 2
+            self._moment = self._cap * far - self._table_at(second, d, self._cap * ones)
             self._second = second
         return self._second
 
     def _cumulatives(self, t, d, inner, want_second):
         """``C(t, d)`` and, if asked, ``K(t, d)`` (arcsec), given ``inner = LSF(d)``.
 
-        Near the track ``C`` is the table for ``|t| <= cap``; over the next ``blend`` it goes
-        smoothly (``1 - 3u^2 + 2u^3``) from the table's end values to its limits, 0 before
-        and ``LSF(d)`` after, and stays there. Far from the track a separable model is
-        enough. ``K`` is the exact antiderivative: ``t LSF(d) - m1(d)`` after the blend.
+        Before the cap both vanish; after it ``C = LSF(d)`` and ``K = t LSF(d) - m1(d)``.
         """
-        cap, w = self._cap, self._blend
-        first = np.where(t > cap + w, inner, 0.0)
+        first = np.where(t > self._cap, inner, 0.0)
         second = None
         if want_second:
-            second = np.where(t > cap + w, t * inner - self._first_moment(d, inner), 0.0)
-            table_k = self._second_table()
-        near = np.abs(t) <= cap + w
+            moment = self._first_moment(d, inner)
+            second = np.where(t > self._cap, t * inner - moment, 0.0)
+        near = np.abs(t) <= self._cap
         if not near.any():
             return first, second
         tn, dn, inn = t[near], d[near], inner[near]
-        c_near = np.empty_like(tn)
-        k_near = np.empty_like(tn) if want_second else None
+        in_table = np.abs(dn) <= self._table_d
         # Far from the track the cap is below tol/2 of the peak: a separable model is enough.
-        tails = np.abs(dn) > self._table_d
-        tt, it = tn[tails], inn[tails]
-        c_near[tails] = it * np.interp(tt, self._along_t, self._along_cdf)
+        tails = ~in_table
+        values = np.empty_like(tn)
+        values[in_table] = self._table_at(self._table, dn[in_table], tn[in_table])
+        values[tails] = inn[tails] * np.interp(tn[tails], self._along_t, self._along_cdf)
+        first[near] = values
         if want_second:
-            k_near[tails] = np.where(tt > cap, it * (tt - self._along_moment),
-                                     it * np.interp(tt, self._along_t, self._along_k))
-        core = ~tails & (np.abs(tn) <= cap)
-        c_near[core] = self._table_at(self._table, dn[core], tn[core])
-        if want_second:
-            k_near[core] = self._table_at(table_k, dn[core], tn[core])
-        for side in (-1.0, 1.0):
-            zone = ~tails & (side * tn > cap)
-            if not zone.any():
-                continue
-            tz, dz, iz = tn[zone], dn[zone], inn[zone]
-            u = np.minimum((side * tz - cap) / w, 1.0)
-            fade, fade_integral = 1 - u * u * (3 - 2 * u), u - u ** 3 + u ** 4 / 2
-            edge = np.full_like(tz, side * cap)
-            c_edge = self._table_at(self._table, dz, edge)
-            if side < 0:
-                c_near[zone] = c_edge * fade
-                if want_second:
-                    k_near[zone] = c_edge * w * (0.5 - fade_integral)
-            else:
-                c_near[zone] = iz + (c_edge - iz) * fade
-                if want_second:
-                    k_near[zone] = (self._table_at(table_k, dz, edge) + iz * (tz - cap)
-                                    + (c_edge - iz) * w * fade_integral)
-        first[near] = c_near
-        if want_second:
-            second[near] = k_near
+            values[in_table] = self._table_at(self._second_table(), dn[in_table], tn[in_table])
+            values[tails] = inn[tails] * np.interp(tn[tails], self._along_t, self._along_k)
+            second[near] = values
         return first, second
 
     def _first_moment(self, d, inner):
@@ -399,8 +389,7 @@ class SweptProfile:
         values = flux0 * inner
         if slope:
             values += slope * (t * inner - self._first_moment(d, inner))
-        reach = self._cap + self._blend
-        ends = (t <= reach) | (t >= length - reach)
+        ends = (t <= self._cap) | (t >= length - self._cap)
         if ends.any():
             te, de, ie = t[ends], d[ends], inner[ends]
             c_now, k_now = self._cumulatives(te, de, ie, bool(slope))
