@@ -13,7 +13,7 @@ import numpy as np
 
 from .errors import InputError
 from .instrument import ARCSEC_PER_RAD, LSST
-from .validate import positive
+from .validate import finite, positive
 
 #: GalSim accuracy for every profile here. The LSF is exact up to aliasing from the period
 #: 2 pi / stepk (folding 1e-4 leaves ~1e-6 of the peak for Kolmogorov tails) and truncation
@@ -47,11 +47,12 @@ class Seeing:
     outer_scale_m: float = 25.0
 
     def __post_init__(self):
-        if not (np.isfinite(self.fwhm_arcsec) and self.fwhm_arcsec >= 0):
+        # A single finite number: a string or an array would fail later in GalSim.
+        if finite("seeing", self.fwhm_arcsec, scalar=True) < 0:
             raise InputError("seeing", self.fwhm_arcsec, "must be >= 0 and finite")
-        if self.model not in ("kolmogorov", "vonkarman"):
+        if not isinstance(self.model, str) or self.model not in ("kolmogorov", "vonkarman"):
             raise InputError("seeing.model", self.model, "choose kolmogorov or vonkarman")
-        positive("outer_scale_m", self.outer_scale_m)
+        positive("outer_scale_m", self.outer_scale_m, scalar=True)
 
     def profile(self, gsparams=GSPARAMS):
         """The PSF as a unit-flux GalSim profile, or None for no atmosphere."""

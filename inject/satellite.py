@@ -48,9 +48,9 @@ class Shape:
 
     def profile(self, range_km, nadir_angle_deg=0.0, phi_deg=90.0, gsparams=None):
         """Projected shape in the track frame (arcsec, motion along +x), unit flux."""
-        r = float(positive("range_km", range_km))
-        jac = _track_frame_jacobian(r, float(finite("nadir_angle_deg", nadir_angle_deg)),
-                                    float(finite("phi_deg", phi_deg)))
+        r = positive("range_km", range_km, scalar=True)
+        jac = _track_frame_jacobian(r, finite("nadir_angle_deg", nadir_angle_deg, scalar=True),
+                                    finite("phi_deg", phi_deg, scalar=True))
         prof = self.body_profile()
         if gsparams is not None:
             prof = prof.withGSParams(gsparams)
@@ -65,8 +65,8 @@ class Box(Shape):
     width: float
 
     def __post_init__(self):
-        object.__setattr__(self, "length", float(positive("length", self.length)))
-        object.__setattr__(self, "width", float(positive("width", self.width)))
+        object.__setattr__(self, "length", positive("length", self.length, scalar=True))
+        object.__setattr__(self, "width", positive("width", self.width, scalar=True))
 
     @property
     def area_m2(self):
@@ -87,7 +87,7 @@ class Disk(Shape):
     radius: float
 
     def __post_init__(self):
-        object.__setattr__(self, "radius", float(positive("radius", self.radius)))
+        object.__setattr__(self, "radius", positive("radius", self.radius, scalar=True))
 
     @property
     def area_m2(self):
@@ -112,9 +112,12 @@ class Part:
     reflectance: float = 1.0
 
     def __post_init__(self):
-        object.__setattr__(self, "dx", float(finite("dx", self.dx)))
-        object.__setattr__(self, "dy", float(finite("dy", self.dy)))
-        object.__setattr__(self, "reflectance", float(positive("reflectance", self.reflectance)))
+        if not isinstance(self.shape, Shape):
+            raise InputError("shape", self.shape, "must be a Box, Disk or Composite")
+        object.__setattr__(self, "dx", finite("dx", self.dx, scalar=True))
+        object.__setattr__(self, "dy", finite("dy", self.dy, scalar=True))
+        object.__setattr__(self, "reflectance",
+                           positive("reflectance", self.reflectance, scalar=True))
 
 
 @dataclass(frozen=True)
@@ -127,9 +130,15 @@ class Composite(Shape):
     parts: tuple = field(default_factory=tuple)
 
     def __post_init__(self):
-        if not self.parts:
+        try:
+            parts = tuple(self.parts)
+        except TypeError:  # a number or a single Part
+            parts = (self.parts,)
+        if not parts:
             raise InputError("parts", self.parts, "a composite needs at least one part")
-        object.__setattr__(self, "parts", tuple(self.parts))
+        if not all(isinstance(p, Part) for p in parts):
+            raise InputError("parts", self.parts, "must be a sequence of Part")
+        object.__setattr__(self, "parts", parts)
 
     @property
     def area_m2(self):
@@ -154,7 +163,7 @@ def shape_from_dict(spec):
         raise InputError("shape", spec, "must be a mapping with a 'type' (box, disk, composite)")
     kind = spec["type"]
     keys = {"box": ("length", "width"), "disk": ("radius",), "composite": ("parts",)}
-    if kind not in keys:
+    if not isinstance(kind, str) or kind not in keys:  # a list or mapping is unhashable
         raise InputError("shape.type", kind, "unknown shape; choose box, disk or composite")
     extra = set(spec) - {"type", *keys[kind]}
     missing = set(keys[kind]) - set(spec)

@@ -10,12 +10,13 @@ from functools import cached_property
 import galsim
 import numpy as np
 
+from .errors import InputError
 from .geometry import Geometry
-from .instrument import LSST
+from .instrument import LSST, Telescope
 from .photometry import apparent_magnitude, band, electron_rate
 from .profile import Seeing, line_spread, stationary_profile
-from .satellite import Box
-from .validate import finite
+from .satellite import Box, Shape
+from .validate import finite, positive
 
 
 @dataclass(frozen=True)
@@ -39,6 +40,12 @@ class StreakModel:
         Pupil and plate scale.
     ref_range_km : float
         Range at which ``mag`` is given.
+
+    Raises
+    ------
+    InputError
+        If a parameter has the wrong type (an array or a string for a number, a number for
+        ``seeing``) or is out of its domain.
     """
 
     height_km: float
@@ -52,7 +59,18 @@ class StreakModel:
     ref_range_km: float = 550.0
 
     def __post_init__(self):
-        finite("phi_deg", self.phi_deg)
+        # Wrong types would otherwise fail much later, as an AttributeError or TypeError.
+        expected = {"shape": (Shape, "a Box, Disk or Composite"),
+                    "seeing": (Seeing, "a Seeing, e.g. Seeing(0.7)"),
+                    "telescope": (Telescope, "a Telescope")}
+        for name, (cls, what) in expected.items():
+            if not isinstance(getattr(self, name), cls):
+                raise InputError(name, getattr(self, name), f"must be {what}")
+        for name in ("height_km", "zenith_deg", "phi_deg", "mag", "ref_range_km"):
+            finite(name, getattr(self, name), scalar=True)  # not an array, a string or None
+        positive("ref_range_km", self.ref_range_km)
+        if not isinstance(self.band_name, str):
+            raise InputError("band", self.band_name, "must be a band name such as 'g'")
         band(self.band_name)
         self.geometry  # validates height and zenith now rather than on first use
 

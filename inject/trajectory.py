@@ -26,7 +26,7 @@ class Segment:
 
     def __post_init__(self):
         for name in ("x0", "y0", "angle_deg", "length"):
-            object.__setattr__(self, name, float(finite(name, getattr(self, name))))
+            object.__setattr__(self, name, finite(name, getattr(self, name), scalar=True))
         if self.length < 0:
             raise InputError("length", self.length, "must be >= 0")
 
@@ -51,7 +51,10 @@ class Segment:
         ``margin`` (pixels) extends the track beyond the image edges on both sides, so that the
         end caps of the swept profile fall outside the image. Returns None if the line misses it.
         """
-        ny, nx = shape
+        ny, nx = _image_shape(shape)
+        x0, y0 = finite("x0", x0, scalar=True), finite("y0", y0, scalar=True)
+        angle_deg = finite("angle_deg", angle_deg, scalar=True)
+        margin = finite("margin", margin, scalar=True)
         chord = _clip_line(x0, y0, angle_deg, (-0.5 - margin, nx - 0.5 + margin),
                            (-0.5 - margin, ny - 0.5 + margin))
         if chord is None:
@@ -63,12 +66,22 @@ class Segment:
     def clip(self, shape):
         """Part of the segment inside an image of ``shape = (ny, nx)`` as ``(t0, t1)`` distances
         along the track from ``(x0, y0)``, or None if it misses the image."""
-        ny, nx = shape
+        ny, nx = _image_shape(shape)
         chord = _clip_line(self.x0, self.y0, self.angle_deg, (-0.5, nx - 0.5), (-0.5, ny - 0.5))
         if chord is None:
             return None
         t0, t1 = max(chord[0], 0.0), min(chord[1], self.length)
         return (t0, t1) if t1 > t0 else None
+
+
+def _image_shape(shape):
+    """``(ny, nx)`` of an image shape as floats, raising :class:`InputError` unless it is two
+    numbers."""
+    try:
+        ny, nx = (finite("shape", n, scalar=True) for n in shape)
+    except (TypeError, ValueError):  # None, a number, (ny,), (nz, ny, nx), non-numbers
+        raise InputError("shape", shape, "must be two numbers (ny, nx)") from None
+    return ny, nx
 
 
 def _clip_line(x0, y0, angle_deg, xlim, ylim):
@@ -98,8 +111,7 @@ class Polyline:
     ys: tuple
 
     def __post_init__(self):
-        xs = tuple(float(v) for v in finite("polyline x", self.xs))
-        ys = tuple(float(v) for v in finite("polyline y", self.ys))
+        xs, ys = _coordinates("polyline x", self.xs), _coordinates("polyline y", self.ys)
         if len(xs) != len(ys) or len(xs) < 2:
             raise InputError("polyline", (self.xs, self.ys),
                              "needs at least two vertices with one x and one y each")
@@ -115,3 +127,12 @@ class Polyline:
                 out.append(Segment(x0, y0, float(np.degrees(np.arctan2(y1 - y0, x1 - x0))),
                                    length))
         return out
+
+
+def _coordinates(name, values):
+    """Vertex coordinates as a tuple of floats, raising :class:`InputError` unless ``values``
+    is a 1-D sequence of finite numbers."""
+    arr = finite(name, values)
+    if arr.ndim != 1:  # a single number, or a 2-D array
+        raise InputError(name, values, "must be a sequence of numbers")
+    return tuple(float(v) for v in arr)

@@ -28,7 +28,7 @@ from inject.photometry import band, sky_per_pixel
 from inject.profile import Seeing
 from inject.reference import render_brute_force
 from inject.render import Budget
-from inject.satellite import Box, Disk, shape_from_dict
+from inject.satellite import Box, Composite, Disk, Part, shape_from_dict
 from inject.scene import simulate
 from inject.streak import StreakModel
 from inject.trajectory import Polyline, Segment
@@ -1066,18 +1066,77 @@ def _write_masked_bad_streaks(tmp_path):
     return write_masked(path, tmp_path / "out.fits", [{"angle_deg": 3.0}])
 
 
+# Wrong types in the Python API: each gives an InputError naming the argument.
+API_BAD_TYPES = {
+    "shape type a list": (lambda: shape_from_dict({"type": ["box"]}), "shape.type=['box']"),
+    "shape type a mapping": (lambda: shape_from_dict({"type": {"box": 1}}), "shape.type="),
+    "seeing a string": (lambda: Seeing("good"), "seeing='good'"),
+    "seeing an array": (lambda: Seeing(np.array([0.7, 0.8])), "seeing="),
+    "model without a shape": (lambda: StreakModel(550.0, shape=None), "shape=None"),
+    "seeing a number": (lambda: StreakModel(550.0, seeing=0.7), "seeing=0.7: must be a Seeing"),
+    "model without a telescope": (lambda: StreakModel(550.0, telescope=None), "telescope=None"),
+    "band a list": (lambda: StreakModel(550.0, band_name=["g"]), "band=['g']"),
+    "height an array": (lambda: StreakModel(np.array([550.0, 350.0])), "height_km=array"),
+    "mag None": (lambda: StreakModel(550.0, mag=None), "mag=None: must be a number"),
+    "segment start an array": (lambda: Segment(np.array([1.0, 2.0]), 0.0, 0.0, 1.0),
+                               "x0=array"),
+    "segment length None": (lambda: Segment(0.0, 0.0, 0.0, None), "length=None"),
+    "polyline of scalars": (lambda: Polyline(1.0, 2.0), "polyline x=1.0"),
+    "polyline of a 2-D array": (lambda: Polyline(np.zeros((2, 2)), [0.0, 1.0]), "polyline x="),
+    "crossing of a 1-D shape": (lambda: Segment.crossing((5,), 1.0, 1.0, 0.0), "shape=(5,)"),
+    "crossing of None": (lambda: Segment.crossing(None, 1.0, 1.0, 0.0), "shape=None"),
+    "crossing at an array": (lambda: Segment.crossing((5, 5), [1.0, 2.0], 1.0, 0.0), "x0="),
+    "clip to a 3-D shape": (lambda: Segment(0.0, 0.0, 0.0, 1.0).clip((2, 5, 5)), "shape="),
+    "box length an array": (lambda: Box(np.array([1.0, 2.0]), 1.0), "length="),
+    "composite parts a number": (lambda: Composite(5), "parts=5: must be a sequence of Part"),
+    "composite parts not parts": (lambda: Composite([Disk(1.0)]), "parts=[Disk(radius=1.0)]"),
+    "part without a shape": (lambda: Part(None), "shape=None"),
+}
+
+
+@pytest.mark.parametrize("name", list(API_BAD_TYPES))
+def test_api_bad_types(name):
+    call, needle = API_BAD_TYPES[name]
+    with pytest.raises(InputError) as info:
+        call()
+    assert needle in str(info.value)
+
+
+@pytest.mark.parametrize("value,reason", [
+    (None, "must be a number"), ([1.0, None], "must be a number"), ("x", "must be a number"),
+    (float("nan"), "must be finite"), ([1.0, float("inf")], "must be finite"),
+])
+def test_validate_finite_names_the_problem(value, reason):
+    from inject.validate import finite
+
+    with pytest.raises(InputError, match=reason):
+        finite("v", value)
+
+
+def test_validate_scalar_accepts_numpy_numbers():
+    from inject.validate import finite, positive
+
+    for value in (2, 2.0, np.float64(2.0), np.float32(2.0), np.int64(2), np.array(2.0)):
+        assert type(finite("v", value, scalar=True)) is float
+        assert positive("v", value, scalar=True) == 2.0
+    with pytest.raises(InputError, match="single number"):
+        finite("v", np.array([2.0]), scalar=True)
+    with pytest.raises(InputError, match="must be a number"):
+        finite("v", "2", scalar=True)
+
+
+def test_api_accepts_numpy_numbers():
+    model = StreakModel(np.float64(550.0), np.float32(10.0), np.int64(90),
+                        Disk(np.float64(1.0)), mag=np.float64(5.0),
+                        seeing=Seeing(np.float64(0.7)))
+    assert model.summary()["height_km"] == 550.0
+    segment = Segment.crossing(np.array([48, 64]), np.float64(1.0), np.int64(2),
+                               np.float32(0.0))
+    assert segment.length == 64.0 and segment.clip((np.int64(48), 64)) == (0.0, 64.0)
+    assert Polyline(np.array([1.0, 2.0]), (np.float64(3.0), 4)).xs == (1.0, 2.0)
+
+
 API_KNOWN_BUGS = {
-    # satellite.py: an unhashable shape type is looked up in a dict.
-    "shape type a list": lambda tmp_path: shape_from_dict({"type": ["box"]}),
-    # profile.py: np.isfinite on a string.
-    "seeing a string": lambda tmp_path: Seeing("good"),
-    # streak.py: shape, seeing and telescope are not checked.
-    "model without a shape": lambda tmp_path: StreakModel(550.0, shape=None).summary(),
-    "seeing a number": lambda tmp_path: StreakModel(550.0, seeing=0.7).summary(),
-    # validate.finite takes arrays where trajectory.py wants scalars.
-    "segment start an array": lambda tmp_path: Segment(np.array([1.0, 2.0]), 0.0, 0.0, 1.0),
-    "polyline of scalars": lambda tmp_path: Polyline(1.0, 2.0),
-    "height an array": lambda tmp_path: StreakModel(np.array([550.0, 350.0])),
     # masking/run.py, masking/detect.py
     "mask of another shape": lambda tmp_path: _mask_image(mask=np.zeros((5, 5), bool)),
     "pixel scale a string": lambda tmp_path: _mask_image(pixel_scale="fine"),
@@ -1093,8 +1152,6 @@ def test_api_known_bugs(tmp_path, name):
         API_KNOWN_BUGS[name](tmp_path)
 
 
-@pytest.mark.xfail(strict=True, raises=TypeError,
-                   reason="satellite.shape_from_dict: TypeError (a traceback) for a list type")
 def test_shape_type_a_list_on_the_command_line(capsys, scene, tmp_path):
     status, err = run(capsys, "simulate", scene, "-o", tmp_path / "o.fits",
                       "satellites.0.shape.type=[box]")
