@@ -10,7 +10,9 @@ where ``F`` is the charge per pixel of track length, ``L`` the track length, ``p
 and ``h`` the profile convolved with the (rotated) square pixel. Far from the ends ``C`` is the
 line-spread function ``LSF(d)``: one 1-D function for the whole interior. Near the ends ``C`` is
 tabulated once per profile and angle on a fine grid by an exact spectral antiderivative of ``h``
-(computed from the profile's 2-D Fourier transform) and interpolated by cubic splines. Nothing is
+(computed from the profile's 2-D Fourier transform) and interpolated by cubic splines; what the
+table misses of 0 and ``LSF(d)`` at its ends (tails beyond it) is taken off over smooth ramps,
+so ``C`` meets its limits exactly and every track, however short, keeps its flux. Nothing is
 drawn on pixels the streak cannot reach: the support across and along the track follows from an
 accuracy budget.
 """
@@ -475,7 +477,8 @@ def render_segment(image, swept, segment, flux_per_px, flux_end=None):
     RenderResult
     """
     if not np.isclose(segment.angle_deg, swept.angle_deg, rtol=0, atol=1e-9):
-        raise ValueError("segment angle differs from the SweptProfile's angle")
+        raise InputError("segment.angle_deg", segment.angle_deg,
+                         f"differs from the SweptProfile's angle ({swept.angle_deg:g} deg)")
     plan = swept.plan
     y, x, t, d = footprint(image.shape, segment, plan.support_px, plan.cap_px)
     values = swept.pixel_values(t, d, segment.length, flux_per_px, flux_end)

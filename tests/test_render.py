@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from inject.baselines import render_galsim_box
+from inject.errors import InputError
 from inject.profile import Seeing
 from inject.render import Budget, SweptProfile, footprint, render_segment, render_streak
 from inject.satellite import Box, Composite, Disk, Part
@@ -123,7 +124,7 @@ def test_looser_budget_smaller_footprint_and_bounded_error(tolerance):
 
 def test_segment_angle_must_match_profile_angle():
     swept = SweptProfile(PAPER_550.profile, 0.2, 10.0)
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="segment.angle_deg"):
         render_segment(np.zeros((10, 10)), swept, Segment(0, 0, 11.0, 5.0), 1.0)
 
 
