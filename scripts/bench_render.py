@@ -42,7 +42,7 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
-FAST_BUDGETS = [1e-3, 1e-4, 5e-5, 1e-5]
+FAST_BUDGETS = [1e-3, 1e-4, 5e-5, 1e-5, 2e-6]
 BRUTE_STEPS = {"short": [1.0, 0.5, 0.25, 0.1], "diagonal": [1.0]}
 END_ZONE = 300.0  # px from each end drawn with Richardson-extrapolated fine steps
 WINDOW = 160  # px, side of each error window
