@@ -400,3 +400,92 @@ def test_full_ccd_two_streaks_one_faint_one_ending():
                                                  abs=3 * faint["fwhm_err_arcsec"])
     assert ending["fwhm_arcsec"] == pytest.approx(truth[1]["fwhm_arcsec"], rel=0.03)
     assert ending["length_px"] == pytest.approx(1300.0, abs=6.0)
+
+
+def test_bootstrap_replicates_match_the_direct_computation():
+    # The batched replicate FWHMs (one convolution of each replicate's change) equal
+    # profile_fwhm of each replicate, and the integer-weight trimmed means equal float ones.
+    from inject.masking.measure import _replicate_fwhms, stack_samples
+
+    rng = np.random.default_rng(7)
+    d = rng.uniform(-40, 40, 60_000)
+    t = rng.uniform(-500, 500, d.size)
+    v = 10 * np.exp(-0.5 * (d / 3) ** 2) + rng.normal(0, 5, d.size)
+    profile, stack = stack_samples(d, v, 40.0, 0.25, 5.0, 30.0)
+    first, last = 100, 220
+    sub = stack.subset(first, last)
+    seg = np.clip(((t[sub.order] + 500) / 100).astype(int), 0, 9)
+    rows = []
+    for k in range(4):
+        draws = np.bincount(rng.integers(0, 10, 10), minlength=10)
+        a = sub.trimmed_mean(sorted_weights=draws[seg])
+        np.testing.assert_allclose(a, sub.trimmed_mean(sorted_weights=draws[seg].astype(float)),
+                                   rtol=0, atol=1e-9)
+        rows.append(a - profile.baseline)
+    rows = np.array(rows)
+    fast = _replicate_fwhms(profile, rows, first, 1.5)
+    for row, f in zip(rows, fast):
+        value = profile.value.copy()
+        value[first:last] = row
+        assert f == pytest.approx(profile_fwhm(profile, value, 1.5)[0], abs=1e-9)
+    # A split of a stack by groups equals a stack binned by group x bin from scratch.
+    bins = np.clip(np.floor(d / 0.25 + 160).astype(int), 0, 319)
+    g = (t > 0).astype(int)
+    np.testing.assert_allclose(stack.split(g, 2).trimmed_mean(),
+                               BinnedStack(g * 320 + bins, v, 640).trimmed_mean())
+
+
+def test_clipped_box_medians_match_resorting():
+    # One sort per row and order statistics give the same medians as clipping and sorting
+    # again, NaNs (unusable) and constant rows included; robust_sigma is the MAD sigma.
+    from inject.masking.detect import _clipped_row_medians, robust_sigma
+
+    def resorted(a):
+        def medians(x):
+            return np.array([np.median(r[np.isfinite(r)]) if np.isfinite(r).any() else np.nan
+                             for r in x], dtype=x.dtype)
+        med = medians(a)
+        for _ in range(2):
+            dev = np.abs(a - med[:, None])
+            a = np.where(dev <= 3 * (1.4826 * medians(dev))[:, None], a, np.nan)
+            med = medians(a)
+        return med
+
+    rng = np.random.default_rng(11)
+    a = rng.normal(0, 1, (40, 300)).astype(np.float32)
+    a[:, :12] += 40 * rng.random((40, 12)).astype(np.float32)  # stars in every box
+    a[3], a[5, 7:], a[8] = np.nan, np.nan, 2.0
+    np.testing.assert_array_equal(_clipped_row_medians(a), resorted(a))
+    v = rng.normal(3, 2, 1001)
+    v[::10] = np.nan
+    f = v[np.isfinite(v)]
+    assert robust_sigma(v) == pytest.approx(1.4826 * np.median(np.abs(f - np.median(f))))
+
+
+def test_image_size_not_a_multiple_of_the_binning():
+    # 403 x 301: the boxes of the background stop at the last whole binned pixel; the rows and
+    # columns beyond get the edge background (this raised a broadcasting error before).
+    rng = np.random.default_rng(2)
+    ny, nx = 403, 301
+    yy, xx = np.mgrid[:ny, :nx]
+    d = (yy - 0.5 * ny) * np.cos(np.radians(30)) - (xx - 0.5 * nx) * np.sin(np.radians(30))
+    image = rng.normal(100, 10, (ny, nx)) + 10 * np.exp(-0.5 * (d / 3) ** 2)
+    prep = prepare(image)
+    assert prep.residual.shape == (ny, nx) and np.isfinite(prep.residual).all()
+    assert abs(np.median(prep.residual[400:])) < 2 and prep.stars.shape == (ny, nx)
+    (s,) = analyse(image, n_boot=0).streaks
+    assert s["angle_deg"] == pytest.approx(30.0, abs=0.5)
+
+
+def test_bin_value_order_is_lexsort():
+    from inject.masking.measure import _bin_value_order
+
+    rng = np.random.default_rng(5)
+    for n, nbins, scale in ((1, 1, 1.0), (2, 2, 1.0), (500, 3, 1e5), (2000, 50, 1e-3),
+                            (300, 2 ** 40, 1.0), (1000, 7, 0.0)):
+        v, b = np.round(rng.normal(size=n) * scale, 1), rng.integers(0, nbins, n)
+        o, ref = _bin_value_order(b, v), np.lexsort((v, b))
+        np.testing.assert_array_equal(b[o], b[ref])
+        np.testing.assert_array_equal(v[o], v[ref])
+    v = np.array([1.0, np.nan, -np.inf, 0.0])  # non-finite values: the general way
+    np.testing.assert_array_equal(_bin_value_order(np.zeros(4, int), v), [2, 3, 0, 1])

@@ -9,7 +9,8 @@ import pytest
 
 from inject.errors import InputError
 from inject.masking.cli_evaluate import (add_evaluate_parser, bad_pixels, campaign_images,
-                                         markdown_table, pixel_loss)
+                                         false_positive_summary, markdown_table, pixel_loss,
+                                         streak_free_images)
 from inject.masking.evaluate import (Masker, MaskerOutput, completeness_point, evaluate,
                                      inject_masker, load_masker, score_image, summarise)
 
@@ -130,7 +131,7 @@ def test_evaluate_command(tmp_path, capsys):
     out = tmp_path / "ev"
     args = parse(["--out", str(out), "--seeds", "1", "--mags", "11", "16", "--detector", "512",
                   "--masker", "inject", "--masker", "tests.test_masking_evaluate:nothing",
-                  "--json"])
+                  "--streak-free", "2", "--json"])
     args.func(args)
     captured = capsys.readouterr()
     result = json.loads(captured.out)
@@ -144,14 +145,33 @@ def test_evaluate_command(tmp_path, capsys):
     for name in ("records.csv", "summary.csv", "summary.md", "pixel_loss.csv",
                  "completeness.png", "fwhm_bias.png", "pixel_loss.png"):
         assert (out / name).stat().st_size > 0
+    assert "[2/2] streak-free seed 1002" in captured.err
+    false = result["false_positives"]
+    assert false["tests.test_masking_evaluate:nothing"] == {
+        "images": 2, "detections": 0, "per_image": 0.0, "per_ccd": 0.0}
+    free = {r["masker"]: r for r in result["summary"] if r["height_km"] is None}
+    assert set(free) == names and all(r["n"] == 0 for r in free.values())
+    for name, r in free.items():  # the summary row holds the same false positives
+        assert r["fp_per_ccd"] == pytest.approx(false[name]["per_image"])
     with open(out / "records.csv", newline="") as f:
-        assert len(list(csv.DictReader(f))) == 8  # 2 heights x 2 mags x 2 maskers
+        # 2 heights x 2 mags x 2 maskers, and 2 streak-free images x 2 maskers
+        assert len(list(csv.DictReader(f))) == 12
     assert not list(out.glob(".inject-*"))  # no temporary files left
+
+
+def test_no_false_positives_on_streak_free_cutouts():
+    # Streak-free 1024 x 1024 cut-outs of the campaign's field with stars, seeds held out
+    # from the threshold's calibration (the full-CCD check is scripts/bench_mask.py).
+    images = list(streak_free_images(3, 1024))
+    assert [lab["seed"] for _, lab in images] == [1001, 1002, 1003]
+    records = evaluate(images, ["inject"], bad=bad_pixels)
+    assert len(records) == 3 and all(r["found"] is None for r in records)
+    assert false_positive_summary(records, 1024)["inject"]["detections"] == 0
 
 
 def test_evaluate_command_rejects_bad_options(tmp_path):
     for argv in (["--seeds", "0"], ["--heights", "-5"], ["--masker", "nope"],
-                 ["--truth-sigma", "0"]):
+                 ["--truth-sigma", "0"], ["--streak-free", "-1"]):
         args = parse(["--out", str(tmp_path / "x"), "--mags", "11", *argv])
         with pytest.raises(InputError):
             args.func(args)
@@ -159,13 +179,39 @@ def test_evaluate_command_rejects_bad_options(tmp_path):
 
 def test_findsat_mrt_adapter(bright):
     pytest.importorskip("acstools")
-    from inject.masking.external import findsat_mrt_mask
+    from inject.masking.external import findsat_mrt_mask, findsat_mrt_trails
 
     sim, _ = bright
-    mask = findsat_mrt_mask(sim.image, bad=bad_pixels(sim))
-    assert mask.shape == sim.image.shape and mask.dtype == bool
-    image, (row,) = score_image(sim, MaskerOutput(mask))
-    assert row["found"] and image["recall"] > 0.9
+    out = findsat_mrt_trails(sim.image, bad=bad_pixels(sim))
+    assert out.mask.shape == sim.image.shape and out.mask.dtype == bool
+    # Its own trail catalogue: one line along the truth, with a FWHM near the true one.
+    (trail,) = out.streaks
+    assert -90 < trail["angle_deg"] <= 90 and trail["status"] == 2
+    image, (row,) = score_image(sim, out)
+    assert row["found"] and row["line_found"] and image["recall"] > 0.9
+    assert image["false_positives"] == 0
+    assert abs(row["angle_err_deg"]) < 0.5 and abs(row["offset_px"]) < 5
+    assert row["fwhm_meas"] == pytest.approx(row["fwhm_true"], rel=0.25)
+    assert trail["findsat_width_px"] > trail["fwhm_px"]  # masks 6 sigma wide
+    np.testing.assert_array_equal(findsat_mrt_mask(sim.image, bad=bad_pixels(sim)), out.mask)
+    assert load_masker("findsat_mrt").func is findsat_mrt_trails
+
+
+def test_findsat_trail_records_convert_binned_lines():
+    from inject.masking.external import trail_records
+
+    rows = [{"status": 2, "endpoints": [[10.0, 0.0], [0.0, 10.0]], "width": 6.0, "snr": 9.0,
+             "persistence": 1.0},
+            {"status": 1, "endpoints": [[0.0, 0.0], [5.0, 5.0]], "width": 6.0, "snr": 4.0,
+             "persistence": 0.0}]
+    (t,) = trail_records(rows, binning=4)  # status 1 (not persistent) is not masked
+    # Binned (10, 0) -> image (41.5, 1.5); oriented in (-90, 90]: from (1.5, 41.5) down.
+    assert (t["x0"], t["y0"], t["x1"], t["y1"]) == (1.5, 41.5, 41.5, 1.5)
+    assert t["angle_deg"] == pytest.approx(-45.0)
+    # 6 sigma = 6 binned px: sigma 4 image px, less the 4-px box (variance 16 / 12).
+    assert t["fwhm_px"] == pytest.approx(2.3548 * np.sqrt(16 - 16 / 12), rel=1e-4)
+    assert t["fwhm_arcsec"] == pytest.approx(0.2 * t["fwhm_px"])
+    assert trail_records(None, 4) == []
 
 
 def test_findsat_mrt_missing_gives_a_clear_error(monkeypatch):

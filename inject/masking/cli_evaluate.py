@@ -2,10 +2,12 @@
 
 The paper's satellite (7.25 x 2.65 m box) is simulated on a detector cut-out of the default
 field (g band, 30 s, zenith 70 deg, stars, noise) at every height and magnitude, on seeded
-random tracks crossing the image; every masker runs on the same images and is scored by
-:func:`inject.masking.evaluate.evaluate`. Writes ``records.csv`` (one row per image, masker
-and streak), ``summary.csv`` and ``summary.md`` (per masker, height and magnitude) and three
-PNG plots; prints the markdown table (or JSON with ``--json``) and progress on stderr.
+random tracks crossing the image, plus streak-free images of the same field (other seeds,
+held out from the calibration of the detection threshold) for false positives; every masker
+runs on the same images and is scored by :func:`inject.masking.evaluate.evaluate`. Writes
+``records.csv`` (one row per image, masker and streak), ``summary.csv`` and ``summary.md``
+(per masker, height and magnitude; streak-free images form their own rows) and three PNG
+plots; prints the markdown table (or JSON with ``--json``) and progress on stderr.
 """
 import csv
 import io
@@ -21,6 +23,14 @@ DEFAULT_MAGS = (11.0, 12.0, 13.0, 13.5, 14.0, 14.5, 15.0, 15.5)
 DEFAULT_HEIGHTS = (550.0, 350.0)
 DEFAULT_SIZE = 1024
 DEFAULT_SEEDS = 5
+
+#: Streak-free images per campaign (false positives), and the seed they start after: seeds
+#: 1-100 calibrated :data:`inject.masking.detect.FALSE_ALARM_Z`, so these are held out.
+DEFAULT_STREAK_FREE = 20
+STREAK_FREE_SEED0 = 1000
+
+#: Pixels of a full LSSTCam ITL CCD, for false positives per CCD from smaller images.
+CCD_PIXELS = 4072 * 4000
 
 #: Columns of the summary table, with their markdown headers and formats.
 COLUMNS = (("masker", "masker", "{}"), ("height_km", "km", "{:.0f}"), ("mag", "mag", "{:.2f}"),
@@ -71,6 +81,39 @@ def campaign_images(heights, mags, seeds, size, progress=None):
                                                    "seed": seed}
 
 
+def streak_free_images(count, size, progress=None, seed0=STREAK_FREE_SEED0):
+    """``count`` streak-free images of the campaign's field (seeds ``seed0 + 1`` on), with
+    labels ``{height_km: None, mag: None, seed, streak_free: True}``, generated lazily."""
+    from ..config import DEFAULT_SCENE, apply_overrides, parse_scene
+    from ..scene import simulate
+
+    for k in range(1, count + 1):
+        seed = seed0 + k
+        raw = apply_overrides(DEFAULT_SCENE, [f"seed={seed}", f"detector.nx={size}",
+                                              f"detector.ny={size}"])
+        raw["satellites"] = []
+        if progress:
+            progress(f"[{k}/{count}] streak-free seed {seed}")
+        yield simulate(parse_scene(raw)), {"height_km": None, "mag": None, "seed": seed,
+                                           "streak_free": True}
+
+
+def false_positive_summary(records, size):
+    """False positives of each masker on the streak-free images: ``{masker: {images,
+    detections, per_image, per_ccd}}`` (``per_ccd`` scaled to a full ITL CCD's area)."""
+    out = {}
+    for r in records:
+        if not r.get("streak_free"):
+            continue
+        s = out.setdefault(r["masker"], {"images": 0, "detections": 0})
+        s["images"] += 1
+        s["detections"] += int(r["false_positives"])
+    for s in out.values():
+        s["per_image"] = s["detections"] / s["images"]
+        s["per_ccd"] = s["per_image"] * CCD_PIXELS / float(size * size)
+    return out
+
+
 def bad_pixels(sim):
     """Unusable pixels of a simulated image (the LSST bad planes of its mask)."""
     from ..scene import MASK_PLANES
@@ -84,7 +127,8 @@ def pixel_loss(summary, masker, heights=(550.0, 350.0)):
     """Mean masked pixels per image of ``masker`` at each magnitude for two heights, and
     their ratio (second over first): ``[{mag, px_<h>..., ratio}]``."""
     a, b = heights
-    by = {(r["height_km"], r["mag"]): r for r in summary if r["masker"] == masker}
+    by = {(r["height_km"], r["mag"]): r for r in summary
+          if r["masker"] == masker and r["height_km"] is not None}
     rows = []
     for mag in sorted({m for (_, m) in by}):
         if (a, mag) in by and (b, mag) in by:
@@ -99,7 +143,8 @@ def fifty_percent_points(summary):
     from .evaluate import completeness_point
 
     out = {}
-    for key in sorted({(r["masker"], r["height_km"]) for r in summary}):
+    for key in sorted({(r["masker"], r["height_km"]) for r in summary
+                       if r["height_km"] is not None}):
         rows = [r for r in summary if (r["masker"], r["height_km"]) == key]
         out[key] = completeness_point([r["peak_sb"] for r in rows],
                                       [r["completeness"] for r in rows])
@@ -157,7 +202,8 @@ def write_plots(summary, loss, outdir, masker):
         plt.close(fig)
         paths.append(path)
 
-    groups = sorted({(r["masker"], r["height_km"]) for r in summary})
+    groups = sorted({(r["masker"], r["height_km"]) for r in summary
+                     if r["height_km"] is not None})
 
     def series(key, x, y):
         rows = sorted((r for r in summary if (r["masker"], r["height_km"]) == key),
@@ -198,13 +244,19 @@ def write_plots(summary, loss, outdir, masker):
 
 
 def run_campaign(maskers, heights=DEFAULT_HEIGHTS, mags=DEFAULT_MAGS, seeds=DEFAULT_SEEDS,
-                 size=DEFAULT_SIZE, truth_sigma=None, progress=None):
-    """Run a seeded campaign; returns ``(records, summary)`` (see
-    :func:`inject.masking.evaluate.evaluate` and :func:`~inject.masking.evaluate.summarise`)."""
+                 size=DEFAULT_SIZE, truth_sigma=None, progress=None,
+                 streak_free=DEFAULT_STREAK_FREE):
+    """Run a seeded campaign (with ``streak_free`` streak-free images for false positives);
+    returns ``(records, summary)`` (see :func:`inject.masking.evaluate.evaluate` and
+    :func:`~inject.masking.evaluate.summarise`)."""
+    import itertools
+
     from .evaluate import TRUTH_SIGMA, evaluate, load_masker, summarise
 
     maskers = [load_masker(m) for m in maskers]  # fail on a bad name before simulating
-    images = campaign_images(heights, mags, range(1, seeds + 1), size, progress)
+    images = itertools.chain(
+        campaign_images(heights, mags, range(1, seeds + 1), size, progress),
+        streak_free_images(streak_free, size, progress))
     records = evaluate(images, maskers, TRUTH_SIGMA if truth_sigma is None else truth_sigma,
                        bad=bad_pixels)
     return records, summarise(records)
@@ -228,6 +280,9 @@ def add_evaluate_parser(sub):
                    help="masker to score: inject (ours), findsat_mrt (acstools) or "
                         "module:function taking an image and returning a bool mask; "
                         "repeatable (default: inject)")
+    p.add_argument("--streak-free", type=int, default=DEFAULT_STREAK_FREE, metavar="N",
+                   help=f"streak-free images for false positives ({DEFAULT_STREAK_FREE}; seeds "
+                        f"{STREAK_FREE_SEED0 + 1} on, held out from the threshold's calibration)")
     p.add_argument("--truth-sigma", type=float, default=1.0, metavar="T",
                    help="true region = streak model > T x sky sigma (1)")
     p.add_argument("--json", action="store_true",
@@ -239,6 +294,8 @@ def add_evaluate_parser(sub):
 def _check(args):
     if args.seeds < 1:
         raise InputError("--seeds", args.seeds, "must be >= 1")
+    if args.streak_free < 0:
+        raise InputError("--streak-free", args.streak_free, "must be >= 0")
     if args.detector < 64:
         raise InputError("--detector", args.detector, "must be >= 64 px")
     for h in args.heights:
@@ -268,7 +325,9 @@ def run_evaluate(args):
         print(msg, file=sys.stderr, flush=True)
 
     records, summary = run_campaign(maskers, args.heights, args.mags, args.seeds,
-                                    args.detector, args.truth_sigma, progress)
+                                    args.detector, args.truth_sigma, progress,
+                                    args.streak_free)
+    false = false_positive_summary(records, args.detector)
     from .evaluate import load_masker
 
     names = [load_masker(maskers[0]).name]  # pixel loss: the first masker given
@@ -287,7 +346,7 @@ def run_evaluate(args):
         out = {"summary": summary,
                "completeness_50": [{"masker": m, "height_km": h, "peak_sb": v}
                                    for (m, h), v in points.items()],
-               "pixel_loss": loss, "files": plots}
+               "pixel_loss": loss, "false_positives": false, "files": plots}
         json.dump(json_rows(out), sys.stdout)
         sys.stdout.write("\n")
         return
@@ -299,5 +358,9 @@ def run_evaluate(args):
         a, b = [k for k in r if k.startswith("px_")]
         print(f"pixel loss ({names[0]}) mag {r['mag']:.2f}: {a[3:]} km {r[a]:.0f} px, "
               f"{b[3:]} km {r[b]:.0f} px, ratio {b[3:]}/{a[3:]} = {_fmt(r['ratio'], '{:.2f}')}")
+    for m, f in false.items():
+        print(f"false positives ({m}) on {f['images']} streak-free {args.detector} x "
+              f"{args.detector} images: {f['detections']} ({f['per_image']:.3f} per image, "
+              f"{f['per_ccd']:.3f} per CCD area)")
     print(f"wrote {args.out}/records.csv, summary.csv, summary.md, "
           + ", ".join(os.path.basename(p) for p in plots), file=sys.stderr)

@@ -120,8 +120,9 @@ class Prepared:
         Image minus background, float32, NaN where a pixel is not usable.
     sigma : float
         Robust per-pixel noise of ``residual`` (image units).
-    stars : ndarray
-        Bool, pixels of compact bright sources (excluded from measurements).
+    stars_binned : ndarray
+        Bool, binned pixels of compact bright sources (excluded from measurements; see
+        :attr:`stars` and :meth:`star_at`).
     binned : ndarray
         Binned residual in units of its own noise, stars removed, clipped (the search image).
     bin : int
@@ -130,13 +131,34 @@ class Prepared:
 
     residual: np.ndarray
     sigma: float
-    stars: np.ndarray
+    stars_binned: np.ndarray
     binned: np.ndarray
     bin: int
 
     @property
     def shape(self):
         return self.residual.shape
+
+    @property
+    def stars(self):
+        """Bool image of the star pixels (full resolution; built on demand)."""
+        yy, xx = np.indices(self.shape, sparse=True)
+        return self.star_at(yy, xx)
+
+    def star_at(self, yy, xx):
+        """Whether pixels ``(yy, xx)`` belong to a compact bright source (a star's binned
+        block; pixels beyond the last whole block are never stars)."""
+        b = self.bin
+        nyb, nxb = self.stars_binned.shape
+        yy, xx = np.asarray(yy), np.asarray(xx)
+        if b & (b - 1) == 0:  # a power of 2: shifts, several times faster than divisions
+            by, bx = yy >> (b.bit_length() - 1), xx >> (b.bit_length() - 1)
+        else:
+            by, bx = yy // b, xx // b
+        if self.shape == (nyb * b, nxb * b):  # whole blocks cover the image
+            return self.stars_binned[by, bx]
+        inside = (by < nyb) & (bx < nxb)
+        return inside & self.stars_binned[np.minimum(by, nyb - 1), np.minimum(bx, nxb - 1)]
 
     def to_binned(self, line, factor=None):
         """The same line in the coordinates of an image binned ``factor`` (default ``bin``)."""
@@ -153,37 +175,121 @@ class Prepared:
 
 def robust_sigma(values):
     """Gaussian-equivalent standard deviation from the median absolute deviation."""
-    values = values[np.isfinite(values)]
-    if values.size == 0:
+    v = values[np.isfinite(values)]  # a copy: partitioned in place below
+    if v.size == 0:
         return float("nan")
-    return float(1.4826 * np.median(np.abs(values - np.median(values))))
+    mid = [(v.size - 1) // 2, v.size // 2]
+    v.partition(mid)
+    np.abs(np.subtract(v, 0.5 * (v[mid[0]] + v[mid[1]]), out=v), out=v)
+    v.partition(mid)
+    return float(1.4826 * 0.5 * (v[mid[0]] + v[mid[1]]))
 
 
-def _bin(image, valid, factor):
-    """Mean of the usable pixels of every ``factor x factor`` block (NaN if none); a partial
-    last row or column of blocks is left out. ``image`` is 0 where not ``valid``."""
+def _bin(image, bad, bad_index, factor):
+    """Mean of the usable pixels (finite, not ``bad``) of every ``factor x factor`` block
+    (NaN if none); a partial last row or column of blocks is left out.
+
+    OpenCV's area resampling (a block mean, ~20x faster than a NumPy reshape-sum) runs on the
+    image as given; the few blocks holding bad pixels (flat indices ``bad_index``) have those
+    pixels' sum taken out, and blocks whose sum is not finite (NaN or infinite pixels) are
+    recomputed from their pixels.
+
+    Returns
+    -------
+    binned : ndarray
+        float32.
+    nonfinite : ndarray of int
+        Flat indices of the non-finite pixels of whole blocks that ``bad`` does not flag.
+    """
     ny, nx = (n // factor for n in image.shape)
-    # OpenCV's area resampling is a block mean, ~20x faster than a NumPy reshape-sum here.
-    mean = cv2.resize(image[:ny * factor, :nx * factor], (nx, ny),
-                      interpolation=cv2.INTER_AREA)
-    # Unusable pixels are few: count them per block rather than resample a full mask.
-    yy, xx = np.nonzero(~valid[:ny * factor, :nx * factor])
-    bad = np.zeros((ny, nx))
-    np.add.at(bad, (yy // factor, xx // factor), 1)
-    frac = 1 - bad / factor ** 2
-    out = np.full((ny, nx), np.nan, dtype=np.float32)
-    np.divide(mean, frac, out=out, where=frac > 0, casting="unsafe")
-    return out
+    crop = image[:ny * factor, :nx * factor]
+    area = factor * factor
+    total = cv2.resize(crop, (nx, ny), interpolation=cv2.INTER_AREA).astype(np.float64)
+    total = total.reshape(-1) * area
+    count = np.full(ny * nx, float(area))
+    yy, xx = np.divmod(bad_index, image.shape[1])
+    inside = (yy < ny * factor) & (xx < nx * factor)
+    block = (yy[inside] // factor) * nx + xx[inside] // factor
+    values = image.reshape(-1)[bad_index[inside]].astype(np.float64)
+    finite = np.isfinite(values)
+    count -= np.bincount(block, minlength=ny * nx)
+    total -= np.bincount(block[finite], weights=values[finite], minlength=ny * nx)
+    broken = np.flatnonzero(~np.isfinite(total))
+    nonfinite = np.zeros(0, dtype=np.intp)
+    if broken.size:
+        by, bx = np.divmod(broken, nx)
+        r = np.arange(factor)
+        ry = (by[:, None] * factor + r)[:, :, None]
+        rx = (bx[:, None] * factor + r)[:, None, :]
+        pix = crop[ry, rx].astype(np.float64)
+        ok = np.isfinite(pix)
+        flagged = bad[ry, rx] if bad is not None else np.zeros(ok.shape, dtype=bool)
+        k = np.nonzero(~ok & ~flagged)
+        nonfinite = np.ravel_multi_index((np.broadcast_to(ry, ok.shape)[k],
+                                          np.broadcast_to(rx, ok.shape)[k]), image.shape)
+        ok &= ~flagged
+        total[broken] = np.where(ok, pix, 0.0).sum(axis=(1, 2))
+        count[broken] = ok.sum(axis=(1, 2))
+    out = np.full(ny * nx, np.nan, dtype=np.float32)
+    np.divide(total, count, out=out, where=count > 0, casting="unsafe")
+    return out.reshape(ny, nx), nonfinite
 
 
-def _row_medians(a):
-    """Median of the finite values of each row (NaN for none): NaNs sort last, so each row's
-    median is read at its own count (np.nanmedian loops over rows in Python)."""
-    a = np.sort(a, axis=1)
-    n = np.isfinite(a).sum(axis=1)
-    rows = np.arange(a.shape[0])
-    lo, hi = np.maximum((n - 1) // 2, 0), np.maximum(n // 2, 0)
-    return np.where(n > 0, 0.5 * (a[rows, lo] + a[rows, hi]), np.nan)
+def _clipped_row_medians(a, passes=2, k=3.0):
+    """Median of the finite values of each row after ``passes`` rounds of ``k``-sigma
+    clipping about the median (sigma from the median absolute deviation): a star or a streak
+    in a box does not pull it.
+
+    Each row is sorted once: a clipped set is then a contiguous run of the sorted row, its
+    median is read at the run's middle, and the median of the distances ``|x - median|`` is
+    an order statistic of two sorted sequences (the distances below and above the median),
+    found by a binary search. The same values as re-sorting after every clip, 2-3x faster.
+    """
+    s = np.sort(a, axis=1)  # NaNs last
+    m = s.shape[1]
+    rows = np.arange(s.shape[0])
+
+    def at(i):
+        return s[rows, np.clip(i, 0, m - 1)]
+
+    def run_median(lo, hi):
+        n = hi - lo
+        return np.where(n > 0, 0.5 * (at(lo + np.maximum((n - 1) // 2, 0))
+                                      + at(lo + np.maximum(n // 2, 0))), np.nan)
+
+    lo = np.zeros(s.shape[0], dtype=np.intp)
+    hi = np.isfinite(s).sum(axis=1)
+    med = run_median(lo, hi)
+    for _ in range(passes):
+        # Distances below the median, ascending: med - s[p-1], med - s[p-2], ... (p - lo of
+        # them); above: s[p] - med, s[p+1] - med, ... (hi - p).
+        p = np.clip((s < med[:, None]).sum(axis=1), lo, hi)
+        below, above = p - lo, hi - p
+
+        def kth(q):
+            # q-th smallest distance: i of the q + 1 smallest come from below, by bisection.
+            left, right = np.maximum(0, q + 1 - above), np.minimum(q + 1, below)
+            while (left < right).any():
+                act = left < right
+                mid = (left + right) // 2
+                j = q - mid
+                from_below = med - at(p - 1 - mid)
+                from_above = np.where(j < above, at(p + j) - med, np.inf)
+                take = from_below <= from_above
+                left = np.where(act & take, mid + 1, left)
+                right = np.where(act & ~take, mid, right)
+            lv = np.where(left > 0, med - at(p - left), -np.inf)
+            rv = np.where((q - left >= 0) & (q - left < above), at(p + q - left) - med, -np.inf)
+            return np.maximum(lv, rv)
+
+        n = hi - lo
+        mad = np.where(n > 0, 0.5 * (kth(np.maximum((n - 1) // 2, 0))
+                                     + kth(np.maximum(n // 2, 0))), np.nan)
+        limit = k * (1.4826 * mad)
+        lo = (s < (med - limit)[:, None]).sum(axis=1)
+        hi = (s <= (med + limit)[:, None]).sum(axis=1)
+        med = run_median(lo, hi)
+    return med
 
 
 def _box_medians(binned, box):
@@ -194,14 +300,7 @@ def _box_medians(binned, box):
     padded = np.full((gy * by, gx * bx), np.nan, dtype=np.float32)
     padded[:ny, :nx] = binned
     blocks = padded.reshape(gy, by, gx, bx).transpose(0, 2, 1, 3).reshape(gy * gx, by * bx)
-    med = _row_medians(blocks)
-    # Two passes of 3-sigma clipping (MAD): a star or a streak in a box does not pull it.
-    for _ in range(2):
-        dev = np.abs(blocks - med[:, None])
-        spread = 1.4826 * _row_medians(dev)
-        blocks = np.where(dev <= 3 * spread[:, None], blocks, np.nan)
-        med = _row_medians(blocks)
-    med = med.reshape(gy, gx)
+    med = _clipped_row_medians(blocks).reshape(gy, gx)
     if np.all(np.isnan(med)):
         raise MaskingError("no usable pixels for the background")
     med[np.isnan(med)] = np.nanmedian(med)
@@ -215,11 +314,16 @@ def _background(grid, box, shape, factor=1):
     ``shape`` binned ``factor`` times less than the grid's boxes of ``box`` binned pixels.
 
     OpenCV's linear resize puts source pixel ``k`` at ``(k + 0.5) * scale - 0.5``, exactly
-    where box ``k``'s centre falls; the boxes may overhang the image, which is cropped.
+    where box ``k``'s centre falls; the boxes may overhang the image, which is cropped. The
+    rows and columns of an image beyond its last whole binned pixel, if the boxes stop there,
+    repeat the last ones (the background is flat beyond the outer box centres anyway).
     """
     (gy, gx), (by, bx) = grid.shape, box
     full = cv2.resize(grid, (gx * bx * factor, gy * by * factor),
                       interpolation=cv2.INTER_LINEAR)
+    short = (max(0, shape[0] - full.shape[0]), max(0, shape[1] - full.shape[1]))
+    if any(short):
+        full = np.pad(full, ((0, short[0]), (0, short[1])), mode="edge")
     return full[:shape[0], :shape[1]]
 
 
@@ -260,10 +364,13 @@ def _star_mask(z):
     margin = np.clip(1 + np.round(2 * np.log10(np.maximum(peak, STAR_SIGMA) / STAR_SIGMA)),
                      1, 8).astype(int)
     stars = np.zeros(zp.shape, dtype=bool)
+    # One gather of each pixel's margin (0: not a compact source), then one dilation per
+    # margin value.
+    margins = np.where(compact, margin, 0).astype(np.uint8)[labels]
     for r in np.unique(margin[compact]):
-        region = (compact & (margin == r))[labels].astype(np.uint8)
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-        stars |= cv2.dilate(region, kernel).astype(bool)
+        grown = cv2.dilate((margins == r).view(np.uint8), kernel)
+        np.logical_or(stars, grown.view(bool), out=stars)
     return stars
 
 
@@ -273,8 +380,9 @@ def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
     Parameters
     ----------
     image : array_like
-        2-D image (any units; any byte order: it is copied to native float32, as OpenCV
-        miscomputes on big-endian astropy arrays).
+        2-D image (any units). A native-order, C-contiguous float32 or float64 array is used
+        as it is (not modified); anything else is first copied to native float32, as OpenCV
+        miscomputes on big-endian astropy arrays.
     bad : array_like of bool, optional
         Pixels not to use (e.g. SAT, BAD, CR planes of an LSST mask); non-finite pixels are
         never used.
@@ -291,26 +399,43 @@ def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
     MaskingError
         If the image is not 2-D, is smaller than 16 binned pixels a side or has no usable
         pixels.
+    ValueError
+        If ``bad`` and the image differ in shape.
     """
-    img = np.array(image, dtype=np.float32)
+    img = np.asarray(image)
     if img.ndim != 2:
         raise MaskingError(f"image has {img.ndim} dimensions; need a 2-D image")
     if min(img.shape) < 16 * bin_factor:
         raise MaskingError(f"image {img.shape[1]} x {img.shape[0]} px is too small to search "
                            f"(needs >= {16 * bin_factor} px a side)")
-    valid = np.isfinite(img)
+    if (img.dtype not in (np.float32, np.float64) or not img.dtype.isnative
+            or not img.flags.c_contiguous):
+        img = np.ascontiguousarray(img, dtype=np.float32)
+    # The image itself is not copied: it is binned as it is, and the residual is written by
+    # the background subtraction.
     if bad is not None:
-        valid &= ~np.asarray(bad, dtype=bool)
-    if valid.sum() < 0.1 * valid.size:
-        raise MaskingError(f"only {valid.sum()} of {valid.size} pixels are usable")
-    img[~valid] = 0
-    binned = _bin(img, valid, bin_factor)
+        bad = np.asarray(bad, dtype=bool)
+        if bad.shape != img.shape:
+            raise ValueError(f"bad-pixel mask of shape {bad.shape} for an image of shape "
+                             f"{img.shape}")
+        bad_index = np.flatnonzero(bad)  # few on a real image
+    else:
+        bad_index = np.zeros(0, dtype=np.intp)
+    binned, nonfinite = _bin(img, bad, bad_index, bin_factor)
+    unusable = bad_index.size + nonfinite.size
+    if unusable > 0.9 * img.size:
+        raise MaskingError(f"only {img.size - unusable} of {img.size} pixels are usable")
     grid, boxes = _box_medians(binned, max(4, box // bin_factor))
-    residual = img  # in place: img is our own copy
-    residual -= _background(grid, boxes, img.shape, bin_factor)
-    residual[~valid] = np.nan
-    # Half a million pixels pin the noise to ~0.2% and keep this fast on a full CCD.
-    sigma = robust_sigma(residual.ravel()[::max(1, residual.size // 500_000)])
+    # One pass: float32 residual = image - background; unusable pixels become NaN (a
+    # non-finite pixel beyond the last whole block stays as it is: never used either).
+    residual = cv2.subtract(img, _background(grid, boxes, img.shape, bin_factor),
+                            dtype=cv2.CV_32F)
+    flat = residual.reshape(-1)
+    flat[bad_index] = np.nan
+    flat[nonfinite] = np.nan
+    # Half a million pixels pin the noise to ~0.2% and keep this fast on a full CCD: whole
+    # rows, evenly spaced (contiguous memory, ~3x faster than every n-th pixel).
+    sigma = robust_sigma(residual[::max(1, residual.size // 500_000)].ravel())
     if not sigma > 0:
         raise MaskingError("image has no noise (median absolute deviation 0): detection "
                            "thresholds and mask widths are set against the sky noise")
@@ -319,23 +444,21 @@ def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
     z[~np.isfinite(z)] = 0
     stars_b = _star_mask(z)
     work = np.where(stars_b, 0, np.clip(z, -CLIP_SIGMA, CLIP_SIGMA)).astype(np.float32)
-    stars = np.zeros(img.shape, dtype=bool)
-    up = np.repeat(np.repeat(stars_b, bin_factor, axis=0), bin_factor, axis=1)
-    stars[:up.shape[0], :up.shape[1]] = up
-    return Prepared(residual=residual, sigma=sigma, stars=stars, binned=work, bin=bin_factor)
+    return Prepared(residual=residual, sigma=sigma, stars_binned=stars_b, binned=work,
+                    bin=bin_factor)
 
 
-def _standardise_rows(h, usable, every=8):
-    """In place: subtract each row's median and divide by its robust spread (over the usable
-    cells); unusable cells become 0.
+def _row_scales(h, n_usable, every=8):
+    """Median and robust spread (interquartile range / 1.349) of the usable cells of each row
+    of a normalised transform (unusable cells are NaN), or None if no row has enough cells.
 
     Sampled every ``every`` rows and interpolated: the spread changes smoothly with angle.
     """
     rows = np.arange(0, h.shape[0], every)
-    # Quartiles of the usable cells of each sampled row: unusable cells sort to the end as
-    # +inf, and each row's quartiles are read at its own count (nanpercentile loops in Python).
-    sample = np.sort(np.where(usable[rows], h[rows], np.inf), axis=1)
-    n = usable[rows].sum(axis=1)
+    # NaNs sort last, so each row's quartiles are read at its own count (nanpercentile loops
+    # over rows in Python).
+    sample = np.sort(h[rows], axis=1)
+    n = n_usable[rows]
     idx = np.arange(rows.size)
 
     def quantile(q):
@@ -344,32 +467,37 @@ def _standardise_rows(h, usable, every=8):
     q1, med, q3 = quantile(0.25), quantile(0.5), quantile(0.75)
     ok = (n >= 8) & (q3 > q1)
     if not ok.any():
-        h[:] = 0
-        return h
+        return None
     all_rows = np.arange(h.shape[0])
     med = np.interp(all_rows, rows[ok], med[ok]).astype(np.float32)
     spread = np.interp(all_rows, rows[ok], (q3 - q1)[ok] / 1.349).astype(np.float32)
-    h -= med[:, None]
-    h /= spread[:, None]
-    h[~usable] = 0
-    return h
+    return med, spread
 
 
 _NORM = {}
 
 
 def _line_norm(shape, min_length):
-    """``1 / sqrt(pixels)`` of every Hough cell (0 for lines shorter than ``min_length``) and
-    which cells are usable."""
+    """``1 / sqrt(pixels)`` of every Hough cell (NaN for lines shorter than ``min_length``),
+    which cells are usable, and how many per row."""
     key = (shape, min_length)
     if key not in _NORM:
         if len(_NORM) >= 3 * LEVELS:  # a run needs one image shape per level
             _NORM.clear()
         counts = fast_hough(np.ones(shape, dtype=np.float32))
         usable = counts >= min_length
-        _NORM[key] = (np.where(usable, 1 / np.sqrt(np.maximum(counts, 1)), 0)
-                      .astype(np.float32), usable)
+        _NORM[key] = (np.where(usable, 1 / np.sqrt(np.maximum(counts, 1)), np.nan)
+                      .astype(np.float32), usable, usable.sum(axis=1))
     return _NORM[key]
+
+
+def _normalised_transform(image, min_length):
+    """Filtered transform divided by the square root of each line's pixel count (NaN for
+    unusable cells), and its row scales (or None); see :func:`hough_significance`."""
+    norm, usable, n_usable = _line_norm(image.shape, min_length)
+    h = fast_hough(cv2.GaussianBlur(image, (0, 0), FILTER_SIGMA))
+    h *= norm
+    return h, usable, _row_scales(h, n_usable)
 
 
 def pyramid(work, levels=LEVELS):
@@ -389,16 +517,46 @@ def pyramid(work, levels=LEVELS):
 def hough_significance(image, min_length):
     """Significance ``z`` of every line of one (already binned) image.
 
+    Every line sum of the filtered image, divided by the square root of its pixel count, is
+    standardised per angle (row): minus the row's median, over its robust spread.
+
     Returns
     -------
     ndarray
         float32, rows = angles, columns = offsets; cells of lines shorter than
         ``min_length`` cells are 0.
     """
-    norm, usable = _line_norm(image.shape, min_length)
-    h = fast_hough(cv2.GaussianBlur(image, (0, 0), FILTER_SIGMA))
-    h *= norm
-    return _standardise_rows(h, usable)
+    h, usable, scales = _normalised_transform(image, min_length)
+    if scales is None:
+        return np.zeros_like(h)
+    med, spread = scales
+    h -= med[:, None]
+    h /= spread[:, None]
+    h[~usable] = 0
+    return h
+
+
+def hough_peak(image, min_length):
+    """Largest significance of :func:`hough_significance` and its cell, without forming the
+    map: the standardisation is monotonic within a row, so each row's largest normalised sum
+    gives its largest ``z``.
+
+    Returns
+    -------
+    z : float
+    row, col : int
+    """
+    h, _, scales = _normalised_transform(image, min_length)
+    if scales is None:
+        return 0.0, 0, 0
+    med, spread = scales
+    top = np.fmax.reduce(h, axis=1)  # NaN (unusable) cells ignored
+    z = (top - med) / spread
+    z[~np.isfinite(z)] = -np.inf
+    row = int(np.argmax(z))
+    if not np.isfinite(z[row]):
+        return 0.0, 0, 0
+    return float(z[row]), row, int(np.nanargmax(h[row]))
 
 
 @dataclass
@@ -425,10 +583,9 @@ def best_line(prep, work):
     best = None
     for image, f in pyramid(work):
         factor = prep.bin * f
-        z = hough_significance(image, max(16, MIN_LINE_PX // factor))
-        i = int(np.argmax(z))
-        if best is None or z.flat[i] > best[0]:
-            best = (float(z.flat[i]), np.unravel_index(i, z.shape), image, factor)
+        z, row, col = hough_peak(image, max(16, MIN_LINE_PX // factor))
+        if best is None or z > best[0]:
+            best = (z, (row, col), image, factor)
     z, (row, col), image, factor = best
     x1, y1, x2, y2 = cv2.ximgproc.HoughPoint2Line((int(col), int(row)), image,
                                                   **_fht_options())

@@ -174,7 +174,8 @@ def inject_masker(image, bad=None, pixel_scale=0.2, n_boot=0):
 def load_masker(spec):
     """A :class:`Masker` from a callable, a built-in name or ``"module:function"``.
 
-    Built-in names: ``inject`` (ours) and ``findsat_mrt`` (acstools, optional dependency).
+    Built-in names: ``inject`` (ours) and ``findsat_mrt`` (acstools, optional dependency; its
+    own trail catalogue gives the lines and FWHMs scored).
     A module is imported only when a ``module:function`` spec names it.
 
     Raises
@@ -191,9 +192,9 @@ def load_masker(spec):
     if spec == "inject":
         return Masker(inject_masker, "inject")
     if spec == "findsat_mrt":
-        from .external import findsat_mrt_mask
+        from .external import findsat_mrt_trails
 
-        return Masker(findsat_mrt_mask, "findsat_mrt")
+        return Masker(findsat_mrt_trails, "findsat_mrt")
     module, sep, name = str(spec).partition(":")
     if not sep or not module or not name:
         raise InputError("--masker", spec, "give module:function or one of "

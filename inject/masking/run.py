@@ -155,7 +155,8 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
     import numpy as np
 
     from .detect import FALSE_ALARM_Z, MAX_STREAKS, detect_streaks, prepare
-    from .mask import lost_pixels, mask_spans, mask_widths, paint
+    from .geometry import span_indices
+    from .mask import lost_pixels, mask_spans, mask_widths
     from .measure import measure_streak
 
     _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold, max_streaks)
@@ -164,7 +165,7 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
     flagged = None if flagged is None else np.asarray(flagged, dtype=bool)
     detections = detect_streaks(prep, FALSE_ALARM_Z if threshold is None else threshold,
                                 MAX_STREAKS if max_streaks is None else max_streaks)
-    union = np.zeros(prep.shape, dtype=bool)
+    pixels = []  # flat indices of each mask (their union is counted once)
     streaks = []
     for det in detections:
         m = measure_streak(prep, det.trace, wing_level=sb_sigma * prep.sigma, n_boot=n_boot)
@@ -172,10 +173,15 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
         # A Gaussian or Moffat fit can fail, or the FWHM be unmeasurable: then the sb rule.
         applied = rule if np.isfinite(widths[rule]) else DEFAULT_RULE
         counts = lost_pixels(prep.shape, m.line, widths[applied], flagged)
-        paint(union, mask_spans(prep.shape, m.line, widths[applied]))
+        yy, xx = span_indices(*mask_spans(prep.shape, m.line, widths[applied]))
+        pixels.append(yy * prep.shape[1] + xx)
         streaks.append(streak_record(m, det, widths, applied, counts, pixel_scale, prep.sigma))
-    masked = int(union.sum())
-    already = int((union & flagged).sum()) if flagged is not None else 0
+    # The masks' union from their pixel indices, not a full-size image (a few passes over a
+    # 16 Mpx CCD would cost more than the masks themselves).
+    union = np.unique(np.concatenate(pixels)) if len(pixels) > 1 else \
+        (pixels[0] if pixels else np.zeros(0, dtype=np.intp))
+    masked = int(union.size)
+    already = int(np.count_nonzero(flagged.ravel()[union])) if flagged is not None else 0
     return MaskResult(streaks=streaks, shape=prep.shape, sky_sigma=prep.sigma,
                       pixel_scale=pixel_scale, masked_pixels=masked, lost_pixels=masked - already,
                       source=source)
