@@ -76,18 +76,38 @@ def _json_safe(value):
 
 
 def _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold=None, max_streaks=None):
-    if pixel_scale is not None and not (math.isfinite(pixel_scale) and pixel_scale > 0):
-        raise InputError("--pixel-scale", pixel_scale, "must be a number > 0 (arcsec)")
-    if rule not in RULE_CHOICES:
+    import numpy as np
+
+    from ..validate import finite, positive
+
+    if pixel_scale is not None:
+        positive("--pixel-scale", pixel_scale, scalar=True)
+    if not isinstance(rule, str) or rule not in RULE_CHOICES:
         raise InputError("--mask-rule", rule, f"choose one of {', '.join(RULE_CHOICES)}")
-    if not (math.isfinite(sb_sigma) and sb_sigma > 0):
-        raise InputError("--sb-sigma", sb_sigma, "must be a number > 0")
-    if not (math.isfinite(fwhm_factor) and fwhm_factor > 0):
-        raise InputError("--fwhm-factor", fwhm_factor, "must be a number > 0")
-    if threshold is not None and not math.isfinite(threshold):
-        raise InputError("--threshold", threshold, "must be a finite number")
-    if max_streaks is not None and max_streaks < 1:
-        raise InputError("--max-streaks", max_streaks, "must be >= 1")
+    positive("--sb-sigma", sb_sigma, scalar=True)
+    positive("--fwhm-factor", fwhm_factor, scalar=True)
+    if threshold is not None:
+        finite("--threshold", threshold, scalar=True)
+    if max_streaks is not None and not (isinstance(max_streaks, (int, np.integer))
+                                        and max_streaks >= 1):
+        raise InputError("--max-streaks", max_streaks, "must be an integer >= 1")
+
+
+def _check_arrays(image, bad):
+    """The image as a real array and ``bad`` as booleans of its shape (dimensions are
+    checked by :func:`~inject.masking.detect.prepare`)."""
+    import numpy as np
+
+    image = np.asarray(image)
+    if not (np.issubdtype(image.dtype, np.integer) or np.issubdtype(image.dtype, np.floating)):
+        raise InputError("image", f"{image.dtype} array", "must hold real numbers")
+    if bad is not None:
+        bad = np.asarray(bad)
+        if bad.shape != image.shape:
+            raise InputError("mask", f"shape {bad.shape}",
+                             f"must match the image's shape {image.shape}")
+        bad = bad.astype(bool)
+    return image, bad
 
 
 def streak_record(measurement, detection, widths, rule, counts, pixel_scale, sky_sigma):
@@ -160,6 +180,7 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
     from .measure import measure_streak
 
     _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold, max_streaks)
+    image, bad = _check_arrays(image, bad)
     prep = prepare(image, bad)
     flagged = bad if flagged is None else flagged
     flagged = None if flagged is None else np.asarray(flagged, dtype=bool)
@@ -296,9 +317,13 @@ def _set_streak_plane(exposure, streaks):
                            f"{shape[1]} x {shape[0]}")
     mask &= ~np.int32(1 << bit)
     plane = np.zeros(shape, dtype=bool)
-    for s in streaks:
-        line = Line(s["x0"], s["y0"], s["x1"], s["y1"])
-        paint(plane, mask_spans(shape, line, s["mask_width_px"]))
+    for i, s in enumerate(streaks):
+        try:
+            ends = [float(s[key]) for key in ("x0", "y0", "x1", "y1", "mask_width_px")]
+        except (KeyError, TypeError, ValueError):
+            raise InputError(f"streaks[{i}]", s, "needs numbers x0, y0, x1, y1 and "
+                             "mask_width_px (as mask_image returns)") from None
+        paint(plane, mask_spans(shape, Line(*ends[:4]), ends[4]))
     mask[plane] |= np.int32(1 << bit)
     hdu.data = mask
     hdu.header["NSTREAK"] = (len(streaks), "streaks masked by inject mask")
@@ -330,7 +355,8 @@ def write_masked(in_path, out_path, streaks, overwrite=False):
 
 
 def _check_distinct(in_path, out_path):
-    if os.path.exists(out_path) and os.path.samefile(in_path, out_path):
+    if os.path.exists(in_path) and os.path.exists(out_path) and os.path.samefile(in_path,
+                                                                                 out_path):
         raise InputError("--out", os.fspath(out_path),
                          "must differ from the input (it is never modified)")
 
