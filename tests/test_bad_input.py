@@ -823,6 +823,22 @@ def test_evaluate_writes_all_its_files_or_none(capsys, monkeypatch, tmp_path):
     assert os.listdir(out) == []
 
 
+def test_evaluate_refuses_to_replace_an_earlier_campaign(capsys, monkeypatch, tmp_path):
+    """Existing outputs in --out stop the campaign before it runs, unless --overwrite."""
+    import inject.masking.cli_evaluate as cli_evaluate
+
+    out = tmp_path / "ev"
+    out.mkdir()
+    (out / "summary.md").write_text("an earlier campaign")
+
+    def campaign(*args, **kwargs):
+        raise AssertionError("the campaign ran before its outputs were checked")
+    monkeypatch.setattr(cli_evaluate, "run_campaign", campaign)
+    status, err = run(capsys, "evaluate", "--out", out)
+    assert status == 2 and "summary.md: exists; pass --overwrite" in err
+    assert (out / "summary.md").read_text() == "an earlier campaign"
+
+
 # --- inject.io.atomic.output_group (Python API) --------------------------------------------
 
 def write_text(path, text, overwrite=False):

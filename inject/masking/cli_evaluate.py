@@ -166,10 +166,15 @@ def markdown_table(summary):
     return "\n".join(lines)
 
 
-def _write_text(path, text):
+#: What a campaign writes into ``--out`` (pixel_loss.* only with two heights or more).
+OUTPUT_FILES = ("records.csv", "summary.csv", "summary.md", "pixel_loss.csv",
+                "completeness.png", "fwhm_bias.png", "pixel_loss.png")
+
+
+def _write_text(path, text, overwrite=False):
     from ..io.atomic import atomic_path
 
-    with atomic_path(path, overwrite=True) as tmp:
+    with atomic_path(path, overwrite) as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as f:
             f.write(text)
 
@@ -183,7 +188,7 @@ def _csv_text(rows):
     return buf.getvalue()
 
 
-def write_plots(summary, loss, outdir, masker):
+def write_plots(summary, loss, outdir, masker, overwrite=False):
     """Completeness vs peak SB, FWHM bias vs integrated S/N, pixel loss 550 vs 350 km (PNG,
     written atomically); returns the paths."""
     import matplotlib
@@ -197,7 +202,7 @@ def write_plots(summary, loss, outdir, masker):
 
     def save(fig, name):
         path = os.path.join(outdir, name)
-        with atomic_path(path, overwrite=True) as tmp:
+        with atomic_path(path, overwrite) as tmp:
             fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png")
         plt.close(fig)
         paths.append(path)
@@ -285,6 +290,8 @@ def add_evaluate_parser(sub):
                         f"{STREAK_FREE_SEED0 + 1} on, held out from the threshold's calibration)")
     p.add_argument("--truth-sigma", type=float, default=1.0, metavar="T",
                    help="true region = streak model > T x sky sigma (1)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the files of an earlier campaign in --out")
     p.add_argument("--json", action="store_true",
                    help="print the summary, 50%% points and pixel loss as JSON")
     p.set_defaults(func=run_evaluate)
@@ -319,6 +326,10 @@ def run_evaluate(args):
         os.makedirs(args.out, exist_ok=True)
     except OSError as err:
         raise OutputError(f"{args.out}: cannot create ({err.strerror or err})") from None
+    from ..io.atomic import check_writable
+
+    for name in OUTPUT_FILES:  # before the campaign's minutes of work, not after
+        check_writable(os.path.join(args.out, name), args.overwrite)
     maskers = args.masker or ["inject"]
 
     def progress(msg):
@@ -336,12 +347,12 @@ def run_evaluate(args):
     points = fifty_percent_points(summary)
     table = markdown_table(summary)
     with output_group():  # every file of the campaign appears, or none (a full disk...)
-        _write_text(os.path.join(args.out, "records.csv"), _csv_text(records))
-        _write_text(os.path.join(args.out, "summary.csv"), _csv_text(summary))
-        _write_text(os.path.join(args.out, "summary.md"), table + "\n")
-        if loss:
-            _write_text(os.path.join(args.out, "pixel_loss.csv"), _csv_text(loss))
-        plots = write_plots(summary, loss, args.out, names[0])
+        for name, text in (("records.csv", _csv_text(records)),
+                           ("summary.csv", _csv_text(summary)), ("summary.md", table + "\n"),
+                           ("pixel_loss.csv", _csv_text(loss) if loss else None)):
+            if text is not None:
+                _write_text(os.path.join(args.out, name), text, args.overwrite)
+        plots = write_plots(summary, loss, args.out, names[0], args.overwrite)
     if args.json:
         out = {"summary": summary,
                "completeness_50": [{"masker": m, "height_km": h, "peak_sb": v}
