@@ -675,6 +675,18 @@ def enospc(*args, **kwargs):
     raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
 
+def fail_move_onto(monkeypatch, target):
+    """The move of a finished temporary file onto ``target`` fails: the disk is full."""
+    real_replace = os.replace
+
+    def replace(src, dst):
+        if os.fspath(dst) == str(target):
+            enospc()
+        real_replace(src, dst)
+
+    monkeypatch.setattr(inject.io.atomic.os, "replace", replace)
+
+
 def test_atomic_path_full_disk_leaves_target_untouched(tmp_path):
     target = tmp_path / "out.fits"
     target.write_bytes(b"the previous result")
@@ -719,14 +731,7 @@ def test_full_disk_on_the_rename(capsys, monkeypatch, scene, tmp_path, option):
     """ENOSPC as the finished temporary file is moved into place (EXR, PNG, CSV writers)."""
     fits_out, other = tmp_path / "out.fits", tmp_path / "out.other"
     other.write_bytes(b"previous")
-    real_replace = os.replace
-
-    def replace(src, dst):
-        if os.fspath(dst) == str(other):
-            enospc()
-        real_replace(src, dst)
-
-    monkeypatch.setattr(inject.io.atomic.os, "replace", replace)
+    fail_move_onto(monkeypatch, other)
     status, err = run(capsys, "simulate", scene, "-o", fits_out, option, other, "--overwrite")
     assert status == 2 and "No space left on device" in err and str(other) in err
     assert other.read_bytes() == b"previous" and not leftovers(tmp_path)
@@ -775,14 +780,7 @@ def test_simulate_failing_last_move_restores_replaced_outputs(capsys, monkeypatc
     """The CSV cannot be moved into place: the FITS, EXR and PNG already moved are undone
     (the replaced FITS restored, the new EXR and PNG removed)."""
     (tmp_path / "out.fits").write_bytes(b"previous FITS")
-    real_replace = os.replace
-
-    def replace(src, dst):
-        if os.fspath(dst) == str(tmp_path / "out.csv"):
-            enospc()
-        real_replace(src, dst)
-
-    monkeypatch.setattr(inject.io.atomic.os, "replace", replace)
+    fail_move_onto(monkeypatch, tmp_path / "out.csv")
     status, err = run(capsys, *simulate_all(scene, tmp_path, "--overwrite"))
     assert status == 2 and "No space left on device" in err and str(tmp_path / "out.csv") in err
     assert sorted(os.listdir(tmp_path)) == ["out.fits", "scene.yaml"]
@@ -893,14 +891,7 @@ def test_output_group_undoes_its_moves(monkeypatch, tmp_path, hard_links):
     goes; without hard links (some file systems) the old file is kept by a copy instead."""
     (tmp_path / "real").write_text("real")
     (tmp_path / "link").symlink_to("real")
-    real_replace = os.replace
-
-    def replace(src, dst):
-        if os.fspath(dst) == str(tmp_path / "c"):
-            enospc()
-        real_replace(src, dst)
-
-    monkeypatch.setattr(inject.io.atomic.os, "replace", replace)
+    fail_move_onto(monkeypatch, tmp_path / "c")
     if not hard_links:
         def no_link(*args, **kwargs):
             raise OSError(errno.EPERM, os.strerror(errno.EPERM))
