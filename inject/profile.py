@@ -155,7 +155,8 @@ class CrossSection:
         return crossing(hi, hi + 1) - crossing(lo - 1, lo)
 
 
-def line_spread(profile, pixel_scale_arcsec=None, step_arcsec=None, pixel_angle_deg=0.0):
+def line_spread(profile, pixel_scale_arcsec=None, step_arcsec=None, pixel_angle_deg=0.0,
+                period_factor=1.0):
     """Line-spread function of ``profile`` across the track (its marginal along track-frame x).
 
     Parameters
@@ -168,6 +169,9 @@ def line_spread(profile, pixel_scale_arcsec=None, step_arcsec=None, pixel_angle_
         the convolution of boxes ``p |cos a|`` and ``p |sin a|``.
     step_arcsec : float, optional
         Output sampling; by default fine enough for every feature GalSim keeps (``maxk``).
+    period_factor : float
+        The transform's period in units of GalSim's ``2 pi / stepk``: the tails folded back
+        into the output fall as ``period^(-8/3)`` for Kolmogorov seeing.
 
     Returns
     -------
@@ -177,7 +181,7 @@ def line_spread(profile, pixel_scale_arcsec=None, step_arcsec=None, pixel_angle_
     step = np.pi / maxk / 2 if step_arcsec is None else step_arcsec
     if pixel_scale_arcsec is not None:
         step = min(step, pixel_scale_arcsec / 16)
-    period = 2 * np.pi / stepk
+    period = period_factor * 2 * np.pi / stepk
     n = int(2 ** np.ceil(np.log2(max(period / step, 64))))
     dk = 2 * np.pi / (n * step)
     kimage = profile.drawKImage(nx=2, ny=n, scale=dk)

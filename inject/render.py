@@ -20,16 +20,24 @@ from dataclasses import dataclass, field, replace
 
 import galsim
 import numpy as np
-from scipy import fft, ndimage
+from scipy import fft, integrate, interpolate, ndimage
 
 from .profile import line_spread
 from .errors import InputError
 from .validate import positive
 
 
-#: Finest pixel tolerance the renderer can honour: the LSF's own aliasing at GSPARAMS
-#: (folding_threshold 1e-4) is ~1e-6 of the peak.
-MIN_TOLERANCE = 2e-6
+#: Finest pixel tolerance the renderer accepts (at 5e-7 it agrees with GalSim's Box FFT of a
+#: whole CCD to 1.5e-7 of the peak; such budgets cost seconds per profile).
+MIN_TOLERANCE = 2e-7
+
+#: Tightest tolerance chosen automatically (a bright streak in noise, a short track's own
+#: peak): it keeps a profile's tables to about a second; tighter ones must be asked for.
+AUTO_MIN_TOLERANCE = 2e-6
+
+#: Tail of the LSF folded back by a transform of GalSim's period (folding_threshold 1e-4 in
+#: inject.profile.GSPARAMS), relative to its peak.
+FOLDED_LSF = 1e-6
 
 #: Tracks shorter than this (px) have their tolerance checked against their own peak
 #: (:func:`short_track_budget`); no seeing profile is wide enough for longer ones to matter.
@@ -64,8 +72,7 @@ class Budget:
         positive("flux_tolerance", self.flux_tolerance)
         if self.tolerance < MIN_TOLERANCE:
             raise InputError("tolerance", self.tolerance,
-                             f"must be >= {MIN_TOLERANCE:g}, the accuracy of the line-spread "
-                             f"function at inject.profile.GSPARAMS")
+                             f"must be >= {MIN_TOLERANCE:g} (inject.render.MIN_TOLERANCE)")
 
 
 @dataclass(frozen=True)
@@ -163,12 +170,17 @@ class SweptProfile:
         coarse = line_spread(profile, p, pixel_angle_deg=self.angle_deg)
         curvature = np.abs(np.diff(coarse.lsf, 2)).max() / coarse.step ** 2
         lsf_step = min(p / 8, np.sqrt(tol * coarse.lsf.max() / curvature))
-        self.lsf = line_spread(profile, p, step_arcsec=lsf_step, pixel_angle_deg=self.angle_deg)
+        # GalSim's period (folding_threshold 1e-4) folds ~FOLDED_LSF of the peak back into
+        # the LSF: budgets tighter than twice that take a longer one (folding falls as
+        # period^(-8/3) for Kolmogorov tails).
+        fold = max(1.0, (2 * FOLDED_LSF / tol) ** (3 / 8))
+        self.lsf = line_spread(profile, p, step_arcsec=lsf_step, pixel_angle_deg=self.angle_deg,
+                               period_factor=fold)
         self._lsf_at = _UniformInterp(self.lsf.offset_arcsec, self.lsf.lsf)
         self._peak = self.lsf.lsf.max()
         # Along the track: the marginal across it, and its cumulative, for the far tails.
         along = line_spread(profile.rotate(90 * galsim.degrees), p,
-                            pixel_angle_deg=self.angle_deg + 90)
+                            pixel_angle_deg=self.angle_deg + 90, period_factor=fold)
         # Across, the footprint must hold all but flux_tolerance of the charge (seeing tails
         # are power laws); the end-cap table only where values exceed tol/2 of the peak.
         # Either way flux is conserved: C rises from 0 to LSF(d) whatever the cap model.
@@ -179,11 +191,10 @@ class SweptProfile:
         # h(t, d) at fixed d): trim the table where its ends match 0 and LSF(d) within tol/2,
         # and widen it if that was not far enough.
         while True:
-            step, mismatch, size = self._build_cap_table(tol / 2, along.fwhm())
+            step, mismatch, size = self._build_cap_table(tol / 2, along)
             if mismatch <= tol / 2 or size * 1.5 > MAX_TABLE_SIZE:
                 break
             self._cap *= 1.5
-        self._separable_tails(along)
         self.plan = RenderPlan(
             support_px=support / p, cap_px=self._cap / p, table_step_px=step / p,
             lsf_step_px=lsf_step / p,
@@ -200,16 +211,24 @@ class SweptProfile:
         """
         t, f = along.offset_arcsec, along.lsf
         inside = np.abs(t) <= self._cap
-        cdf = np.cumsum(np.where(inside, f, 0.0)) * along.step
-        cdf /= cdf[-1]
-        self._along_t = t[inside]
-        self._along_cdf = cdf[inside]
-        self._along_k = np.cumsum(self._along_cdf) * along.step
-        self._along_k -= self._along_k[0]
+        cdf = integrate.cumulative_trapezoid(f[inside], t[inside], initial=0.0)
+        # A cubic spline, not linear interpolation: the tables hold C - LSF(d) Phi(t), and
+        # Phi's kinks would show through their splines at ~step^2 Phi'' (2e-5 of the peak).
+        self._phi = interpolate.CubicSpline(t[inside], cdf / cdf[-1])
+        self._psi = self._phi.antiderivative()  # 0 at -cap
         # K(cap) = cap - m1 per unit LSF: the first moment that keeps K continuous at +cap.
-        self._along_moment = float(self._along_t[-1] - self._along_k[-1])
+        self._along_moment = float(self._cap - self._psi(self._cap))
 
-    def _build_cap_table(self, trim, fwhm_along):
+    def _along_integral(self, t, power):
+        """``Phi(t)`` (``power`` 0) or its integral from ``-cap`` (``power`` 1), continued by
+        their limits beyond ``+-cap``."""
+        inside = np.clip(t, -self._cap, self._cap)
+        if power == 0:
+            return np.where(np.abs(t) <= self._cap, self._phi(inside), (t > 0).astype(float))
+        return np.where(t > self._cap, t - self._along_moment,
+                        np.where(t < -self._cap, 0.0, self._psi(inside)))
+
+    def _build_cap_table(self, trim, along):
         """Tabulate ``C(t, d)`` for ``|t| <= cap``, ``|d| <= table_d`` (arcsec), then trim the
         cap to where ``C`` is within ``trim`` (relative to the peak) of 0 before it and of
         ``LSF(d)`` after it.
@@ -265,9 +284,14 @@ class SweptProfile:
         # over a ramp of width w at each end, so C meets its limits exactly: no step, flux
         # kept. A track of length L then sees L / w of the miss, within the tolerance of its
         # own peak (~ L / FWHM) when w >= (miss / tol) FWHM.
-        width = float(np.clip(ends / self._peak / (2 * trim) * fwhm_along, 4 * p, self._cap))
+        width = float(np.clip(ends / self._peak / (2 * trim) * along.fwhm(), 4 * p, self._cap))
         self._ramp = (width, misses)
         table -= self._ramp_correction(t, 0)
+        # The table holds C - LSF(d) Phi(t): the separable model carries the LSF's sharp
+        # profile across the track at every t, and what is left is smooth in d away from the
+        # end point, where the spline is then exact far beyond the LSF's own sharpness.
+        self._separable_tails(along)
+        table -= far[:, None] * self._along_integral(t, 0)
         self._table = ndimage.spline_filter(table, order=3)
         self._t0, self._d0, self._table_step = t[0], d[keep_d][0], step
         self._second = None
@@ -329,13 +353,14 @@ class SweptProfile:
             t_all = (np.arange(n_t) - n_t // 2) * self._table_step
             t = t_all[keep_t]
             second = (self._antiderivative(coeffs, 2, t_all)[:, keep_t]
-                      - self._ramp_correction(t, 1))
+                      - self._ramp_correction(t, 1) - far[:, None] * self._along_integral(t, 1))
             second = ndimage.spline_filter(second, order=3)
             ones = np.ones_like(d)
             # Spline coefficients shift with a constant: start each row at 0 at -cap.
             second -= self._table_at(second, d, -self._cap * ones)[:, None]
             self._moment_d = d
-            self._moment = self._cap * far - self._table_at(second, d, self._cap * ones)
+            # K(cap) = LSF (cap - m1_separable) + residual(cap) = cap LSF - m1.
+            self._moment = far * self._along_moment - self._table_at(second, d, self._cap * ones)
             self._second = second
         return self._second
 
@@ -353,16 +378,16 @@ class SweptProfile:
         if not near.any():
             return first, second
         tn, dn, inn = t[near], d[near], inner[near]
+        # The separable model LSF(d) Phi(t), plus the table's residual near the track (far
+        # from it the cap is below tol/2 of the peak and the model is enough).
         in_table = np.abs(dn) <= self._table_d
-        # Far from the track the cap is below tol/2 of the peak: a separable model is enough.
-        tails = ~in_table
-        values = np.empty_like(tn)
-        values[in_table] = self._table_at(self._table, dn[in_table], tn[in_table])
-        values[tails] = inn[tails] * np.interp(tn[tails], self._along_t, self._along_cdf)
+        values = inn * self._along_integral(tn, 0)
+        values[in_table] += self._table_at(self._table, dn[in_table], tn[in_table])
         first[near] = values
         if want_second:
-            values[in_table] = self._table_at(self._second_table(), dn[in_table], tn[in_table])
-            values[tails] = inn[tails] * np.interp(tn[tails], self._along_t, self._along_k)
+            values = inn * self._along_integral(tn, 1)
+            values[in_table] += self._table_at(self._second_table(), dn[in_table],
+                                               tn[in_table])
             second[near] = values
         return first, second
 
@@ -497,7 +522,7 @@ def short_track_budget(budget, profile, pixel_scale, angle_deg, length_px):
     A track shorter than the profile along it peaks below an infinite streak's ``F p
     max LSF``, which the tables are budgeted against: the tolerance is scaled by the ratio of
     the two peaks, ``min(1, L max phi)`` (``phi`` the pixel-convolved marginal along the
-    track, exact for separable profiles as ``L -> 0``), down to :data:`MIN_TOLERANCE`.
+    track, exact for separable profiles as ``L -> 0``), down to :data:`AUTO_MIN_TOLERANCE`.
     """
     if not np.isfinite(length_px):
         return budget
@@ -506,7 +531,8 @@ def short_track_budget(budget, profile, pixel_scale, angle_deg, length_px):
     ratio = min(1.0, length_px * pixel_scale * along.lsf.max())
     if ratio >= 1.0:
         return budget
-    return replace(budget, tolerance=max(MIN_TOLERANCE, budget.tolerance * ratio))
+    return replace(budget, tolerance=max(min(AUTO_MIN_TOLERANCE, budget.tolerance),
+                                         budget.tolerance * ratio))
 
 
 def swept_profile(model, angle_deg, budget=Budget(), length_px=np.inf):

@@ -15,7 +15,7 @@ from .errors import SceneError
 from .instrument import LSST
 from .photometry import sky_per_pixel
 from .profile import Seeing
-from .render import MIN_TOLERANCE, Budget, render_polyline, render_segment, swept_profile
+from .render import AUTO_MIN_TOLERANCE, Budget, render_polyline, render_segment, swept_profile
 from .streak import StreakModel
 from .trajectory import Polyline, Segment
 
@@ -101,7 +101,7 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0):
     noise_sigma : float
         Per-pixel noise, e-. A bright streak's seeing wings stay above the noise far beyond
         the budget's relative tolerance: the tolerance is tightened (down to
-        ``MIN_TOLERANCE``) so that errors and the wings left out stay below
+        ``AUTO_MIN_TOLERANCE``) so that errors and the wings left out stay below
         ``NOISE_FRACTION`` of the noise (a cut would show as an edge).
 
     Returns
@@ -116,7 +116,8 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0):
     for model, track in zip(models, tracks):
         own = budget
         if noise_sigma > 0:
-            tolerance = max(MIN_TOLERANCE, NOISE_FRACTION * noise_sigma / model.peak_e_per_px)
+            tolerance = max(AUTO_MIN_TOLERANCE,
+                            NOISE_FRACTION * noise_sigma / model.peak_e_per_px)
             if tolerance < budget.tolerance:
                 own = replace(budget, tolerance=tolerance)
         if track.vertices is not None:

@@ -287,7 +287,7 @@ def test_narrow_profile_end_caps_within_budget(fwhm_px):
 
 def test_short_track_error_relative_to_its_own_peak():
     # A track shorter than the profile along it peaks lower than a long streak: its budget is
-    # scaled by the ratio (down to MIN_TOLERANCE) so the error stays relative to its own peak.
+    # scaled by the ratio (down to AUTO_MIN_TOLERANCE) so the error stays relative to its own peak.
     sigma_px = 1.5  # an exact reference: a Gaussian of FWHM 3.5 px, a 0.1 px track
     profile = galsim.Gaussian(sigma=sigma_px * 0.2, gsparams=GSPARAMS)
     budget = short_track_budget(Budget(), profile, 0.2, 0.0, 0.1)
