@@ -201,9 +201,10 @@ class SweptProfile:
             predicted_error={"support": tol / 2, "lsf_interpolation": tol / 8,
                              "cap_tails": tol / 2, "cap_table": mismatch})
 
-    def _separable_tails(self, along):
-        """Cumulatives along the track for the far wings (``|d| > table_d``), where the cap is
-        modelled as ``LSF(d)`` times the along-track marginal's cumulative ``Phi(t)``.
+    def _separable_model(self, along):
+        """The separable end-cap model ``LSF(d) Phi(t)``, ``Phi`` the along-track marginal's
+        cumulative: the whole cap far from the track (``|d| > table_d``), and the base the
+        tables' residuals are added to near it.
 
         ``Phi`` is rescaled to rise from 0 to 1 exactly across ``[-cap, cap]``, so C and its
         antiderivative K join their limits (0 before, ``LSF`` and ``t LSF - m1`` after)
@@ -290,7 +291,7 @@ class SweptProfile:
         # The table holds C - LSF(d) Phi(t): the separable model carries the LSF's sharp
         # profile across the track at every t, and what is left is smooth in d away from the
         # end point, where the spline is then exact far beyond the LSF's own sharpness.
-        self._separable_tails(along)
+        self._separable_model(along)
         table -= far[:, None] * self._along_integral(t, 0)
         self._table = ndimage.spline_filter(table, order=3)
         self._t0, self._d0, self._table_step = t[0], d[keep_d][0], step
