@@ -178,7 +178,7 @@ class SweptProfile:
                                period_factor=fold)
         self._lsf_at = _UniformInterp(self.lsf.offset_arcsec, self.lsf.lsf)
         self._peak = self.lsf.lsf.max()
-        # Along the track: the marginal across it, and its cumulative, for the far tails.
+        # Along the track: the marginal across it, whose cumulative makes the separable model.
         along = line_spread(profile.rotate(90 * galsim.degrees), p,
                             pixel_angle_deg=self.angle_deg + 90, period_factor=fold)
         # Across, the footprint must hold all but flux_tolerance of the charge (seeing tails
@@ -290,7 +290,8 @@ class SweptProfile:
         table -= self._ramp_correction(t, 0)
         # The table holds C - LSF(d) Phi(t): the separable model carries the LSF's sharp
         # profile across the track at every t, and what is left is smooth in d away from the
-        # end point, where the spline is then exact far beyond the LSF's own sharpness.
+        # end point: a spline at the table's step interpolates it far better than C itself
+        # (at tol 5e-7 the render agrees with GalSim's Box FFT of a whole CCD to 2e-7).
         self._separable_model(along)
         table -= far[:, None] * self._along_integral(t, 0)
         self._table = ndimage.spline_filter(table, order=3)
