@@ -10,7 +10,9 @@ seeing, Poisson and read noise, stars to mag 24) with the paper's satellite (7.2
 2. **completeness** of both at decreasing magnitudes (seeded random tracks crossing the CCD);
 3. **FWHM accuracy** at peak S/N = 1 per pixel for 350 and 550 km;
 4. **false positives** on 20 streak-free CCDs with stars (seeds 1001-1020, held out from the
-   calibration of the threshold).
+   calibration of the threshold);
+5. **small false positives** on 60 streak-free 512 x 512 and 60 256 x 256 cut-outs with stars
+   (seeds 3001-3060, held out from the calibration of the small-image thresholds).
 
 ``--calibrate`` instead records the largest Hough significance of streak-free images, from
 which :data:`inject.masking.detect.FALSE_ALARM_Z` was set.
@@ -29,7 +31,8 @@ import numpy as np
 
 from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
 from inject.masking.baseline import canny_hough, segments_match
-from inject.masking.detect import BAD_PLANES, FALSE_ALARM_Z, max_significance, prepare
+from inject.masking.detect import (BAD_PLANES, BIN, FALSE_ALARM_Z, max_significance, prepare,
+                                   threshold_for)
 from inject.masking.evaluate import match_streaks, truth_line
 from inject.masking.run import analyse
 from inject.scene import MASK_PLANES, simulate, sky_level, streak_models
@@ -40,7 +43,7 @@ MAGS = (10.0, 11.0, 12.0, 13.0, 13.5, 14.0, 14.5, 15.0, 15.5)
 
 BAD_BITS = sum(1 << MASK_PLANES[p] for p in BAD_PLANES)
 
-SECTIONS = ("timing", "completeness", "fwhm", "false_positives")
+SECTIONS = ("timing", "completeness", "fwhm", "false_positives", "small_false_positives")
 
 
 def make_scene(seed, satellites, size=None, stars=True):
@@ -207,6 +210,35 @@ def bench_false_positives(count, baseline=True):
             "baseline_images_with_segments": base if baseline else None}
 
 
+#: Streak-free cut-outs for :func:`bench_small_false_positives` use seeds from here on, apart
+#: from those that calibrated :data:`inject.masking.detect.SMALL_SEARCH_EXTRA_Z` (1-400).
+SMALL_FALSE_POSITIVE_SEED0 = 3000
+
+
+def bench_small_false_positives(count, sizes=(512, 256)):
+    """Detections on ``count`` streak-free square cut-outs with stars of each size (seeds
+    after :data:`SMALL_FALSE_POSITIVE_SEED0`)."""
+    out = []
+    seeds = range(SMALL_FALSE_POSITIVE_SEED0 + 1, SMALL_FALSE_POSITIVE_SEED0 + count + 1)
+    for size in sizes:
+        found, images, largest = 0, 0, []
+        for seed in seeds:
+            r, bad = image_of(make_scene(seed, [], size))
+            largest.append(max_significance(prepare(r.image, bad)))
+            n = len(analyse(r.image, bad=bad, n_boot=0).streaks)
+            found += n
+            images += n > 0
+        k = int(np.argmax(largest))
+        out.append({"size": size, "images": count, "seeds": [seeds[0], seeds[-1]],
+                    "detections": found, "images_with_detections": images,
+                    "largest_z": float(largest[k]), "largest_z_seed": seeds[k],
+                    "threshold": threshold_for((size // BIN, size // BIN))})
+        print(f"  {size} x {size}: {found} detection(s) on {images} of {count} images "
+              f"(largest z {largest[k]:.2f}, seed {seeds[k]}; threshold "
+              f"{out[-1]['threshold']:.1f})", flush=True)
+    return out
+
+
 def calibrate(n_full, n_cut):
     """Largest Hough significance of streak-free full CCDs and 1024 x 1024 cut-outs."""
     out = {}
@@ -282,6 +314,8 @@ def main(argv=None):
     p.add_argument("--mags", type=float, nargs="*", default=MAGS)
     p.add_argument("--fp-images", type=int, default=20,
                    help="streak-free full CCDs for false positives (20)")
+    p.add_argument("--small-fp-images", type=int, default=60,
+                   help="streak-free cut-outs of each small size for false positives (60)")
     p.add_argument("--no-baseline", action="store_true", help="skip the baseline's completeness")
     p.add_argument("--calibrate", action="store_true", help="calibrate the false-alarm level")
     p.add_argument("--full", type=int, default=40, help="--calibrate: full CCDs (40)")
@@ -333,6 +367,11 @@ def main(argv=None):
                   f"(largest z {fp['largest_z']:.2f}, threshold {fp['threshold']})"
                   + ("" if fp["baseline_images_with_segments"] is None else
                      f"; baseline: segments on {fp['baseline_images_with_segments']} CCDs"))
+        if "small_false_positives" in args.sections:
+            print(f"false positives on {args.small_fp_images} streak-free small cut-outs with "
+                  f"stars (seeds {SMALL_FALSE_POSITIVE_SEED0 + 1}-"
+                  f"{SMALL_FALSE_POSITIVE_SEED0 + args.small_fp_images}):")
+            results["small_false_positives"] = bench_small_false_positives(args.small_fp_images)
     if args.figures and not args.calibrate:
         for path in write_figures(results, args.figures):
             print(f"wrote {path}")

@@ -98,6 +98,25 @@ def test_no_false_positive_on_streak_free_images(seed):
     assert res.masked_pixels == 0
 
 
+@pytest.mark.parametrize("size, seed", [(512, 3016), (512, 3037), (256, 3051), (512, 3005),
+                                        (256, 3026)])
+def test_no_false_positive_on_small_streak_free_cut_outs(size, seed):
+    """Held-out seeds (the small-image thresholds were calibrated on 1-400): the first three
+    gave edge-hugging false detections (z 6.6-8.7) before the edge guard, the first-round
+    scales and the small-search threshold."""
+    res, _, _, _ = run(make_scene([], seed=seed, nx=size, ny=size))
+    assert res.streaks == []
+
+
+def test_threshold_for_small_searches():
+    from inject.masking.detect import FALSE_ALARM_Z, threshold_for
+    assert threshold_for((1000, 1018)) == FALSE_ALARM_Z  # full CCD
+    assert threshold_for((128, 128)) == FALSE_ALARM_Z  # 512 px cut-out
+    assert FALSE_ALARM_Z < threshold_for((64, 64)) < threshold_for((32, 48))
+    assert threshold_for((64, 64), 5.0) == pytest.approx(5.0 + threshold_for((64, 64))
+                                                         - FALSE_ALARM_Z)
+
+
 def test_bright_streak_found_once():
     """A very bright streak's wings must not come back as a parallel detection."""
     res, truth, shape, _ = run(make_scene([box_satellite(550, 5.0, 200.0, 300.0, -37.7)]))

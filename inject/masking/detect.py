@@ -21,11 +21,14 @@ line and a full CCD costs milliseconds per transform:
 5. **Fast Hough transform** (OpenCV ``ximgproc``) of each level: every line sum, divided by
    the square root of its pixel count and standardised per angle (median and interquartile
    range over offsets), is a significance ``z`` with unit noise.
-6. **Peaks**: the best ``z`` over levels is compared with :data:`FALSE_ALARM_Z`. Above it,
-   the line is refined and its extent found (:mod:`.measure`), the streak is erased from the
-   binned image, and the search repeats, so several streaks are found one after the other.
+6. **Peaks**: the best ``z`` over levels (the outer :data:`EDGE_GUARD` binned pixels left
+   out) is compared with :data:`FALSE_ALARM_Z` (higher for images under 512 px:
+   :func:`threshold_for`). Above it, the line is refined and its extent found
+   (:mod:`.measure`), the streak is erased from the binned image, and the search repeats
+   (standardised with the first round's scales), so several streaks are found one after the
+   other.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -76,6 +79,15 @@ STAR_MIN_FILL = 0.4
 #: corner lines carry little signal and their noise is far from Gaussian.
 MIN_LINE_PX = 128
 
+#: The outermost this many binned pixels of every side are left out of the search (set to 0):
+#: a line running along an image edge sums pixels whose matched filter sees a mirrored noise
+#: (twice the weight of the inner neighbours) and the wings of stars just outside the image.
+#: On a small image such lines are a large share of all lines, and they made most of its false
+#: alarms (2 of 60 held-out 512 x 512 cut-outs, z 6.6 and 7.6; see
+#: :data:`SMALL_SEARCH_EXTRA_Z`). A streak is missed only if it runs within ~8 image pixels of
+#: an edge over its whole length.
+EDGE_GUARD = 2
+
 #: False-alarm threshold on the Hough significance ``z``.
 #:
 #: How it was obtained: ``python scripts/bench_mask.py --calibrate --full 40 --cutouts 100``
@@ -87,6 +99,30 @@ MIN_LINE_PX = 128
 #: largest value plus 0.5: a false alarm needs a noise excursion beyond anything seen in those
 #: 140 images (and must then survive the refinement of :func:`.measure.trace_streak`).
 FALSE_ALARM_Z = 6.5
+
+#: Added to the threshold when the search image (binned pixels, smaller side) is smaller than
+#: :data:`MIN_LEVEL_SIZE`, i.e. for images under 512 px a side, which search a single level of
+#: fewer than 128 binned pixels: ``(least side, extra z)``, first match.
+#:
+#: How it was obtained: streak-free images of the field above (seeds 1-400 or 1-200; the
+#: held-out check, ``python scripts/bench_mask.py --sections small_false_positives``, uses
+#: 3001-3060), searched with :data:`EDGE_GUARD` by :func:`detect_streaks` down to z = 5, the
+#: largest ``z`` of a line that survives refinement being recorded. From 128 binned pixels up
+#: it was 6.14 on 400 512 x 512 cut-outs, 5.47 on 100 768 x 768 and 5.55 on 100 1024 x 1024:
+#: below :data:`FALSE_ALARM_Z`, no extra. (Before refinement one 512 px image reached 10.3:
+#: a star just beyond the edge, which refinement rejects.) Searches of 64-120 binned pixels
+#: (images of 256-480 px; 1400 images) reached 7.05 (7.20 before refinement): threshold 7.6.
+#: Searches of 32 and 48 (128 and 192 px; 400 images), where the shortest usable line spans
+#: the image and a row's standardisation rests on few cells, reached 10.49: threshold 11.
+SMALL_SEARCH_EXTRA_Z = ((MIN_LEVEL_SIZE, 0.0), (64, 1.1), (0, 4.5))
+
+
+def threshold_for(shape, threshold=FALSE_ALARM_Z):
+    """Detection threshold for a search image of ``shape`` (binned pixels): ``threshold``
+    plus the :data:`SMALL_SEARCH_EXTRA_Z` of its smaller side."""
+    side = min(shape)
+    return threshold + next(extra for least, extra in SMALL_SEARCH_EXTRA_Z if side >= least)
+
 
 #: Most streaks searched for in one image.
 MAX_STREAKS = 8
@@ -536,27 +572,35 @@ def hough_significance(image, min_length):
     return h
 
 
-def hough_peak(image, min_length):
+def hough_peak(image, min_length, scales=None):
     """Largest significance of :func:`hough_significance` and its cell, without forming the
     map: the standardisation is monotonic within a row, so each row's largest normalised sum
     gives its largest ``z``.
+
+    ``scales`` (median and spread of every row, as :func:`_row_scales` returns them), if
+    given, standardise instead of this image's own: after a streak is erased, the zeroed band
+    would shrink the spread (on a small image, to nothing), while the noise is unchanged.
 
     Returns
     -------
     z : float
     row, col : int
+    scales : tuple or None
+        The scales used.
     """
-    h, _, scales = _normalised_transform(image, min_length)
+    h, _, own = _normalised_transform(image, min_length)
     if scales is None:
-        return 0.0, 0, 0
+        scales = own
+    if scales is None:
+        return 0.0, 0, 0, None
     med, spread = scales
     top = np.fmax.reduce(h, axis=1)  # NaN (unusable) cells ignored
     z = (top - med) / spread
     z[~np.isfinite(z)] = -np.inf
     row = int(np.argmax(z))
     if not np.isfinite(z[row]):
-        return 0.0, 0, 0
-    return float(z[row]), row, int(np.nanargmax(h[row]))
+        return 0.0, 0, 0, scales
+    return float(z[row]), row, int(np.nanargmax(h[row])), scales
 
 
 @dataclass
@@ -571,19 +615,29 @@ class Candidate:
         Its chord across the image (image pixels).
     fwhm_px : float
         FWHM of the matched filter that found it (image pixels).
+    scales : list or None
+        Per pyramid level, the row scales (median and spread) that standardised it.
     """
 
     z: float
     line: Line | None
     fwhm_px: float
+    scales: list | None = field(default=None, repr=False)
 
 
-def best_line(prep, work):
-    """The most significant line over all pyramid levels of ``work`` (a binned image)."""
+def best_line(prep, work, scales=None):
+    """The most significant line over all pyramid levels of ``work`` (a binned image).
+
+    ``scales``: per level, the row scales to standardise with (the :attr:`Candidate.scales`
+    of the search before any streak was erased); default each level's own.
+    """
     best = None
-    for image, f in pyramid(work):
+    used = []
+    for k, (image, f) in enumerate(pyramid(work)):
         factor = prep.bin * f
-        z, row, col = hough_peak(image, max(16, MIN_LINE_PX // factor))
+        z, row, col, sc = hough_peak(image, max(16, MIN_LINE_PX // factor),
+                                     None if scales is None else scales[k])
+        used.append(sc)
         if best is None or z > best[0]:
             best = (z, (row, col), image, factor)
     z, (row, col), image, factor = best
@@ -592,7 +646,7 @@ def best_line(prep, work):
     (xa, xb), (ya, yb) = prep.from_binned([x1, x2], [y1, y2], factor)
     angle = np.degrees(np.arctan2(yb - ya, xb - xa))
     return Candidate(z=z, line=Line.crossing(prep.shape, xa, ya, angle),
-                     fwhm_px=2.3548 * FILTER_SIGMA * factor)
+                     fwhm_px=2.3548 * FILTER_SIGMA * factor, scales=used)
 
 
 def erase(prep, work, line, half_width):
@@ -654,7 +708,9 @@ def detect_streaks(prep, threshold=FALSE_ALARM_Z, max_streaks=MAX_STREAKS):
     ----------
     prep : Prepared
     threshold : float
-        Least Hough significance of a detection (default: the calibrated false-alarm level).
+        Least Hough significance of a detection (default: the calibrated false-alarm level)
+        in a search image of at least :data:`MIN_LEVEL_SIZE` binned pixels a side; a smaller
+        one (an image under 512 px) needs more (:func:`threshold_for`).
     max_streaks : int
 
     Returns
@@ -662,12 +718,16 @@ def detect_streaks(prep, threshold=FALSE_ALARM_Z, max_streaks=MAX_STREAKS):
     list of Detection
         In order of decreasing significance.
     """
-    work = prep.binned.copy()
+    work = search_image(prep)
+    limit = threshold_for(work.shape, threshold)
+    scales = None
     found = []
     # Candidates that refinement rejects are erased too; a few spare rounds allow for them.
     for _ in range(max_streaks + 4):
-        cand = best_line(prep, work)
-        if not cand.z >= threshold:
+        # Later rounds keep the first round's noise scales (see :func:`hough_peak`).
+        cand = best_line(prep, work, scales)
+        scales = cand.scales
+        if not cand.z >= limit:
             break
         coarse, width, z = cand.line, cand.fwhm_px, cand.z
         if coarse is None:  # cannot happen for a cell of this image's transform
@@ -686,6 +746,18 @@ def detect_streaks(prep, threshold=FALSE_ALARM_Z, max_streaks=MAX_STREAKS):
     return found
 
 
+def search_image(prep):
+    """A copy of the binned search image with the outer :data:`EDGE_GUARD` pixels set to 0."""
+    work = prep.binned.copy()
+    g = min(EDGE_GUARD, min(work.shape) // 4)
+    if g > 0:
+        work[:g] = 0
+        work[-g:] = 0
+        work[:, :g] = 0
+        work[:, -g:] = 0
+    return work
+
+
 def _same_streak(a, b, half_width):
     """Whether line ``a`` runs along ``b`` within ``half_width`` (wings of one streak)."""
     return (angle_difference(a.angle_deg, b.angle_deg) < 1.0
@@ -694,4 +766,4 @@ def _same_streak(a, b, half_width):
 
 def max_significance(prep):
     """Largest Hough significance of an image (for calibrating :data:`FALSE_ALARM_Z`)."""
-    return best_line(prep, prep.binned).z
+    return best_line(prep, search_image(prep)).z
