@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from ..errors import InputError
 from . import MaskingError
 from .geometry import Line, angle_difference, band_pixels
 from .measure import stack_samples, trace_streak, wing_half_width
@@ -435,10 +436,12 @@ def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
     MaskingError
         If the image is not 2-D, is smaller than 16 binned pixels a side or has no usable
         pixels.
-    ValueError
-        If ``bad`` and the image differ in shape.
+    InputError
+        If the image does not hold real numbers, or ``bad`` differs from it in shape.
     """
     img = np.asarray(image)
+    if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
+        raise InputError("image", f"{img.dtype} array", "must hold real numbers")
     if img.ndim != 2:
         raise MaskingError(f"image has {img.ndim} dimensions; need a 2-D image")
     if min(img.shape) < 16 * bin_factor:
@@ -452,8 +455,8 @@ def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
     if bad is not None:
         bad = np.asarray(bad, dtype=bool)
         if bad.shape != img.shape:
-            raise ValueError(f"bad-pixel mask of shape {bad.shape} for an image of shape "
-                             f"{img.shape}")
+            raise InputError("mask", f"shape {bad.shape}",
+                             f"must match the image's shape {img.shape}")
         bad_index = np.flatnonzero(bad)  # few on a real image
     else:
         bad_index = np.zeros(0, dtype=np.intp)

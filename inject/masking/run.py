@@ -93,23 +93,6 @@ def _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold=None, max
         raise InputError("--max-streaks", max_streaks, "must be an integer >= 1")
 
 
-def _check_arrays(image, bad):
-    """The image as a real array and ``bad`` as booleans of its shape (dimensions are
-    checked by :func:`~inject.masking.detect.prepare`)."""
-    import numpy as np
-
-    image = np.asarray(image)
-    if not (np.issubdtype(image.dtype, np.integer) or np.issubdtype(image.dtype, np.floating)):
-        raise InputError("image", f"{image.dtype} array", "must hold real numbers")
-    if bad is not None:
-        bad = np.asarray(bad)
-        if bad.shape != image.shape:
-            raise InputError("mask", f"shape {bad.shape}",
-                             f"must match the image's shape {image.shape}")
-        bad = bad.astype(bool)
-    return image, bad
-
-
 def streak_record(measurement, detection, widths, rule, counts, pixel_scale, sky_sigma):
     """The dict of one streak (CONTRACT keys first); ``rule`` is the mask-width rule applied.
 
@@ -180,7 +163,6 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
     from .measure import measure_streak
 
     _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold, max_streaks)
-    image, bad = _check_arrays(image, bad)
     prep = prepare(image, bad)
     flagged = bad if flagged is None else flagged
     flagged = None if flagged is None else np.asarray(flagged, dtype=bool)
