@@ -277,7 +277,7 @@ class SweptProfile:
         # On the grid (t is symmetric about 0), with three samples beyond it for the spline.
         self._cap = step * np.ceil(self._cap / step - 1e-9)
         keep_t = np.abs(t) <= self._cap + 3.5 * step
-        table, t = table[:, keep_t], t[keep_t]
+        grid, table, t = t, table[:, keep_t], t[keep_t]
         edge = np.argmin(np.abs(t + self._cap)), np.argmin(np.abs(t - self._cap))
         misses = (table[:, edge[0]].copy(), table[:, edge[1]] - far)
         ends = max(np.abs(misses[0]).max(), np.abs(misses[1]).max())
@@ -298,7 +298,7 @@ class SweptProfile:
         self._t0, self._d0, self._table_step = t[0], d[keep_d][0], step
         self._second = None
         # K = int C is needed only for tracks whose brightness varies: built on first use.
-        self._second_inputs = (coeffs, keep_t, d[keep_d], far)
+        self._second_inputs = (coeffs, grid, keep_t, d[keep_d], far)
         return step, float(ends / self._peak), max(n_t, n_d)
 
     def _ramp_correction(self, t, power):
@@ -350,11 +350,9 @@ class SweptProfile:
         -cap, the corrected table, LSF(d) after +cap), or linearly varying tracks would not
         conserve flux."""
         if self._second is None:
-            coeffs, keep_t, d, far = self._second_inputs
-            n_t = len(keep_t)
-            t_all = (np.arange(n_t) - n_t // 2) * self._table_step
-            t = t_all[keep_t]
-            second = (self._antiderivative(coeffs, 2, t_all)[:, keep_t]
+            coeffs, grid, keep_t, d, far = self._second_inputs
+            t = grid[keep_t]
+            second = (self._antiderivative(coeffs, 2, grid)[:, keep_t]
                       - self._ramp_correction(t, 1) - far[:, None] * self._along_integral(t, 1))
             second = ndimage.spline_filter(second, order=3)
             ones = np.ones_like(d)
