@@ -326,27 +326,26 @@ def run_evaluate(args):
         os.makedirs(args.out, exist_ok=True)
     except OSError as err:
         raise OutputError(f"{args.out}: cannot create ({err.strerror or err})") from None
-    from ..io.atomic import check_writable
-
-    for name in OUTPUT_FILES:  # before the campaign's minutes of work, not after
-        check_writable(os.path.join(args.out, name), args.overwrite)
     maskers = args.masker or ["inject"]
 
     def progress(msg):
         print(msg, file=sys.stderr, flush=True)
 
-    records, summary = run_campaign(maskers, args.heights, args.mags, args.seeds,
-                                    args.detector, args.truth_sigma, progress,
-                                    args.streak_free)
-    false = false_positive_summary(records, args.detector)
-    from .evaluate import load_masker
+    # The group checks every target before the campaign's minutes of work, and makes its
+    # files appear together at the end, or none of them (a full disk...).
+    with output_group([os.path.join(args.out, name) for name in OUTPUT_FILES],
+                      args.overwrite):
+        records, summary = run_campaign(maskers, args.heights, args.mags, args.seeds,
+                                        args.detector, args.truth_sigma, progress,
+                                        args.streak_free)
+        false = false_positive_summary(records, args.detector)
+        from .evaluate import load_masker
 
-    names = [load_masker(maskers[0]).name]  # pixel loss: the first masker given
-    loss = pixel_loss(summary, names[0], tuple(args.heights[:2])) \
-        if len(args.heights) >= 2 else []
-    points = fifty_percent_points(summary)
-    table = markdown_table(summary)
-    with output_group():  # every file of the campaign appears, or none (a full disk...)
+        names = [load_masker(maskers[0]).name]  # pixel loss: the first masker given
+        loss = pixel_loss(summary, names[0], tuple(args.heights[:2])) \
+            if len(args.heights) >= 2 else []
+        points = fifty_percent_points(summary)
+        table = markdown_table(summary)
         for name, text in (("records.csv", _csv_text(records)),
                            ("summary.csv", _csv_text(summary)), ("summary.md", table + "\n"),
                            ("pixel_loss.csv", _csv_text(loss) if loss else None)):
