@@ -166,7 +166,7 @@ def render_cell(p):
     budget follows the track's length); the brute-force check exercises the footprint
     renderer itself on a short track.
     """
-    from inject.render import Budget, render_segment, render_streak, swept_profile
+    from inject.render import Budget, render_streak, swept_profile
     from inject.trajectory import Segment
 
     model = make_model(p["model"])
