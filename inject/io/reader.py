@@ -328,14 +328,16 @@ def read_exposure(path):
             # A truncated or corrupt file is an error here, not a warning to scroll past.
             warnings.simplefilter("error", fits.verify.VerifyWarning)
             warnings.simplefilter("error", AstropyUserWarning)  # e.g. "may have been truncated"
-            with fits.open(io.BytesIO(source), memmap=False) as opened:
-                opened.verify("exception")
-                hdus = fits.HDUList([hdu.copy() for hdu in opened])
-                spans = []
-                for i in range(len(opened)):
-                    info = opened.fileinfo(i)
-                    spans.append((info["hdrLoc"], info["datLoc"],
-                                  info["datLoc"] + info["datSpan"]))
+            # Opened on the bytes in memory and left open (no file handle): tables with a
+            # heap read from it (astropy cannot copy those), and nothing refers to the file.
+            hdus = fits.open(io.BytesIO(source), memmap=False)
+            hdus.verify("exception")
+            for hdu in hdus:
+                hdu.data  # noqa: B018 -- read every HDU now, so a truncated one fails here
+            spans = []
+            for i in range(len(hdus)):
+                info = hdus.fileinfo(i)
+                spans.append((info["hdrLoc"], info["datLoc"], info["datLoc"] + info["datSpan"]))
     except FileNotFoundError:
         raise FileFormatError(f"{path}: no such file") from None
     except IsADirectoryError:
