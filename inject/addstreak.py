@@ -4,7 +4,9 @@ Only the injected charge gets Poisson noise (the image already has its own); VAR
 the injected charge's Poisson variance and MASK gets the STREAK plane (on the first free bit if
 the file has none), and SAT where an integer image reaches its ADC limit. The pixels go back in
 the file's own storage (see :mod:`inject.io.reader`): pixels the streak does not reach are
-unchanged bit for bit. The input file is never modified.
+unchanged bit for bit. IMAGE, MASK and VARIANCE of an afw file written without ``EXTNAME`` get
+``EXTNAME = EXTTYPE`` (as afw writes today; lsst-images needs it); their other cards stay. The
+input file is never modified.
 """
 import numpy as np
 from astropy.table import Table, vstack
@@ -67,6 +69,7 @@ def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()
     # The model can dip a few 1e-6 of its peak below zero (interpolation): not a charge.
     model_e = np.clip(model_e, 0, None)
     injected = rng.poisson(model_e).astype(np.float64) if noise else model_e
+    exposure.add_extnames()
     saturation = exposure.header_value("SATURATE")
     saturation = float(saturation) if isinstance(saturation, (int, float)) else None
     saturated = exposure.add(exposure.image_index, injected / gain, saturation)

@@ -200,6 +200,28 @@ class InputExposure:
         values[where] |= np.int64(1) << bit
         hdu.data = values.astype(memory.dtype)
 
+    def set_card(self, index, key, value, after=None):
+        """Set card ``key`` of HDU ``index`` (in the file's header and in memory)."""
+        for header in {id(h): h for h in (self.file_header(index),
+                                          self.hdus[index].header)}.values():
+            if key in header:
+                header[key] = value
+            else:
+                header.set(key, value, after=after if after in header else None)
+        if not self._is_plain(index):
+            self._changed.add(index)
+
+    def add_extnames(self):
+        """Give IMAGE, MASK and VARIANCE typed by ``EXTTYPE`` but unnamed ``EXTNAME = EXTTYPE``,
+        as afw writes them today: lsst-images' ``read_legacy`` needs the name."""
+        for index in (self.image_index, self.mask_index, self.variance_index):
+            if index is None or index == 0:
+                continue
+            header = self.file_header(index)
+            exttype = str(header.get("EXTTYPE", "")).strip()
+            if exttype and "EXTNAME" not in header:
+                self.set_card(index, "EXTNAME", exttype, after="EXTTYPE")
+
     def mark_changed(self, index):
         """Have :meth:`write` write HDU ``index`` from memory (it was changed in place)."""
         self._changed.add(index)
@@ -229,17 +251,28 @@ class InputExposure:
                     memory[card] = (header[key], header.comments[key])
         return bit
 
-    def _stored_bytes(self, index, primary):
-        """The bytes of plain image HDU ``index`` with its new stored pixels."""
-        header = self.file_header(index)
-        stored = self._stored[index]
-        if "CHECKSUM" in header or "DATASUM" in header:  # astropy computes them again
-            return _serialise(_stored_hdu(header, stored, primary), primary, checksum=True)
-        start, data, _ = self.spans[index]
+    def _plain_bytes(self, index, primary):
+        """The bytes of plain HDU ``index``: the input's, with its new header and stored
+        pixels where they changed."""
+        start, data, end = self.spans[index]
         original = self.source[start:data]
+        if index not in self._headers and index not in self._stored:
+            return self.source[start:end]  # untouched: the input's bytes
+        header = self.file_header(index)
         text = header.tostring().encode("ascii")
-        raw = stored.astype(stored.dtype.newbyteorder(">")).tobytes()
-        return (original if text == original else text) + raw + b"\0" * (-len(raw) % _BLOCK)
+        if index not in self._stored and text == original:
+            return self.source[start:end]
+        if "CHECKSUM" in header or "DATASUM" in header:  # astropy computes them again
+            stored = self._stored[index] if index in self._stored else (
+                self._stored_array(index)[0])
+            return _serialise(_stored_hdu(header, stored, primary), primary, checksum=True)
+        if index in self._stored:
+            stored = self._stored[index]
+            raw = stored.astype(stored.dtype.newbyteorder(">")).tobytes()
+            raw += b"\0" * (-len(raw) % _BLOCK)
+        else:
+            raw = self.source[data:end]
+        return (original if text == original else text) + raw
 
     # -- writing ---------------------------------------------------------------------------
 
@@ -256,11 +289,8 @@ class InputExposure:
             primary = index == 0
             original = (self.source is not None and index < len(self._originals)
                         and hdu is self._originals[index] and index not in self._changed)
-            if original and index not in self._stored:
-                start, _, end = self.spans[index]
-                parts.append(self.source[start:end])  # untouched: the input's bytes
-            elif original:
-                parts.append(self._stored_bytes(index, primary))
+            if original:  # plain, or compressed and untouched
+                parts.append(self._plain_bytes(index, primary))
             else:
                 parts.append(_serialise(_lossless(hdu), primary,
                                         checksum="CHECKSUM" in hdu.header))
