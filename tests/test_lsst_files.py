@@ -361,3 +361,66 @@ def test_lsst_images_reads_our_files(tmp_path):
     done = subprocess.run(cmd, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "ALL CHECKS PASSED" in done.stdout
+
+
+def test_compressed_afw_exposure(afw_exposure, tmp_path):
+    """A tile-compressed (.fits.fz) Exposure, every plane compressed as afw writes it:
+    compressed again losslessly, untouched pixels as the input decompresses them."""
+    path = tmp_path / "calexp.fits.fz"
+    with fits.open(afw_exposure) as hdus:
+        planes = [fits.CompImageHDU(np.array(h.data), header=h.header.copy(),
+                                    compression_type=kind)
+                  for h, kind in zip(hdus[1:4], ("RICE_1", "GZIP_2", "RICE_1"))]
+        fits.HDUList([hdus[0].copy(), *planes, hdus[4].copy()]).writeto(path)
+    out = tmp_path / "out.fits.fz"
+    assert main(["add-streak", str(path), "-o", str(out), *STREAK_ARGS, "--x0", "30",
+                 "--y0", "40"]) == 0
+    with fits.open(path) as old, fits.open(out) as new:
+        reached = new["INJECTED_MODEL"].data > 0
+        for index in (1, 2, 3):
+            assert isinstance(new[index], fits.CompImageHDU)
+            a, b = np.array(old[index].data), np.array(new[index].data)
+            assert a.dtype == b.dtype
+            view = np.uint16 if a.dtype.itemsize == 2 else np.uint32
+            assert np.array_equal(b[~reached].view(view), a[~reached].view(view))
+            if a.dtype.kind == "f":  # the input was quantised: lossless now
+                assert new[index].compression_type == "GZIP_2"
+                assert new[index].quantize_level == 0
+        bit = new[2].header["MP_STREAK"]
+        assert bit == 11 and ((new[2].data & (1 << bit)) != 0).sum() > 50
+        assert new[4].data.tobytes() == old[4].data.tobytes()
+
+
+def test_checksums_stay_valid(tmp_path):
+    """An HDU with CHECKSUM/DATASUM that the streak changes gets them computed again."""
+    path = _storage_file(tmp_path, "uint16")
+    with fits.open(path) as hdus:
+        hdus.writeto(tmp_path / "sum.fits", checksum=True)
+    out = tmp_path / "out.fits"
+    assert main(["add-streak", str(tmp_path / "sum.fits"), "-o", str(out), *STREAK_ARGS,
+                 "--x0", "20", "--y0", "30", "--no-noise"]) == 0
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # astropy warns on a checksum that does not match
+        with fits.open(out, checksum=True) as hdus:
+            for hdu in hdus:
+                hdu.data  # noqa: B018
+            assert hdus[1].data.dtype.newbyteorder("=") == np.uint16
+            assert (hdus["INJECTED_MODEL"].data > 0).any()
+            assert "CHECKSUM" in hdus[1].header and "CHECKSUM" in hdus[2].header
+    stored, header = _stored(out, 1)
+    assert stored.dtype.newbyteorder("=") == np.int16 and header["BZERO"] == 32768
+
+
+def test_gzipped_input(afw_exposure, tmp_path):
+    import gzip
+
+    path = tmp_path / "calexp.fits.gz"
+    path.write_bytes(gzip.compress(afw_exposure.read_bytes()))
+    out = tmp_path / "out.fits.gz"
+    assert main(["add-streak", str(path), "-o", str(out), *STREAK_ARGS, "--x0", "30",
+                 "--y0", "40", "--no-noise"]) == 0
+    with fits.open(out) as hdus:
+        assert hdus[2].header["MP_STREAK"] == 11
+        assert hdus[5].data.tobytes() == fits.getdata(afw_exposure, 5).tobytes()

@@ -262,17 +262,16 @@ class InputExposure:
         text = header.tostring().encode("ascii")
         if index not in self._stored and text == original:
             return self.source[start:end]
-        if "CHECKSUM" in header or "DATASUM" in header:  # astropy computes them again
-            stored = self._stored[index] if index in self._stored else (
-                self._stored_array(index)[0])
-            return _serialise(_stored_hdu(header, stored, primary), primary, checksum=True)
         if index in self._stored:
             stored = self._stored[index]
             raw = stored.astype(stored.dtype.newbyteorder(">")).tobytes()
             raw += b"\0" * (-len(raw) % _BLOCK)
         else:
             raw = self.source[data:end]
-        return (original if text == original else text) + raw
+        content = (original if text == original else text) + raw
+        if "CHECKSUM" in header or "DATASUM" in header:
+            return _with_checksum(content, primary)
+        return content
 
     # -- writing ---------------------------------------------------------------------------
 
@@ -301,11 +300,14 @@ class InputExposure:
                 out.write(content)
 
 
-def _stored_hdu(header, stored, primary):
-    """An astropy HDU holding ``stored`` unscaled under ``header`` (for checksums)."""
-    kind = fits.PrimaryHDU if primary else fits.ImageHDU
-    hdu = kind(data=stored, header=header.copy(), do_not_scale_image_data=True)
-    return hdu
+def _with_checksum(content, primary):
+    """The bytes of one HDU with its CHECKSUM and DATASUM computed again (by astropy, on the
+    stored values: no scaling on the way)."""
+    prefix = b"" if primary else _serialise(fits.PrimaryHDU(), True)
+    buffer = io.BytesIO()
+    with fits.open(io.BytesIO(prefix + content), do_not_scale_image_data=True) as hdus:
+        hdus.writeto(buffer, checksum=True)
+    return buffer.getvalue()[len(prefix):]
 
 
 def _lossless(hdu):
