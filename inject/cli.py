@@ -214,7 +214,8 @@ def _add_add_streak_parser(sub):
     p.add_argument("--gain", type=float, help="e- per image unit (default: header GAIN, or 1 "
                                               "if BUNIT is electrons)")
     p.add_argument("--seed", type=int, default=1, help="seed of the injected charge's noise")
-    p.add_argument("--no-noise", action="store_true", help="add the exact model, no Poisson noise")
+    p.add_argument("--no-noise", action="store_true",
+                   help="add the exact model, no Poisson noise (VARIANCE left as it is)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing OUT.fits")
     p.set_defaults(func=run_add_streak)
 

@@ -9,13 +9,14 @@ inject (this interpreter):
 1. ``inject simulate`` of a small CCD with a pointing and a saturating streak;
 2. ``inject add-streak`` into an afw-layout Exposure written here from afw's conventions (no
    EXTNAME, xy0 = (100, 200) in LTV1/2 and the "A" WCS, TAN-SIP WCS, uint16 mask stored as
-   int16 + BZERO with ``MP_`` planes and no STREAK, archive tables after VARIANCE),
+   int16 + BZERO with ``MP_`` planes and no STREAK, archive tables after VARIANCE);
+3. ``inject add-streak`` into the output of 1,
 
-and reads both in the lsst-images venv, checking: pixels identical to astropy's; STREAK and
-SAT planes by name with the file's pixel counts (no plane map for 1, a plane map for 2, as
-for any afw file); the origin; the WCS equal to astropy's to 1e-8 deg. It prints one line per
-check and ``ALL CHECKS PASSED``, exit status 0; 1 if a check fails; 3 if no Python >= 3.12 is
-found (nothing to check with).
+and reads them in the lsst-images venv, checking: pixels identical to astropy's; STREAK and
+SAT planes by name with the file's pixel counts (no plane map for 1 and 3, a plane map for 2,
+as for any afw file); the origin; the WCS equal to astropy's to 1e-8 deg. It prints one line
+per check and ``ALL CHECKS PASSED``, exit status 0; 1 if a check fails; 3 if no Python >= 3.12
+is found (nothing to check with).
 
 Run: ``.venv/bin/python scripts/check_lsst.py`` (``--workdir DIR`` keeps the files).
 """
@@ -184,7 +185,12 @@ def write_inputs(workdir):
              "--mag", "6", "--angle", "20", "--track-length", "80", "--parent", "--x0",
              str(AFW_XY0[0] + 30), "--y0", str(AFW_XY0[1] + 40), "--overwrite"]) != 0:
         raise SystemExit("inject add-streak failed")
-    return simulated, injected
+    again = workdir / "simulated_injected.fits"
+    if main(["add-streak", str(simulated), "-o", str(again), "--height", "350", "--zenith",
+             "30", "--mag", "5", "--x0", "10", "--y0", "150", "--angle", "-15",
+             "--overwrite"]) != 0:
+        raise SystemExit("inject add-streak failed")
+    return simulated, injected, again
 
 
 #: Run in the lsst-images venv: reads each file and prints one JSON object of results.
@@ -239,9 +245,9 @@ def main(argv=None):
     with tempfile.TemporaryDirectory() as scratch:
         workdir = Path(args.workdir or scratch)
         workdir.mkdir(parents=True, exist_ok=True)
-        simulated, injected = write_inputs(workdir)
+        simulated, injected, again = write_inputs(workdir)
         done = subprocess.run([str(exe), "-c", READER, str(simulated), "none", str(injected),
-                               "map"], capture_output=True, text=True)
+                               "map", str(again), "none"], capture_output=True, text=True)
         if done.returncode != 0:
             print(done.stderr)
             print("FAILED: lsst-images could not read the files")
@@ -279,6 +285,11 @@ def main(argv=None):
                                               f" = xy0 {AFW_XY0}")
     report(inj["wcs_max_sep_deg"] < 1e-8,
            f"add-streak: TAN-SIP WCS vs astropy, max {inj['wcs_max_sep_deg']:.2e} deg (< 1e-8)")
+    both = results[str(again)]
+    got, want = both["counts"]["STREAK"]
+    report(both["image_equal"] and got == want and want > sim["counts"]["STREAK"][1],
+           f"add-streak into the simulate output: read_legacy with no plane map, STREAK "
+           f"{got} pixels (file: {want}, simulate's {sim['counts']['STREAK'][1]} + the new one)")
     if failures:
         print(f"{failures} CHECK(S) FAILED")
         return 1

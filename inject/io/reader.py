@@ -283,6 +283,14 @@ class InputExposure:
         OutputError
             ``path`` cannot be written.
         """
+        with atomic_path(path, overwrite) as tmp:  # an OSError anywhere: OutputError
+            content = self._content()
+            opener = gzip.open if os.fspath(path).endswith(".gz") else open
+            with opener(tmp, "wb") as out:
+                out.write(content)
+
+    def _content(self):
+        """The bytes of the whole file."""
         parts = []
         for index, hdu in enumerate(self.hdus):
             primary = index == 0
@@ -293,11 +301,7 @@ class InputExposure:
             else:
                 parts.append(_serialise(_lossless(hdu), primary,
                                         checksum="CHECKSUM" in hdu.header))
-        content = b"".join(parts)
-        with atomic_path(path, overwrite) as tmp:
-            opener = gzip.open if os.fspath(path).endswith(".gz") else open
-            with opener(tmp, "wb") as out:
-                out.write(content)
+        return b"".join(parts)
 
 
 def _with_checksum(content, primary):
@@ -373,7 +377,7 @@ def read_exposure(path):
     except FileNotFoundError:
         raise FileFormatError(f"{path}: no such file") from None
     except IsADirectoryError:
-        raise FileFormatError(f"{path}: is a directory") from None
+        raise FileFormatError(f"{path}: not a readable FITS file (a directory)") from None
     except (OSError, EOFError, ValueError, fits.VerifyError, TypeError,
             fits.verify.VerifyWarning, AstropyUserWarning) as err:
         raise FileFormatError(f"{path}: not a readable FITS file ({err})") from None
