@@ -274,7 +274,7 @@ def run_add_streak(args):
     exposure.write(args.output, args.overwrite)
     row = truth[0]
     x0, y0 = exposure.xy0
-    parent = f" (parent pixels + ({x0}, {y0}))" if (x0, y0) != (0, 0) else ""
+    parent = f" (array pixels; LSST parent = array + ({x0}, {y0}))" if (x0, y0) != (0, 0) else ""
     print(f"wrote {args.output}: streak from ({row['x0']:.1f}, {row['y0']:.1f}) to "
           f"({row['x1']:.1f}, {row['y1']:.1f}){parent}, {row['charge_in_image_e']:.4g} e- "
           f"injected", file=sys.stderr)
