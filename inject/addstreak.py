@@ -1,29 +1,23 @@
 """Inject streaks into an existing image (the user's own FITS).
 
 Only the injected charge gets Poisson noise (the image already has its own); VARIANCE grows by
-the injected charge and MASK gets the STREAK plane. The input file is never modified.
+the injected charge's Poisson variance and MASK gets the STREAK plane (on the first free bit if
+the file has none), and SAT where an integer image reaches its ADC limit. The pixels go back in
+the file's own storage (see :mod:`inject.io.reader`): pixels the streak does not reach are
+unchanged bit for bit. IMAGE, MASK and VARIANCE of an afw file written without ``EXTNAME`` get
+``EXTNAME = EXTTYPE`` (as afw writes today; lsst-images needs it); their other cards stay. The
+input file is never modified.
 """
 import numpy as np
-from astropy.io import fits
 from astropy.table import Table, vstack
+from astropy.io import fits
 
 from .errors import InputError
 from .io.fits import truth_table
+from .maskplanes import FLAG_SATURATED
 from .render import Budget
-from .scene import MASK_PLANES, STREAK_MASK_SIGMA, render_tracks
+from .scene import STREAK_MASK_SIGMA, render_tracks
 from .validate import positive
-
-
-def _mask_bit(header):
-    """The STREAK bit of a MASK header, adding an ``MP_STREAK`` card on a free bit if needed."""
-    planes = {key[3:]: header[key] for key in header if key.startswith("MP_")}
-    if "STREAK" in planes:
-        return int(planes["STREAK"])
-    used = set(planes.values())
-    bit = MASK_PLANES["STREAK"] if MASK_PLANES["STREAK"] not in used else min(
-        b for b in range(31) if b not in used)
-    header["HIERARCH MP_STREAK"] = bit
-    return bit
 
 
 def robust_sigma(image):
@@ -38,60 +32,85 @@ def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()
     Parameters
     ----------
     exposure : InputExposure
-        From :func:`inject.io.reader.read_exposure`.
+        From :func:`inject.io.reader.read_exposure`; write it with its ``write`` method.
     models : list of StreakModel
     tracks : list of Track
-        One per model.
+        One per model, in array pixels (0-based: pixel (0, 0) is the centre of the first
+        pixel; subtract ``exposure.xy0`` from LSST parent pixels).
     gain : float
         e- per image unit (1 for images in electrons).
     rng : numpy.random.Generator or int
         Draws the Poisson noise of the injected charge; anything
         :func:`numpy.random.default_rng` takes (an int seeds a new generator).
     noise : bool
-        Add Poisson noise to the injected charge (else the exact model).
+        Add Poisson noise to the injected charge and its variance (``model / gain**2``) to
+        VARIANCE; else the exact model, and VARIANCE stays as it is (no noise was added).
 
     Returns
     -------
     model_e : ndarray
         The injected charge, e- (noise-free).
     truth : list of dict
+        Rows with ``FLAG_SATURATED`` set where an integer image reached its ADC limit (or
+        its ``SATURATE`` level) under the streak.
 
     Raises
     ------
     InputError
         An argument is of the wrong kind, ``models`` and ``tracks`` differ in length, or
         ``gain`` is not a number > 0.
+    FileFormatError
+        The mask has no free bit for a new plane.
     """
     rng = _check_arguments(exposure, models, tracks, rng)
     positive("gain", gain)
     image = exposure.image
     model_e, truth = render_tracks(image.shape, models, tracks, budget)
     # The model can dip a few 1e-6 of its peak below zero (interpolation): not a charge.
-    injected = rng.poisson(np.clip(model_e, 0, None)).astype(np.float64) if noise else model_e
-    hdu = exposure.image_hdu
-    dtype = hdu.data.dtype.newbyteorder("=")
-    hdu.data = (image + injected / gain).astype(dtype if dtype.kind == "f" else np.float32)
+    model_e = np.clip(model_e, 0, None)
+    injected = rng.poisson(model_e).astype(np.float64) if noise else model_e
+    exposure.add_extnames()
+    saturation = exposure.header_value("SATURATE")
+    saturation = float(saturation) if isinstance(saturation, (int, float)) else None
+    saturated = exposure.add(exposure.image_index, injected / gain, saturation)
     if exposure.variance_index is not None:
-        var_hdu = exposure.hdus[exposure.variance_index]
-        variance = np.asarray(var_hdu.data, dtype=np.float64)
-        var_hdu.data = (variance + model_e / gain ** 2).astype(np.float32)
-        sigma = float(np.sqrt(np.median(variance[np.isfinite(variance)])))
+        variance = np.asarray(exposure.hdus[exposure.variance_index].data, dtype=np.float64)
+        finite = variance[np.isfinite(variance)]
+        sigma = float(np.sqrt(np.median(finite))) if finite.size else 0.0
+        if noise:
+            exposure.add(exposure.variance_index, model_e / gain ** 2)
     else:
         sigma = robust_sigma(image)
     threshold = STREAK_MASK_SIGMA * sigma * gain if sigma > 0 else 1e-3 * model_e.max()
     if exposure.mask_index is not None:
-        mask_hdu = exposure.hdus[exposure.mask_index]
-        bit = _mask_bit(mask_hdu.header)
-        mask = np.asarray(mask_hdu.data).astype(np.int32)
-        mask[model_e > threshold] |= np.int32(1 << bit)
-        mask_hdu.data = mask
-    _append_truth(exposure.hdus, truth)
-    if "INJECTED_MODEL" in [h.name for h in exposure.hdus]:  # injecting into our own output
+        index = exposure.mask_index
+        exposure.set_bits(index, exposure.name_plane(index, "STREAK"), model_e > threshold)
+        if saturated.any():
+            exposure.set_bits(index, exposure.name_plane(index, "SAT"), saturated)
+    if saturated.any():
+        _flag_saturated(truth, models, saturated)
+    _append_truth(exposure, truth)
+    names = [h.name for h in exposure.hdus]
+    if "INJECTED_MODEL" in names:  # injecting into our own output
         previous = exposure.hdus["INJECTED_MODEL"]
         previous.data = (np.asarray(previous.data, np.float64) + model_e).astype(np.float32)
+        exposure.mark_changed(names.index("INJECTED_MODEL"))
     else:
         exposure.hdus.append(fits.ImageHDU(model_e.astype(np.float32), name="INJECTED_MODEL"))
     return model_e, truth
+
+
+def _flag_saturated(truth, models, saturated):
+    """Set ``FLAG_SATURATED`` on the rows whose track passes within a few FWHM of a pixel that
+    saturated."""
+    ys, xs = np.nonzero(saturated)
+    for row, model in zip(truth, models):
+        x0, y0, x1, y1 = row["x0"], row["y0"], row["x1"], row["y1"]
+        dx, dy = x1 - x0, y1 - y0
+        t = np.clip(((xs - x0) * dx + (ys - y0) * dy) / max(dx * dx + dy * dy, 1e-12), 0, 1)
+        distance = np.hypot(xs - x0 - t * dx, ys - y0 - t * dy)
+        if np.any(distance <= 3 * row["fwhm_arcsec"] / model.pixel_scale + 2):
+            row["flags"] |= FLAG_SATURATED
 
 
 def _check_arguments(exposure, models, tracks, rng):
@@ -119,9 +138,13 @@ def _check_arguments(exposure, models, tracks, rng):
         raise InputError("rng", rng, "must be a numpy Generator or an integer seed") from None
 
 
-def _append_truth(hdus, rows):
+def _append_truth(exposure, rows):
+    hdus = exposure.hdus
     names = [hdu.name for hdu in hdus]
     new = truth_table(rows)
+    x0, y0 = exposure.xy0
+    new.header["PARENTX0"] = (x0, "LSST parent x of array x 0 (x0.. are array px)")
+    new.header["PARENTY0"] = (y0, "LSST parent y of array y 0")
     if "TRUTH" in names:
         old = Table(hdus["TRUTH"].data)
         combined = vstack([old, Table(new.data)], metadata_conflicts="silent")

@@ -187,15 +187,24 @@ def run_simulate(args):
 
 
 def _add_add_streak_parser(sub):
-    p = sub.add_parser("add-streak", help="inject a streak into an existing FITS image",
-                       description="Inject one streak into a FITS image (any 2-D image HDU or an "
-                                   "LSST IMAGE/MASK/VARIANCE file). The input is never modified.")
+    p = sub.add_parser(
+        "add-streak", help="inject a streak into an existing FITS image",
+        description="Inject one streak into a FITS image: any 2-D image HDU, or an LSST "
+                    "MaskedImage/Exposure (IMAGE, MASK, VARIANCE found by EXTTYPE as afw does; "
+                    "MASK gets a STREAK plane, VARIANCE the streak's Poisson variance). Pixels "
+                    "the streak does not reach are written back unchanged in the file's own "
+                    "storage (integers stay integers, compressed HDUs are compressed "
+                    "losslessly). The input is never modified.")
     p.add_argument("input", metavar="IN.fits")
     p.add_argument("-o", "--output", required=True, metavar="OUT.fits")
     _add_satellite_options(p)
-    track = p.add_argument_group("track (pixels; pixel (0, 0) is the centre of the first pixel)")
+    track = p.add_argument_group(
+        "track (array pixels: pixel (0, 0) is the centre of the first pixel of the stored "
+        "array; with --parent, LSST parent pixels: array + xy0, xy0 from the LTV1/2 cards)")
     track.add_argument("--x0", type=float, help="start x (or use --ra0/--dec0 with a WCS)")
     track.add_argument("--y0", type=float, help="start y")
+    track.add_argument("--parent", action="store_true",
+                       help="--x0/--y0 are LSST parent pixels (afw's xy0 convention)")
     track.add_argument("--ra0", type=float, metavar="DEG", help="start RA (needs a WCS)")
     track.add_argument("--dec0", type=float, metavar="DEG", help="start Dec (needs a WCS)")
     track.add_argument("--angle", type=float, default=0.0, metavar="DEG",
@@ -205,7 +214,8 @@ def _add_add_streak_parser(sub):
     p.add_argument("--gain", type=float, help="e- per image unit (default: header GAIN, or 1 "
                                               "if BUNIT is electrons)")
     p.add_argument("--seed", type=int, default=1, help="seed of the injected charge's noise")
-    p.add_argument("--no-noise", action="store_true", help="add the exact model, no Poisson noise")
+    p.add_argument("--no-noise", action="store_true",
+                   help="add the exact model, no Poisson noise (VARIANCE left as it is)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing OUT.fits")
     p.set_defaults(func=run_add_streak)
 
@@ -215,10 +225,11 @@ def run_add_streak(args):
 
     import numpy as np
 
-    from .config import Track
     from .addstreak import add_streaks
-    from .io.atomic import atomic_path, check_writable
+    from .config import Track
+    from .io.atomic import check_writable
     from .io.reader import read_exposure
+    from .maskplanes import FLAG_OFF_IMAGE, FLAG_SATURATED
 
     if os.path.exists(args.output) and os.path.samefile(args.input, args.output):
         raise InputError("-o", args.output, "must differ from the input (it is never modified)")
@@ -239,9 +250,16 @@ def run_add_streak(args):
     if args.ra0 is not None or args.dec0 is not None:
         if wcs is None:
             raise InputError("--ra0/--dec0", (args.ra0, args.dec0), f"{args.input} has no WCS")
-        args.x0, args.y0 = (float(v) for v in wcs.world_to_pixel_values(args.ra0, args.dec0))
+        if args.parent or args.x0 is not None or args.y0 is not None:
+            raise InputError("--ra0/--dec0", (args.ra0, args.dec0),
+                             "give either --ra0/--dec0 or --x0/--y0 (with --parent)")
+        # The full WCS (SIP included): array pixels, as FITS headers give them.
+        args.x0, args.y0 = (float(v) for v in wcs.all_world2pix(args.ra0, args.dec0, 0))
     if args.x0 is None or args.y0 is None:
         raise InputError("--x0/--y0", (args.x0, args.y0), "give a start point (or --ra0/--dec0)")
+    if args.parent:
+        x0, y0 = exposure.xy0
+        args.x0, args.y0 = args.x0 - x0, args.y0 - y0
     gain = args.gain
     if gain is None:
         unit = str(exposure.header_value("BUNIT") or "").lower()
@@ -253,12 +271,19 @@ def run_add_streak(args):
     track = Track(args.x0, args.y0, args.angle, args.track_length)
     rng = np.random.default_rng(np.random.SeedSequence(args.seed))
     _, truth = add_streaks(exposure, [model], [track], float(gain), rng, noise=not args.no_noise)
-    with atomic_path(args.output, args.overwrite) as tmp:
-        exposure.hdus.writeto(tmp, overwrite=True)
+    exposure.write(args.output, args.overwrite)
     row = truth[0]
+    x0, y0 = exposure.xy0
+    parent = f" (array pixels; LSST parent = array + ({x0}, {y0}))" if (x0, y0) != (0, 0) else ""
     print(f"wrote {args.output}: streak from ({row['x0']:.1f}, {row['y0']:.1f}) to "
-          f"({row['x1']:.1f}, {row['y1']:.1f}), {row['charge_in_image_e']:.4g} e- injected",
-          file=sys.stderr)
+          f"({row['x1']:.1f}, {row['y1']:.1f}){parent}, {row['charge_in_image_e']:.4g} e- "
+          f"injected", file=sys.stderr)
+    if row["flags"] & FLAG_OFF_IMAGE:
+        print("inject add-streak: warning: the track misses the image: 0 e- injected "
+              "(TRUTH flags = 1)", file=sys.stderr)
+    if row["flags"] & FLAG_SATURATED:
+        print("inject add-streak: warning: the streak saturates the integer image (clipped "
+              "at the ADC limit; SAT set in MASK if there is one)", file=sys.stderr)
 
 
 def build_parser():

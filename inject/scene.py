@@ -13,20 +13,12 @@ from .config import Scene
 from .detector import add_cosmic_rays, bleed_saturation, raw_layout
 from .errors import SceneError
 from .instrument import LSST
+from .maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, MASK_PLANES  # noqa: F401
 from .photometry import sky_per_pixel
 from .profile import Seeing
 from .render import AUTO_MIN_TOLERANCE, Budget, render_polyline, render_segment, swept_profile
 from .streak import StreakModel
 from .trajectory import Polyline, Segment
-
-#: Mask planes and their bits (LSST names).
-MASK_PLANES = {"BAD": 0, "SAT": 1, "INTRP": 2, "CR": 3, "EDGE": 4, "DETECTED": 5,
-               "SUSPECT": 7, "NO_DATA": 8, "STREAK": 9}
-
-#: TRUTH flag bits.
-FLAG_OFF_IMAGE = 1    # the track misses the image: no charge on it
-FLAG_CLIPPED = 2      # part of the track (or its end caps) lies outside the image
-FLAG_SATURATED = 4    # some streak pixel reached full well
 
 #: Random streams, one per purpose, spawned from the scene seed (numpy SeedSequence).
 STREAMS = {"stars": 0, "noise": 1, "cosmic_rays": 2, "raw": 3}

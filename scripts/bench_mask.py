@@ -35,7 +35,8 @@ from inject.masking.detect import (BAD_PLANES, BIN, FALSE_ALARM_Z, max_significa
                                    threshold_for)
 from inject.masking.evaluate import match_streaks, truth_line
 from inject.masking.run import analyse
-from inject.scene import MASK_PLANES, simulate, sky_level, streak_models
+from inject.maskplanes import MASK_PLANES
+from inject.scene import simulate, sky_level, streak_models
 
 #: Magnitudes of the completeness run (paper satellite at 550 km, zenith 70: peak S/N per
 #: pixel 4.4, 1.7, 0.69, 0.28, 0.17, 0.11, 0.069, 0.044, 0.028).

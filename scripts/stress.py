@@ -436,7 +436,8 @@ def scene_cell(p):
     from inject.config import parse_scene
     from inject.io.exr import read_exr, write_exr
     from inject.io.fits import write_exposure
-    from inject.scene import FLAG_SATURATED, MASK_PLANES, simulate
+    from inject.maskplanes import FLAG_SATURATED, MASK_PLANES
+    from inject.scene import simulate
 
     raw = {"seed": 3, "band": "g", "exptime": 30, "seeing": 0.67, "zenith": 70,
            "detector": {"type": p["detector"], "nx": 256, "ny": 200}, "sky": True,

@@ -12,7 +12,8 @@ from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
 from inject.errors import FileFormatError, OutputError
 from inject.io.exr import read_exr, write_exr
 from inject.io.fits import primary_header, write_exposure
-from inject.scene import MASK_PLANES, SceneResult
+from inject.maskplanes import MASK_PLANES
+from inject.scene import SceneResult
 
 NY, NX = 48, 64
 MJD = 60123.123456789

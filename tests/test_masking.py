@@ -19,7 +19,8 @@ from inject.masking.mask import lost_pixels, mask_spans, paint
 from inject.masking.measure import (BinnedStack, Profile, half_max_width, pixel_response,
                                     profile_fwhm)
 from inject.masking.run import add_mask_parser, analyse, mask_image, write_masked
-from inject.scene import MASK_PLANES, simulate, sky_level, streak_models
+from inject.maskplanes import MASK_PLANES
+from inject.scene import simulate, sky_level, streak_models
 
 BAD_BITS = sum(1 << MASK_PLANES[p] for p in BAD_PLANES)
 

@@ -39,7 +39,7 @@ def test_streak_only_scene(scene_file, tmp_path):
         assert image.dtype.newbyteorder("=") == np.float32 and image.shape == (300, 400)
         np.testing.assert_array_equal(image, model)  # no sky, stars or noise: model alone
         assert hdus["IMAGE"].header["BUNIT"] == "electron"
-        assert hdus["MASK"].header["MP_STREAK"] == 9
+        assert hdus["MASK"].header["MP_STREAK"] == 10  # afw default bits, STREAK next
         assert hdus[0].header["SEED"] == 3
         streak_bit = 1 << hdus["MASK"].header["MP_STREAK"]
         assert (hdus["MASK"].data & streak_bit).any()

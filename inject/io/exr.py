@@ -18,7 +18,7 @@ Attributes (strings; ``inject:`` prefix)
     ``inject:truth``
         The truth table, JSON (a list of objects, as ``SceneResult.truth``).
     ``inject:mask_planes``
-        JSON ``{"PLANE": bit, ...}`` (:data:`inject.scene.MASK_PLANES`).
+        JSON ``{"PLANE": bit, ...}`` (:data:`inject.maskplanes.MASK_PLANES`).
     ``inject:units``
         JSON ``{"CHANNEL": unit, ...}``.
     ``inject:row_order``
@@ -35,7 +35,7 @@ import numpy as np
 from astropy.io import fits
 
 from ..errors import FileFormatError, OutputError
-from ..scene import MASK_PLANES
+from ..maskplanes import MASK_PLANES
 from .atomic import atomic_path
 from .fits import primary_header
 

@@ -1,32 +1,99 @@
-"""FITS output in an LSST-like layout (CONTRACT.md): IMAGE, MASK, VARIANCE, STREAK_MODEL,
-TRUTH."""
+"""FITS output in LSST afw's MaskedImage layout: IMAGE, MASK, VARIANCE, then STREAK_MODEL and
+TRUTH (and RAW).
+
+HDUs 1-3 follow what afw writes (``MaskedImage::writeFits``, ``ExposureInfo::_startWriteFits``,
+``Fits::writeImage``) so that afw and LSST's pure-Python ``lsst-images`` read the file as a
+MaskedImage: ``EXTTYPE`` and ``INHERIT = T`` on each of them, the image origin xy0 as the
+``LTV1/2`` cards and afw's linear "A" WCS (``CTYPE1A = 'LINEAR'``, ...), the celestial WCS on all
+three, and the mask planes of :mod:`inject.maskplanes` (afw's ``MP_`` cards and lsst-images'
+``MSKN/MSKM/MSKD`` cards). The primary header has the cards afw's VisitInfo uses (``EXPTIME``,
+``DATE-AVG`` + ``TIMESYS``, ``BORE-RA/DEC``, ``BORE-ROTANG`` + ``ROTTYPE``) and ``FILTER``.
+"""
 import numpy as np
 from astropy.io import fits
 from astropy.table import Table
 
 from .. import __version__
-from ..scene import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, MASK_PLANES
+from ..maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, mask_header
 from .atomic import atomic_path
 
+#: Extension types of afw's MaskedImage HDUs 1-3, in that order.
+MASKED_IMAGE_TYPES = ("IMAGE", "MASK", "VARIANCE")
 
-def primary_header(scene):
-    """Scene summary cards for HDU 0."""
+
+def primary_header(scene, primary_cards=None):
+    """Scene summary cards for HDU 0, with the keys LSST readers take from it.
+
+    Parameters
+    ----------
+    scene : inject.config.Scene
+    primary_cards : mapping or iterable of (key, value), optional
+        Extra cards (e.g. ``DETNAME``, ``DETECTOR`` of a focal-plane CCD): a value or a
+        ``(value, comment)`` pair per key; they replace cards of the same key.
+    """
     hdr = fits.Header()
     hdr["ORIGIN"] = ("inject", "satellite streak simulator")
     hdr["INJVER"] = (__version__, "inject version")
     hdr["BAND"] = (scene.band, "LSST filter")
+    hdr["FILTER"] = (scene.band, "band (afw FilterLabel band)")
     hdr["EXPTIME"] = (scene.exptime, "[s] exposure time")
+    start = getattr(scene, "time", None)  # scenes with an exposure start (UTC) only
+    if start is not None:
+        from astropy.time import Time, TimeDelta
+
+        middle = Time(start, scale="utc") + TimeDelta(scene.exptime / 2, format="sec")
+        hdr["DATE-AVG"] = (middle.tai.isot, "middle of the exposure (TAI)")
+        hdr["TIMESYS"] = ("TAI", "time scale of DATE-AVG")
+    pointing = scene.pointing
+    if pointing is not None:
+        rotation = float(pointing.get("rotation", 0.0))
+        hdr["BORE-RA"] = (float(pointing["ra"]), "[deg] ICRS RA of the pointing")
+        hdr["BORE-DEC"] = (float(pointing["dec"]), "[deg] ICRS Dec of the pointing")
+        hdr["HIERARCH BORE-ROTANG"] = (rotation, "[deg] sky rotation angle (rotSkyPos)")
+        hdr["ROTTYPE"] = ("SKY", "type of BORE-ROTANG (afw RotType)")
+        hdr["ROTPA"] = (rotation, "[deg] sky position angle of the camera")
+        hdr["ROTCOORD"] = ("sky", "frame of ROTPA")
     hdr["SEEING"] = (scene.seeing, "[arcsec] atmospheric FWHM (Kolmogorov)")
     hdr["ZENITH"] = (scene.zenith, "[deg] zenith angle of the line of sight")
     hdr["SEED"] = (scene.seed, "scene random seed")
     hdr["DETTYPE"] = (scene.detector.kind.upper(), "sensor type")
     hdr["NSTREAK"] = (len(scene.satellites), "number of injected streaks")
+    if primary_cards is not None:
+        cards = primary_cards.items() if hasattr(primary_cards, "items") else primary_cards
+        for key, value in cards:
+            hdr[key] = value
     return hdr
 
 
-def _mask_header(hdr):
-    for name, bit in MASK_PLANES.items():
-        hdr[f"HIERARCH MP_{name}"] = bit  # LSST writes these as HIERARCH cards too
+def plane_header(exttype, xy0=(0, 0), wcs_header=None):
+    """The cards afw writes on each of IMAGE, MASK and VARIANCE.
+
+    Parameters
+    ----------
+    exttype : str
+        ``IMAGE``, ``MASK`` or ``VARIANCE``.
+    xy0 : tuple of int
+        LSST parent pixel of array pixel (0, 0).
+    wcs_header : astropy.io.fits.Header, optional
+        Celestial WCS of the array (FITS pixels, as afw writes it).
+    """
+    x0, y0 = (int(v) for v in xy0)
+    hdr = fits.Header()
+    hdr["INHERIT"] = (True, "take missing cards from the primary HDU")
+    hdr["EXTTYPE"] = (exttype, "afw MaskedImage plane")
+    if wcs_header is not None:
+        hdr.extend(wcs_header)
+    # afw's origin, twice: the "A" WCS (what LSST reads) and LTV (the STScI convention ds9 uses).
+    hdr["CTYPE1A"] = ("LINEAR", "Type of projection")
+    hdr["CTYPE2A"] = ("LINEAR", "Type of projection")
+    hdr["CRPIX1A"] = (1.0, "Column Pixel Coordinate of Reference")
+    hdr["CRPIX2A"] = (1.0, "Row Pixel Coordinate of Reference")
+    hdr["CRVAL1A"] = (float(x0), "Column pixel of Reference Pixel")
+    hdr["CRVAL2A"] = (float(y0), "Row pixel of Reference Pixel")
+    hdr["CUNIT1A"] = ("PIXEL", "Column unit")
+    hdr["CUNIT2A"] = ("PIXEL", "Row unit")
+    hdr["LTV1"] = (float(-x0), "-x0: array x minus LSST parent x")
+    hdr["LTV2"] = (float(-y0), "-y0: array y minus LSST parent y")
     return hdr
 
 
@@ -62,23 +129,40 @@ def write_truth_csv(path, rows, overwrite=False):
         table.write(tmp, format="ascii.csv", overwrite=True)
 
 
-def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False):
-    """Write a simulated CCD to ``path`` atomically."""
-    image_hdr = fits.Header()
+def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
+                   primary_cards=None, xy0=(0, 0)):
+    """Write a simulated CCD to ``path`` atomically (afw's MaskedImage layout, see above).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    scene : inject.config.Scene
+    result : inject.scene.SceneResult
+    gain : float
+        e-/ADU, written as ``GAIN``.
+    wcs_header : astropy.io.fits.Header, optional
+        Celestial WCS of the CCD (on IMAGE, MASK and VARIANCE).
+    overwrite : bool
+    primary_cards : mapping, optional
+        Extra primary-header cards (see :func:`primary_header`).
+    xy0 : tuple of int
+        LSST parent pixel of the array's first pixel (``LTV1/2`` and the "A" WCS).
+    """
+    image_hdr = plane_header("IMAGE", xy0, wcs_header)
     image_hdr["BUNIT"] = (scene.units, "pixel values")
     image_hdr["GAIN"] = (gain, "[e-/ADU] detector gain")
-    if wcs_header is not None:
-        image_hdr.extend(wcs_header)
+    mask_hdr = mask_header(plane_header("MASK", xy0, wcs_header))
+    variance_hdr = plane_header("VARIANCE", xy0, wcs_header)
+    variance_hdr["BUNIT"] = (f"{scene.units}**2", "variance of the pixel values")
     hdus = fits.HDUList([
-        fits.PrimaryHDU(header=primary_header(scene)),
+        fits.PrimaryHDU(header=primary_header(scene, primary_cards)),
         fits.ImageHDU(result.image.astype(np.float32), header=image_hdr, name="IMAGE"),
-        fits.ImageHDU(result.mask.astype(np.int32), header=_mask_header(fits.Header()),
-                      name="MASK"),
-        fits.ImageHDU(result.variance.astype(np.float32), name="VARIANCE"),
+        fits.ImageHDU(result.mask.astype(np.int32), header=mask_hdr, name="MASK"),
+        fits.ImageHDU(result.variance.astype(np.float32), header=variance_hdr,
+                      name="VARIANCE"),
         fits.ImageHDU(result.streak_model.astype(np.float32), name="STREAK_MODEL"),
         truth_table(result.truth),
     ])
-    hdus["VARIANCE"].header["BUNIT"] = f"{scene.units}2"
     if result.raw is not None:
         hdus.append(raw_hdu(result.raw, result.raw_sections, scene.detector.bias))
     hdus["STREAK_MODEL"].header["BUNIT"] = "electron"

@@ -1,8 +1,23 @@
-"""Reading a user's FITS image for injection: any 2-D image HDU, or an LSST-style
-IMAGE/MASK/VARIANCE file."""
-from dataclasses import dataclass
+"""Reading a user's FITS image for injection, and writing it back changed only where asked.
 
+Any 2-D image HDU is accepted; LSST MaskedImage/Exposure files are recognised as afw's
+``MaskedImageFitsReader`` does: IMAGE, MASK and VARIANCE by their ``EXTTYPE`` (else their
+``EXTNAME``), whatever their names, with the file's own mask pixel type and plane bits.
+
+Writing (:meth:`InputExposure.write`) copies every HDU that was not changed byte for byte from
+the input (archive tables and their heap, checksums and all), and rewrites the pixels it was
+asked to change in the file's own storage: integers stay integers of the same BITPIX, BZERO
+and BSCALE (rounded, clipped at the type's range), floats stay floats, so that every pixel the
+change does not reach comes back bit-identical. A tile-compressed image is compressed again
+losslessly: integers with their own algorithm (RICE_1 for a lossy HCOMPRESS), floats that were
+quantised (lossy) with GZIP_2 and no quantisation (``quantize_level=0``), which keeps exactly
+the values the input decompresses to (the file grows).
+"""
+import gzip
+import io
+import os
 import warnings
+from dataclasses import dataclass, field
 
 import numpy as np
 from astropy.io import fits
@@ -10,16 +25,32 @@ from astropy.utils.exceptions import AstropyUserWarning
 from astropy.wcs import WCS, FITSFixedWarning
 
 from ..errors import FileFormatError
+from .atomic import atomic_path
+
+#: numpy type of each FITS BITPIX (big-endian, as stored).
+_BITPIX = {8: ">u1", 16: ">i2", 32: ">i4", 64: ">i8", -32: ">f4", -64: ">f8"}
+_BLOCK = 2880
 
 
 @dataclass
 class InputExposure:
-    """A FITS file's HDUs (copied into memory) and where the science image is."""
+    """A FITS file's HDUs (copied into memory) and where the science image is.
+
+    ``mask_index`` and ``variance_index`` are set for LSST MaskedImage files (HDUs typed or
+    named MASK and VARIANCE of the image's shape). The file's bytes are kept so that
+    :meth:`write` can copy the HDUs nobody changed as they were.
+    """
 
     hdus: fits.HDUList
     image_index: int
     mask_index: int | None
     variance_index: int | None
+    source: bytes | None = field(default=None, repr=False)
+    spans: list = field(default_factory=list, repr=False)  # (header, data, end) per HDU
+    _originals: list = field(default_factory=list, repr=False)
+    _stored: dict = field(default_factory=dict, repr=False)  # index -> new stored array
+    _headers: dict = field(default_factory=dict, repr=False)  # index -> the file's header
+    _changed: set = field(default_factory=set, repr=False)
 
     @property
     def image_hdu(self):
@@ -40,7 +71,7 @@ class InputExposure:
 
     @property
     def wcs(self):
-        """Celestial WCS of the image, or None if its header has none."""
+        """Celestial WCS of the image (SIP distortion included), or None if it has none."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", FITSFixedWarning)
             try:
@@ -49,6 +80,271 @@ class InputExposure:
                 return None
         return wcs.celestial if wcs.has_celestial else None
 
+    @property
+    def xy0(self):
+        """LSST parent pixel ``(x0, y0)`` of array pixel (0, 0): from ``LTV1/2`` (afw and
+        lsst-images prefer it), else afw's linear "A" WCS, else (0, 0)."""
+        header = self.image_hdu.header
+        if "LTV1" in header and "LTV2" in header:
+            return (-int(round(header["LTV1"])), -int(round(header["LTV2"])))
+        if header.get("CTYPE1A") == "LINEAR" and "CRVAL1A" in header and "CRVAL2A" in header:
+            return tuple(int(round(header[f"CRVAL{i}A"] - (header.get(f"CRPIX{i}A", 1.0) - 1)))
+                         for i in (1, 2))
+        return (0, 0)
+
+    # -- changing pixels in the file's storage -------------------------------------------
+
+    def _is_plain(self, index):
+        """Whether HDU ``index`` is an uncompressed image whose stored pixels are known."""
+        hdu = self.hdus[index]
+        return (self.source is not None and index < len(self._originals)
+                and hdu is self._originals[index] and not isinstance(hdu, fits.CompImageHDU))
+
+    def file_header(self, index):
+        """The header of HDU ``index`` as the file has it (BZERO and BSCALE included); edit
+        it, not ``hdus[index].header``, to change the cards :meth:`write` writes."""
+        if not self._is_plain(index):
+            return self.hdus[index].header
+        if index not in self._headers:
+            start, data, _ = self.spans[index]
+            self._headers[index] = fits.Header.fromstring(
+                self.source[start:data].decode("ascii"))
+        return self._headers[index]
+
+    def _stored_array(self, index):
+        """``(stored, bscale, bzero, blank)`` of a plain image HDU: its pixels as in the file."""
+        if index in self._stored:
+            stored = self._stored[index]
+        else:
+            header = self.file_header(index)
+            start, data, _ = self.spans[index]
+            shape = tuple(header[f"NAXIS{i}"] for i in range(header["NAXIS"], 0, -1))
+            stored = np.frombuffer(self.source, dtype=_BITPIX[header["BITPIX"]],
+                                   count=int(np.prod(shape)), offset=data).reshape(shape)
+            stored = stored.astype(stored.dtype.newbyteorder("="))
+        header = self.file_header(index)
+        blank = header.get("BLANK") if stored.dtype.kind in "iu" else None
+        return stored, float(header.get("BSCALE", 1.0)), float(header.get("BZERO", 0.0)), blank
+
+    def add(self, index, delta, saturation=None):
+        """Add ``delta`` (physical units) to the pixels of HDU ``index`` where it is not 0.
+
+        Integer pixels are rounded and clipped at their type's range; nothing else changes.
+
+        Parameters
+        ----------
+        index : int
+        delta : ndarray
+            Of the HDU's shape.
+        saturation : float, optional
+            Physical value at and above which a changed integer pixel counts as saturated
+            (default: the type's largest value, the ADC limit).
+
+        Returns
+        -------
+        saturated : ndarray of bool
+            Changed integer pixels at or above the saturation level (all False for floats).
+        """
+        sel = np.isfinite(delta) & (delta != 0)
+        saturated = np.zeros(delta.shape, dtype=bool)
+        hdu = self.hdus[index]
+        if self._is_plain(index):
+            stored, bscale, bzero, blank = self._stored_array(index)
+            new = stored.copy()
+            if blank is not None:
+                sel &= stored != blank  # undefined pixels stay undefined
+            physical = stored[sel].astype(np.float64) * bscale + bzero + delta[sel]
+            if stored.dtype.kind == "f":
+                new[sel] = ((physical - bzero) / bscale).astype(stored.dtype)
+            else:
+                info = np.iinfo(stored.dtype)
+                values = np.clip(np.rint((physical - bzero) / bscale), info.min, info.max)
+                new[sel] = values.astype(stored.dtype)
+                top = info.max * bscale + bzero
+                limit = top if saturation is None else min(saturation, top)
+                saturated[sel] = values * bscale + bzero >= limit
+            self._stored[index] = new
+            values = new[sel].astype(np.float64) * bscale + bzero
+        else:  # compressed (or made in memory): astropy's physical values
+            data = np.asarray(hdu.data)
+            physical = data[sel].astype(np.float64) + delta[sel]
+            if data.dtype.kind == "f":
+                values = physical
+            else:
+                info = np.iinfo(data.dtype)
+                values = np.clip(np.rint(physical), info.min, info.max)
+                limit = info.max if saturation is None else min(saturation, info.max)
+                saturated[sel] = values >= limit
+            self._changed.add(index)
+        memory = np.array(hdu.data)  # native copy, what readers of ``hdus`` see
+        memory[sel] = values.astype(memory.dtype)
+        hdu.data = memory
+        return saturated
+
+    def set_bits(self, index, bit, where):
+        """Set mask bit ``bit`` of HDU ``index`` (an integer image) where ``where`` is True."""
+        hdu = self.hdus[index]
+        if self._is_plain(index):
+            stored, bscale, bzero, _ = self._stored_array(index)
+            if bscale != 1.0:
+                raise FileFormatError(f"HDU {index}: a mask with BSCALE = {bscale} is not bits")
+            offset = int(bzero)  # uint16 masks are int16 + BZERO 32768
+            values = stored.astype(np.int64) + offset
+            values[where] |= np.int64(1) << bit
+            # Back to the stored type; bit 31 of an int32 mask wraps to the sign, as in afw.
+            self._stored[index] = (values - offset).astype(stored.dtype)
+        else:
+            self._changed.add(index)
+        memory = np.array(hdu.data)
+        values = memory.astype(np.int64)
+        values[where] |= np.int64(1) << bit
+        hdu.data = values.astype(memory.dtype)
+
+    def set_card(self, index, key, value, after=None):
+        """Set card ``key`` of HDU ``index`` (in the file's header and in memory)."""
+        for header in {id(h): h for h in (self.file_header(index),
+                                          self.hdus[index].header)}.values():
+            if key in header:
+                header[key] = value
+            else:
+                header.set(key, value, after=after if after in header else None)
+        if not self._is_plain(index):
+            self._changed.add(index)
+
+    def add_extnames(self):
+        """Give IMAGE, MASK and VARIANCE typed by ``EXTTYPE`` but unnamed ``EXTNAME = EXTTYPE``,
+        as afw writes them today: lsst-images' ``read_legacy`` needs the name."""
+        for index in (self.image_index, self.mask_index, self.variance_index):
+            if index is None or index == 0:
+                continue
+            header = self.file_header(index)
+            exttype = str(header.get("EXTTYPE", "")).strip()
+            if exttype and "EXTNAME" not in header:
+                self.set_card(index, "EXTNAME", exttype, after="EXTTYPE")
+
+    def mark_changed(self, index):
+        """Have :meth:`write` write HDU ``index`` from memory (it was changed in place)."""
+        self._changed.add(index)
+
+    def name_plane(self, index, name):
+        """The bit of mask plane ``name`` in MASK HDU ``index``, naming it on the first free
+        bit (:func:`inject.maskplanes.plane_bit`) if it has none.
+
+        Raises
+        ------
+        FileFormatError
+            Every bit of the mask's pixel type is taken.
+        """
+        from ..maskplanes import plane_bit
+
+        header = self.file_header(index)
+        before = set(header.keys())
+        dtype = np.asarray(self.hdus[index].data).dtype
+        bit = plane_bit(header, name, 8 * dtype.itemsize)
+        if bit is None:
+            raise FileFormatError(f"MASK (HDU {index}): no free bit for a {name} plane")
+        memory = self.hdus[index].header
+        if memory is not header:  # keep the in-memory header in step
+            for key in header:
+                if key not in before:
+                    card = f"HIERARCH {key}" if len(key) > 8 else key
+                    memory[card] = (header[key], header.comments[key])
+        return bit
+
+    def _plain_bytes(self, index, primary):
+        """The bytes of plain HDU ``index``: the input's, with its new header and stored
+        pixels where they changed."""
+        start, data, end = self.spans[index]
+        original = self.source[start:data]
+        if index not in self._headers and index not in self._stored:
+            return self.source[start:end]  # untouched: the input's bytes
+        header = self.file_header(index)
+        text = header.tostring().encode("ascii")
+        if index not in self._stored and text == original:
+            return self.source[start:end]
+        if index in self._stored:
+            stored = self._stored[index]
+            raw = stored.astype(stored.dtype.newbyteorder(">")).tobytes()
+            raw += b"\0" * (-len(raw) % _BLOCK)
+        else:
+            raw = self.source[data:end]
+        content = (original if text == original else text) + raw
+        if "CHECKSUM" in header or "DATASUM" in header:
+            return _with_checksum(content, primary)
+        return content
+
+    # -- writing ---------------------------------------------------------------------------
+
+    def write(self, path, overwrite=False):
+        """Write the exposure to ``path`` atomically (see the module's notes).
+
+        Raises
+        ------
+        OutputError
+            ``path`` cannot be written.
+        """
+        with atomic_path(path, overwrite) as tmp:  # an OSError anywhere: OutputError
+            content = self._content()
+            opener = gzip.open if os.fspath(path).endswith(".gz") else open
+            with opener(tmp, "wb") as out:
+                out.write(content)
+
+    def _content(self):
+        """The bytes of the whole file."""
+        parts = []
+        for index, hdu in enumerate(self.hdus):
+            primary = index == 0
+            original = (self.source is not None and index < len(self._originals)
+                        and hdu is self._originals[index] and index not in self._changed)
+            if original:  # plain, or compressed and untouched
+                parts.append(self._plain_bytes(index, primary))
+            else:
+                parts.append(_serialise(_lossless(hdu), primary,
+                                        checksum="CHECKSUM" in hdu.header))
+        return b"".join(parts)
+
+
+def _with_checksum(content, primary):
+    """The bytes of one HDU with its CHECKSUM and DATASUM computed again (by astropy, on the
+    stored values: no scaling on the way)."""
+    prefix = b"" if primary else _serialise(fits.PrimaryHDU(), True)
+    buffer = io.BytesIO()
+    with fits.open(io.BytesIO(prefix + content), do_not_scale_image_data=True) as hdus:
+        hdus.writeto(buffer, checksum=True)
+    return buffer.getvalue()[len(prefix):]
+
+
+def _lossless(hdu):
+    """``hdu``, or a copy of a tile-compressed one set to compress its pixels losslessly."""
+    if not isinstance(hdu, fits.CompImageHDU):
+        return hdu
+    data = np.asarray(hdu.data)
+    kind = hdu.compression_type
+    if data.dtype.kind == "f":
+        if kind.startswith("GZIP") and not hdu.quantize_level:
+            return hdu
+        kind, level = "GZIP_2", 0  # no quantisation: the values as they are, bit for bit
+    else:
+        if kind == "HCOMPRESS_1" and hdu.hcomp_scale:
+            kind = "RICE_1"  # HCOMPRESS with a scale is lossy for integers too
+        level = hdu.quantize_level
+    header = hdu.header.copy()
+    for key in ("BZERO", "BSCALE"):  # astropy sets them again from the data's type
+        header.remove(key, ignore_missing=True)
+    return fits.CompImageHDU(data, header=header, name=hdu.name, compression_type=kind,
+                             tile_shape=tuple(int(n) for n in hdu.tile_shape),
+                             quantize_level=level)
+
+
+def _serialise(hdu, primary, checksum=False):
+    """The bytes of one HDU as astropy writes it (as the primary HDU, or an extension)."""
+    buffer = io.BytesIO()
+    if primary:
+        fits.HDUList([hdu]).writeto(buffer, checksum=checksum)
+        return buffer.getvalue()
+    fits.HDUList([fits.PrimaryHDU(), hdu]).writeto(buffer, checksum=checksum)
+    return buffer.getvalue()[_BLOCK:]  # an empty primary HDU is one block
+
 
 def read_exposure(path):
     """Read ``path`` fully into memory (the file is closed and never modified).
@@ -56,34 +352,59 @@ def read_exposure(path):
     Raises
     ------
     FileFormatError
-        If the file cannot be read or holds no 2-D image.
+        If the file cannot be read or holds no 2-D image, or its MASK or VARIANCE does not
+        match its IMAGE.
     """
     try:
+        with open(path, "rb") as stream:
+            source = stream.read()
+        if source[:2] == b"\x1f\x8b":  # a gzipped file: offsets refer to its content
+            source = gzip.decompress(source)
         with warnings.catch_warnings():
             # A truncated or corrupt file is an error here, not a warning to scroll past.
             warnings.simplefilter("error", fits.verify.VerifyWarning)
             warnings.simplefilter("error", AstropyUserWarning)  # e.g. "may have been truncated"
-            with fits.open(path, memmap=False) as opened:
-                opened.verify("exception")
-                hdus = fits.HDUList([hdu.copy() for hdu in opened])
+            # Opened on the bytes in memory and left open (no file handle): tables with a
+            # heap read from it (astropy cannot copy those), and nothing refers to the file.
+            hdus = fits.open(io.BytesIO(source), memmap=False)
+            hdus.verify("exception")
+            for hdu in hdus:
+                hdu.data  # noqa: B018 -- read every HDU now, so a truncated one fails here
+            spans = []
+            for i in range(len(hdus)):
+                info = hdus.fileinfo(i)
+                spans.append((info["hdrLoc"], info["datLoc"], info["datLoc"] + info["datSpan"]))
     except FileNotFoundError:
         raise FileFormatError(f"{path}: no such file") from None
-    except (OSError, ValueError, fits.VerifyError, TypeError, fits.verify.VerifyWarning,
-            AstropyUserWarning) as err:
+    except IsADirectoryError:
+        raise FileFormatError(f"{path}: not a readable FITS file (a directory)") from None
+    except (OSError, EOFError, ValueError, fits.VerifyError, TypeError,
+            fits.verify.VerifyWarning, AstropyUserWarning) as err:
         raise FileFormatError(f"{path}: not a readable FITS file ({err})") from None
-    names = [hdu.name for hdu in hdus]
-    if "IMAGE" in names and _is_image(hdus[names.index("IMAGE")]):
-        image_index = names.index("IMAGE")
+    roles = {}
+    for i, hdu in enumerate(hdus):
+        role = str(hdu.header.get("EXTTYPE", "")).strip().upper() or hdu.name
+        if role in ("IMAGE", "MASK", "VARIANCE") and role not in roles and _is_image(hdu):
+            roles[role] = i
+    if "IMAGE" in roles:
+        image_index = roles["IMAGE"]
     else:
         candidates = [i for i, hdu in enumerate(hdus) if _is_image(hdu)]
         if not candidates:
             raise FileFormatError(f"{path}: no 2-D image HDU found")
         image_index = candidates[0]
-
-    def index_of(name):
-        return names.index(name) if name in names and _is_image(hdus[names.index(name)]) else None
-
-    return InputExposure(hdus, image_index, index_of("MASK"), index_of("VARIANCE"))
+    shape = hdus[image_index].data.shape
+    for role in ("MASK", "VARIANCE"):
+        index = roles.get(role)
+        if index is not None and hdus[index].data.shape != shape:
+            got = hdus[index].data.shape
+            raise FileFormatError(f"{path}: {role} (HDU {index}) is {got[1]} x {got[0]}, "
+                                  f"the image {shape[1]} x {shape[0]}")
+    if "MASK" in roles and hdus[roles["MASK"]].data.dtype.kind not in "iu":
+        raise FileFormatError(f"{path}: MASK (HDU {roles['MASK']}) holds "
+                              f"{hdus[roles['MASK']].data.dtype} values, not integer bits")
+    return InputExposure(hdus, image_index, roles.get("MASK"), roles.get("VARIANCE"),
+                         source=source, spans=spans, _originals=list(hdus))
 
 
 def _is_image(hdu):

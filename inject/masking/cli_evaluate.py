@@ -116,7 +116,7 @@ def false_positive_summary(records, size):
 
 def bad_pixels(sim):
     """Unusable pixels of a simulated image (the LSST bad planes of its mask)."""
-    from ..scene import MASK_PLANES
+    from ..maskplanes import MASK_PLANES
     from .detect import BAD_PLANES
 
     bits = sum(1 << MASK_PLANES[p] for p in BAD_PLANES if p in MASK_PLANES)

@@ -192,7 +192,7 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
 
 def _mask_bits(exposure):
     """Bit of every mask plane of an exposure's MASK header (``MP_<PLANE>``), or the defaults."""
-    from ..scene import MASK_PLANES
+    from ..maskplanes import MASK_PLANES
 
     bits = dict(MASK_PLANES)
     if exposure.mask_index is not None:
@@ -277,22 +277,18 @@ def _set_streak_plane(exposure, streaks):
     import numpy as np
     from astropy.io import fits
 
-    from ..scene import MASK_PLANES
+    from ..maskplanes import mask_header, plane_bit
     from .geometry import Line
     from .mask import mask_spans, paint
 
     shape = exposure.image_hdu.data.shape
     if exposure.mask_index is None:
-        header = fits.Header()
-        for name, bit in MASK_PLANES.items():
-            header[f"HIERARCH MP_{name}"] = bit
+        header = mask_header(fits.Header())
         exposure.hdus.append(fits.ImageHDU(np.zeros(shape, dtype=np.int32), header=header,
                                            name="MASK"))
         exposure.mask_index = len(exposure.hdus) - 1
     hdu = exposure.hdus[exposure.mask_index]
-    bit = _mask_bits(exposure).get("STREAK", MASK_PLANES["STREAK"])
-    if "MP_STREAK" not in hdu.header:
-        hdu.header["HIERARCH MP_STREAK"] = bit
+    bit = plane_bit(hdu.header, "STREAK")  # on the first free bit if the file has none
     mask = np.asarray(hdu.data).astype(np.int32)  # native byte order, a copy
     if mask.shape != shape:
         raise MaskingError(f"MASK HDU is {mask.shape[1]} x {mask.shape[0]}, the image "
