@@ -203,11 +203,11 @@ RANGES = {r.name: r for r in (
           "circular orbit's", warn_hi=4e5,
           warn_why="beyond the Moon (384 400 km) nothing is an Earth satellite, and the "
           "effective exposure per pixel exceeds any exposure"),
-    Range("mag", "AB mag", -30, 100, "-30 is brighter than the Sun (-26.7)", warn_lo=-10,
+    Range("mag", "AB mag", -30, 100, "-30 is brighter than the Sun, at -26.7", warn_lo=-10,
           warn_why="brighter than any satellite seen (Iridium flares reached -9.5)"),
     Range("phi", "deg", -_INF, _INF, "any angle (the velocity's direction)"),
     Range("ref_range", "km", 1, 1e6, "magnitudes are quoted at 550 or 1000 km"),
-    Range("size", "m", 0, 200, "the shape's largest extent: box diagonal, disk diameter or "
+    Range("size", "m", 0, 200, "the shape's largest extent, box diagonal, disk diameter or "
           "composite span; the ISS, the largest satellite, is 109 m", lo_open=True),
     Range("track.x0", "px", -1e6, 1e6, "1e6 px is 55 deg away at 0.2 arcsec/px"),
     Range("track.y0", "px", -1e6, 1e6, "1e6 px is 55 deg away at 0.2 arcsec/px"),
