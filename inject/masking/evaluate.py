@@ -370,10 +370,12 @@ def evaluate(images, maskers, truth_sigma=TRUTH_SIGMA, pixel_scale=0.2, bad=None
             try:
                 out, seconds = masker(sim.image, flags)
             except Exception as err:  # a user's function may raise anything: say whose, where
+                from ..errors import InjectError
                 from . import MaskingError
 
+                what = err if isinstance(err, InjectError) else f"{type(err).__name__}: {err}"
                 raise MaskingError(f"masker {masker.name} failed on {_describe(index, labels)}: "
-                                   f"{type(err).__name__}: {err}") from err
+                                   f"{what}") from err
             image, rows = score_image(sim, out, seconds, truth_sigma, pixel_scale)
             base = {"masker": masker.name, **labels, **image}
             for row in rows or [{"found": None}]:
