@@ -284,6 +284,7 @@ def _satellite(i, spec):
     except InjectError as err:
         raise SceneError(f"{where}: {err}") from None
     _ranged("size", f"{where}.shape size", round(shape.size_m, 3))
+    _check_parts(f"{where}.shape", spec["shape"])
     return SatelliteSpec(
         height=_ranged("height", f"{where}.height", height),
         shape=shape,
@@ -295,6 +296,15 @@ def _satellite(i, spec):
                     None if length is None else _ranged("track.length", f"{where}.track.length",
                                                         length),
                     track.get("vertices")))
+
+
+def _check_parts(where, shape):
+    """Range checks of a composite shape's parts (their reflectances), at any depth."""
+    for j, part in enumerate(shape.get("parts", ()) if isinstance(shape, dict) else ()):
+        if isinstance(part, dict):
+            if "reflectance" in part:
+                _ranged("reflectance", f"{where}.parts[{j}].reflectance", part["reflectance"])
+            _check_parts(f"{where}.parts[{j}]", part)
 
 
 def _polyline_track(where, track):

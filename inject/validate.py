@@ -230,6 +230,8 @@ RANGES = {r.name: r for r in (
     Range("ref_range", "km", 1, 1e6, "magnitudes are quoted at 550 or 1000 km", options="--ref-range"),
     Range("size", "m", 0, 200, "the shape's largest extent, box diagonal, disk diameter or "
           "composite span; the ISS, the largest satellite, is 109 m", lo_open=True, options="--length, --width, --radius"),
+    Range("reflectance", "", 0, 1e6, "a composite part's flux per unit area relative to the "
+          "other parts", lo_open=True),
     Range("track.x0", "px", -1e6, 1e6, "1e6 px is 55 deg away at 0.2 arcsec/px", options="add-streak --x0"),
     Range("track.y0", "px", -1e6, 1e6, "1e6 px is 55 deg away at 0.2 arcsec/px", options="add-streak --y0"),
     Range("track.angle", "deg", -_INF, _INF, "any angle", options="add-streak --angle"),
