@@ -366,32 +366,25 @@ def _quiet_broken_pipe():
 
 def main(argv=None):
     """Entry point of the ``inject`` console script; returns the exit status."""
-    parser = build_parser()
-    # Overrides (key.path=value) may come after options: argparse leaves those as extras.
-    args, extra = parser.parse_known_args(argv)
-    if extra:
-        if not hasattr(args, "overrides") or any("=" not in item for item in extra):
-            # The subcommand's error, as argparse itself would word it.
-            _usage_error(f"{parser.prog} {args.command}",
-                         f"unrecognized arguments: {' '.join(extra)}")
-        args.overrides = list(args.overrides) + extra
-    import functools
     import signal
 
     from .signals import Stopped, handling
 
-    command = f"inject {args.command}"
+    command = "inject"
     try:
-        with handling(), warnings.catch_warnings():
-            warnings.showwarning = functools.partial(_show_warning, command=command)
-            args.func(args)
-            sys.stdout.flush()  # a closed pipe shows here, inside the handlers below
-    except InjectError as err:
-        if args.traceback:
-            raise
-        # One line, whatever the library said.
-        print(f"{command}: error: {_one_line(err)}", file=sys.stderr)
-        return 2
+        # The stop signals are handled from the start: a Ctrl-C while the parser imports the
+        # engine is a clean stop too, not a traceback.
+        with handling():
+            parser = build_parser()
+            # Overrides (key.path=value) may come after options: argparse leaves them as extras.
+            args, extra = parser.parse_known_args(argv)
+            command = f"inject {args.command}"
+            if extra:
+                if not hasattr(args, "overrides") or any("=" not in item for item in extra):
+                    # The subcommand's error, as argparse itself would word it.
+                    _usage_error(command, f"unrecognized arguments: {' '.join(extra)}")
+                args.overrides = list(args.overrides) + extra
+            return _run(args, command)
     except BrokenPipeError:
         # The reader went away (| head): stop quietly, with the status of a process killed by
         # SIGPIPE, as Unix tools do.
@@ -403,4 +396,21 @@ def main(argv=None):
     except KeyboardInterrupt:  # raised by Python's own handler, outside inject.signals
         print(f"{command}: interrupted", file=sys.stderr)
         return 128 + signal.SIGINT
+
+
+def _run(args, command):
+    """Run the subcommand; an :class:`InjectError` is one line and status 2."""
+    import functools
+
+    try:
+        with warnings.catch_warnings():
+            warnings.showwarning = functools.partial(_show_warning, command=command)
+            args.func(args)
+            sys.stdout.flush()  # a closed pipe shows here, where main catches it
+    except InjectError as err:
+        if args.traceback:
+            raise
+        # One line, whatever the library said.
+        print(f"{command}: error: {_one_line(err)}", file=sys.stderr)
+        return 2
     return 0
