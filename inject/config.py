@@ -27,8 +27,8 @@ DEFAULT_SCENE = {
 }
 
 #: Peak bytes per pixel of ``inject simulate`` (all its outputs written), for the memory check:
-#: 44 B/px measured (peak RSS from 1024^2 to 4000^2 px, stars, noise, FITS + EXR + PNG), with
-#: a margin for the raw layout and ADU conversion.
+#: 44-46 B/px measured (growth of the peak RSS from 64^2 to 1536^2-4000^2 px, stars, noise,
+#: FITS + EXR + PNG), with a margin for the raw layout and ADU conversion.
 SIMULATE_BYTES_PER_PIXEL = 64
 
 _TOP_KEYS = {"seed", "band", "exptime", "seeing", "zenith", "detector", "sky", "stars", "noise",
