@@ -188,7 +188,8 @@ def _add_simulate_parser(sub):
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     # default=[]: without it argparse lists this optional positional as "required".
     p.add_argument("overrides", nargs="*", default=[], metavar="key.path=value",
-                   help="override scene keys, e.g. satellites.0.mag=6 detector.nx=512")
+                   help="override scene keys, e.g. satellites.0.mag=6 detector.nx=512 "
+                        "detector.ny=512 (the last of a key given twice wins)")
     p.set_defaults(func=run_simulate)
 
 

@@ -40,8 +40,8 @@ DESCRIPTION = (
     "same images. Writes records.csv (one row per image, masker and streak), summary.csv and "
     "summary.md (per masker, height and magnitude; streak-free images have their own rows) "
     "and three PNG plots into the output directory; prints the markdown table (or JSON with "
-    "--json) and progress on stderr. Nothing is left in the directory if the campaign fails "
-    "or is stopped.")
+    "--json) and progress on stderr. If the campaign fails or is stopped, nothing is "
+    "written, and a directory made for it is removed.")
 
 #: Pixels of a full LSSTCam ITL CCD, for false positives per CCD from smaller images.
 CCD_PIXELS = 4072 * 4000
