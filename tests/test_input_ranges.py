@@ -11,13 +11,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 import inject.validate as validate
 from inject.cli import main
 from inject.config import DEFAULT_SCENE, apply_overrides, load_scene_file, parse_scene
 from inject.errors import InputError, InputWarning, ResourceError, SceneError
-from inject.validate import RANGES, Range, check
+from inject.validate import RANGES, check
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 SMALL = ["detector.nx=64", "detector.ny=64", "stars=false"]
