@@ -226,7 +226,8 @@ def _hidden(folder, suffix):
     (signal.SIGHUP, "handlers installed"),
     (signal.SIGTERM, "FITS temporary"),
     (signal.SIGINT, "EXR temporary"),
-], ids=["SIGHUP-early", "SIGTERM-FITS", "SIGINT-EXR"])
+    (signal.SIGTERM, "PNG temporary"),
+], ids=["SIGHUP-early", "SIGTERM-FITS", "SIGINT-EXR", "SIGTERM-PNG-late"])
 def test_signalled_command(tmp_path, signum, moment):
     scene = dict(SCENE, detector={"type": "itl", "nx": 1024, "ny": 1024})
     (tmp_path / "scene.yaml").write_text(yaml.safe_dump(scene))
@@ -237,7 +238,8 @@ def test_signalled_command(tmp_path, signum, moment):
     if moment == "handlers installed":
         _wait_for(lambda: _catches(process.pid, signum), process, moment)
     else:
-        suffix = ".fits" if moment == "FITS temporary" else ".exr"
+        suffix = {"FITS temporary": ".fits", "EXR temporary": ".exr",
+                  "PNG temporary": ".png"}[moment]
         # Past the directory probes (which make and remove a temporary at once): the one being
         # written, still there a moment later.
         _wait_for(lambda: _catches(process.pid, signum), process, "handlers")
