@@ -6,12 +6,17 @@ STAMP := $(VENV)/.installed
 .PHONY: install test slow demo figures bench clean
 
 $(BIN)/python:
+	@echo "==> creating the virtual environment $(VENV) with $(PYTHON)"
 	$(PYTHON) -m venv $(VENV)
+	@echo "==> upgrading pip in $(VENV)"
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 $(STAMP): $(BIN)/python pyproject.toml
+	@echo "==> installing inject and its dependencies into $(VENV) (GalSim, astropy, OpenCV,"
+	@echo "    OpenImageIO, matplotlib, pytest...; a minute or two the first time, quiet meanwhile)"
 	$(BIN)/python -m pip install --quiet -e '.[test]'
-	touch $(STAMP)
+	@touch $(STAMP)
+	@echo "==> installed: run .venv/bin/inject, or 'source .venv/bin/activate' and then inject"
 
 install: $(STAMP)
 
@@ -23,10 +28,13 @@ slow: $(STAMP)
 
 demo: $(STAMP)
 	@mkdir -p out
+	@echo "==> simulating sample_fields/default.yaml: one full ITL CCD with sky, stars, noise and"
+	@echo "    the paper's satellite (about 10-30 s)"
 	$(BIN)/inject simulate sample_fields/default.yaml -o out/default.fits --exr out/default.exr \
 		--png out/default.png --truth out/default_truth.csv --overwrite
 	@echo "outputs: out/default.fits (IMAGE MASK VARIANCE STREAK_MODEL TRUTH), out/default.exr,"
 	@echo "         out/default.png (quicklook), out/default_truth.csv"
+	@echo "to run inject yourself: .venv/bin/inject --help, or: source .venv/bin/activate; inject --help"
 
 figures: $(STAMP)
 	$(BIN)/python scripts/paper_figures.py --out out/figures

@@ -2,15 +2,22 @@
 
 Each subcommand parses its options, calls the engine and prints or writes the result. Any
 :class:`~inject.errors.InjectError` becomes a one-line message on stderr and exit status 2
-(``--traceback`` shows the full stack instead); so do argparse's usage errors (without the
-usage block: ``inject simulate --help`` shows it).
+(``--traceback``, before or after the subcommand, shows the full stack instead); so do
+argparse's usage errors (without the usage block: ``inject simulate --help`` shows it).
+Warnings about implausible values (:class:`~inject.errors.InputWarning`) are one line too.
+SIGINT, SIGTERM and SIGHUP stop a command cleanly (:mod:`inject.signals`: no temporary or
+half-moved file is left) with exit status 128 + the signal's number; a closed pipe on stdout
+(``inject profile --json | head``) ends it quietly, as Unix tools do.
 """
 import argparse
 import json
+import os
 import sys
+import warnings
 
 from . import __version__
-from .errors import InjectError, InputError
+from .errors import InjectError, InputError, InputWarning
+from .validate import check
 
 
 def _one_line(text):
@@ -24,36 +31,64 @@ def _usage_error(prog, message):
     sys.exit(2)
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """``--help`` with each option's default, except where there is none to show (None,
+    False for a flag, an empty list)."""
+
+    def _get_help_string(self, action):
+        default = action.default
+        if default is None or default is False or default == [] or default is argparse.SUPPRESS:
+            return action.help
+        return super()._get_help_string(action)
+
+
 class _Parser(argparse.ArgumentParser):
     """An argument parser whose usage errors are one line on stderr, exit status 2.
 
     argparse prints the whole usage block before the error; that block is what ``--help``
     is for. Sub-parsers are of the same class (``add_subparsers`` uses the parent's), so
-    their errors name the subcommand: ``inject simulate: error: argument --seed: ...``.
+    their errors name the subcommand: ``inject simulate: error: argument --seed: ...``, and
+    their help shows the defaults.
     """
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message):
         _usage_error(self.prog, message)
 
 
+def _add_output_option(p, metavar, help=None):
+    """``-o/--output/--out``: every subcommand accepts the three spellings."""
+    p.add_argument("-o", "--output", "--out", dest="output", required=True, metavar=metavar,
+                   help=help)
+
+
 def _add_satellite_options(p):
     """Options describing one satellite and its geometry (shared by profile and add-streak)."""
-    p.add_argument("--height", type=float, required=True, metavar="KM", help="orbit height, km")
-    p.add_argument("--zenith", type=float, default=0.0, metavar="DEG", help="zenith angle (0)")
+    p.add_argument("--height", type=float, required=True, metavar="KM",
+                   help="orbit height, km (100 or more)")
+    p.add_argument("--zenith", type=float, default=0.0, metavar="DEG", help="zenith angle")
     p.add_argument("--phi", type=float, default=90.0, metavar="DEG",
                    help="velocity rotation angle, paper eq. 8 (90: along constant azimuth)")
-    p.add_argument("--shape", choices=("box", "disk"), default="box")
-    p.add_argument("--length", type=float, metavar="M", help="box length along the motion (7.25)")
-    p.add_argument("--width", type=float, metavar="M", help="box width across the motion (2.65)")
-    p.add_argument("--radius", type=float, metavar="M", help="disk radius (1.0)")
+    p.add_argument("--shape", choices=("box", "disk"), default="box", help="satellite shape")
+    p.add_argument("--length", type=float, metavar="M",
+                   help="box length along the motion (default: 7.25)")
+    p.add_argument("--width", type=float, metavar="M",
+                   help="box width across the motion (default: 2.65)")
+    p.add_argument("--radius", type=float, metavar="M", help="disk radius (default: 1.0)")
     p.add_argument("--seeing", type=float, default=0.67, metavar="ARCSEC",
                    help="atmospheric FWHM (Kolmogorov unless --seeing-model), 0 for none")
-    p.add_argument("--seeing-model", choices=("kolmogorov", "vonkarman"), default="kolmogorov")
-    p.add_argument("--band", default="g", help="u g r i z y (g)")
+    p.add_argument("--seeing-model", choices=("kolmogorov", "vonkarman"), default="kolmogorov",
+                   help="atmospheric PSF")
+    p.add_argument("--band", default="g", help="LSST filter: u g r i z y")
     p.add_argument("--mag", type=float, default=5.0,
-                   help="stationary AB magnitude at --ref-range, face-on (5.0)")
-    p.add_argument("--ref-range", type=float, default=550.0, metavar="KM")
-    p.add_argument("--pixel-scale", type=float, default=0.2, metavar="ARCSEC")
+                   help="stationary AB magnitude at --ref-range, face-on")
+    p.add_argument("--ref-range", type=float, default=550.0, metavar="KM",
+                   help="range at which --mag is given")
+    p.add_argument("--pixel-scale", type=float, default=0.2, metavar="ARCSEC",
+                   help="arcsec per pixel")
 
 
 def _add_profile_parser(sub):
@@ -64,17 +99,27 @@ def _add_profile_parser(sub):
     p.set_defaults(func=run_profile)
 
 
-def _model_from_args(args, pixel_scale=None):
+def _model_from_args(args, pixel_scale=None, pixel_scale_name="--pixel-scale"):
+    """The :class:`~inject.streak.StreakModel` of the satellite options, their ranges checked
+    (:data:`inject.validate.RANGES`) before any profile is built."""
     from .instrument import LSST
     from .profile import Seeing
     from .streak import StreakModel
 
-    return StreakModel(
+    model = StreakModel(  # its own domain checks first (NaN, <= 0, zenith >= 90, band)
         height_km=args.height, zenith_deg=args.zenith, phi_deg=args.phi,
         shape=_shape_from_args(args), mag=args.mag, band_name=args.band,
         seeing=Seeing(args.seeing, args.seeing_model),
         telescope=LSST.with_pixel_scale(pixel_scale or args.pixel_scale),
         ref_range_km=args.ref_range)
+    for quantity, option in (("height", "--height"), ("zenith", "--zenith"), ("phi", "--phi"),
+                             ("mag", "--mag"), ("seeing", "--seeing"),
+                             ("ref_range", "--ref-range")):
+        check(quantity, getattr(args, option[2:].replace("-", "_")), option)
+    check("pixel_scale", pixel_scale or args.pixel_scale, pixel_scale_name)
+    option = "--radius" if args.shape == "disk" else "--length/--width"
+    check("size", round(model.shape.size_m, 3), f"{option} (largest extent, m)")
+    return model
 
 
 def _shape_from_args(args):
@@ -104,9 +149,11 @@ def run_profile(args):
         _print_table(result)
 
 
+#: ``(key, label, unit, format[, scale])``; format None: the value as given (the inputs are
+#: echoed with every digit, so 89.999999 does not print as 90.00).
 _TABLE_ROWS = (
-    ("height_km", "orbit height", "km", "{:.1f}"),
-    ("zenith_deg", "zenith angle", "deg", "{:.2f}"),
+    ("height_km", "orbit height", "km", None),
+    ("zenith_deg", "zenith angle", "deg", None),
     ("range_km", "range", "km", "{:.2f}"),
     ("nadir_angle_deg", "nadir angle", "deg", "{:.3f}"),
     ("orbital_speed_m_s", "orbital speed", "m/s", "{:.1f}"),
@@ -123,21 +170,26 @@ _TABLE_ROWS = (
 def _print_table(result):
     for key, label, unit, fmt, *scale in _TABLE_ROWS:
         value = result[key] * (scale[0] if scale else 1)
-        print(f"{label:<28s} {fmt.format(value):>14s}  {unit}")
+        text = repr(float(value)) if fmt is None else fmt.format(value)
+        print(f"{label:<28s} {text:>14s}  {unit}")
 
 
 def _add_simulate_parser(sub):
     p = sub.add_parser("simulate", help="simulate one CCD with streaks from a scene file",
                        description="Simulate one LSSTCam-like CCD from a YAML scene file.")
     p.add_argument("scene", help="YAML scene file (see sample_fields/)")
-    p.add_argument("-o", "--output", required=True, metavar="OUT.fits")
+    _add_output_option(p, "OUT.fits", "the FITS file (IMAGE, MASK, VARIANCE, STREAK_MODEL, "
+                                      "TRUTH)")
     p.add_argument("--exr", metavar="OUT.exr", help="also write OpenEXR")
-    p.add_argument("--png", metavar="OUT.png", help="also write a quicklook PNG")
+    p.add_argument("--png", metavar="OUT.png",
+                   help="also write a quicklook picture: PNG, or the format its extension "
+                        "names (.jpg, .pdf, .svg, ...)")
     p.add_argument("--truth", metavar="OUT.csv", help="also write the truth table as CSV")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     # default=[]: without it argparse lists this optional positional as "required".
     p.add_argument("overrides", nargs="*", default=[], metavar="key.path=value",
-                   help="override scene keys, e.g. satellites.0.mag=6 detector.nx=512")
+                   help="override scene keys, e.g. satellites.0.mag=6 detector.nx=512 "
+                        "detector.ny=512 (the last of a key given twice wins)")
     p.set_defaults(func=run_simulate)
 
 
@@ -150,6 +202,10 @@ def run_simulate(args):
     from .io.fits import write_exposure
     from .scene import simulate
 
+    if args.png:
+        from .io.quicklook import quicklook_format
+
+        quicklook_format(args.png)  # before the work
     scene = parse_scene(apply_overrides(load_scene_file(args.scene), args.overrides))
     outputs = {option: path for option, path in (("-o", args.output), ("--exr", args.exr),
                                                  ("--png", args.png), ("--truth", args.truth))
@@ -196,7 +252,7 @@ def _add_add_streak_parser(sub):
                     "storage (integers stay integers, compressed HDUs are compressed "
                     "losslessly). The input is never modified.")
     p.add_argument("input", metavar="IN.fits")
-    p.add_argument("-o", "--output", required=True, metavar="OUT.fits")
+    _add_output_option(p, "OUT.fits", "the copy with the streak")
     _add_satellite_options(p)
     track = p.add_argument_group(
         "track (array pixels: pixel (0, 0) is the centre of the first pixel of the stored "
@@ -208,9 +264,10 @@ def _add_add_streak_parser(sub):
     track.add_argument("--ra0", type=float, metavar="DEG", help="start RA (needs a WCS)")
     track.add_argument("--dec0", type=float, metavar="DEG", help="start Dec (needs a WCS)")
     track.add_argument("--angle", type=float, default=0.0, metavar="DEG",
-                       help="track angle, counter-clockwise from +x (0)")
+                       help="track angle, counter-clockwise from +x")
     track.add_argument("--track-length", type=float, metavar="PX",
-                       help="track length; omit to cross the whole image")
+                       help="track length from (x0, y0) along --angle; omit it for a line "
+                            "through (x0, y0) both ways, across the whole image")
     p.add_argument("--gain", type=float, help="e- per image unit (default: header GAIN, or 1 "
                                               "if BUNIT is electrons)")
     p.add_argument("--seed", type=int, default=1, help="seed of the injected charge's noise")
@@ -233,12 +290,12 @@ def run_add_streak(args):
 
     if os.path.exists(args.output) and os.path.samefile(args.input, args.output):
         raise InputError("-o", args.output, "must differ from the input (it is never modified)")
-    for option in ("x0", "y0", "angle", "track_length", "ra0", "dec0"):
+    for option, quantity in (("x0", "track.x0"), ("y0", "track.y0"), ("angle", "track.angle"),
+                             ("track_length", "track.length"), ("ra0", "pointing.ra"),
+                             ("dec0", "pointing.dec"), ("gain", "gain"), ("seed", "seed")):
         value = getattr(args, option)
-        if value is not None and not np.isfinite(value):
-            raise InputError(f"--{option.replace('_', '-')}", value, "must be finite")
-    if args.seed < 1:
-        raise InputError("--seed", args.seed, "must be >= 1")
+        if value is not None:
+            check(quantity, value, f"--{option.replace('_', '-')}")
     check_writable(args.output, args.overwrite)
     exposure = read_exposure(args.input)
     wcs = exposure.wcs
@@ -267,7 +324,9 @@ def run_add_streak(args):
         if gain is None:
             raise InputError("--gain", None, f"{args.input} has no GAIN header and BUNIT is "
                                              f"not electrons: give --gain")
-    model = _model_from_args(args, pixel_scale)
+        gain = check("gain", gain, f"{args.input}'s GAIN header")
+    model = _model_from_args(args, pixel_scale,
+                             "--pixel-scale" if pixel_scale is None else "the WCS's pixel scale")
     track = Track(args.x0, args.y0, args.angle, args.track_length)
     rng = np.random.default_rng(np.random.SeedSequence(args.seed))
     _, truth = add_streaks(exposure, [model], [track], float(gain), rng, noise=not args.no_noise)
@@ -302,29 +361,82 @@ def build_parser():
 
     add_mask_parser(sub)
     add_evaluate_parser(sub)
+    for command in sub.choices.values():
+        # After the subcommand too; SUPPRESS: not given there, the top-level value stands.
+        command.add_argument("--traceback", action="store_true", default=argparse.SUPPRESS,
+                             help="show the full traceback on errors")
     return parser
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None,
+                  command="inject"):
+    """Input warnings as one line, ``inject CMD: warning: ...`` (others as Python shows them)."""
+    if issubclass(category, InputWarning):
+        print(f"{command}: warning: {_one_line(message)}", file=sys.stderr)
+    else:
+        _python_showwarning(message, category, filename, lineno, file, line)
+
+
+_python_showwarning = warnings.showwarning
+
+
+def _quiet_broken_pipe():
+    """After EPIPE on stdout: point it at /dev/null, so the interpreter's final flush does not
+    fail again (the recipe of Python's signal documentation)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # stdout replaced (tests) or closed
+        pass
 
 
 def main(argv=None):
     """Entry point of the ``inject`` console script; returns the exit status."""
-    parser = build_parser()
-    # Overrides (key.path=value) may come after options: argparse leaves those as extras.
-    args, extra = parser.parse_known_args(argv)
-    if extra:
-        if not hasattr(args, "overrides") or any("=" not in item for item in extra):
-            # The subcommand's error, as argparse itself would word it.
-            _usage_error(f"{parser.prog} {args.command}",
-                         f"unrecognized arguments: {' '.join(extra)}")
-        args.overrides = list(args.overrides) + extra
+    import signal
+
+    from .signals import Stopped, handling
+
+    command = "inject"
     try:
-        args.func(args)
+        # The stop signals are handled from the start: a Ctrl-C while the parser imports the
+        # engine is a clean stop too, not a traceback.
+        with handling():
+            parser = build_parser()
+            # Overrides (key.path=value) may come after options: argparse leaves them as extras.
+            args, extra = parser.parse_known_args(argv)
+            command = f"inject {args.command}"
+            if extra:
+                if not hasattr(args, "overrides") or any("=" not in item for item in extra):
+                    # The subcommand's error, as argparse itself would word it.
+                    _usage_error(command, f"unrecognized arguments: {' '.join(extra)}")
+                args.overrides = list(args.overrides) + extra
+            return _run(args, command)
+    except BrokenPipeError:
+        # The reader went away (| head): stop quietly, with the status of a process killed by
+        # SIGPIPE, as Unix tools do.
+        _quiet_broken_pipe()
+        return 128 + signal.SIGPIPE
+    except Stopped as stop:
+        print(f"{command}: {stop}; no output left half-written", file=sys.stderr)
+        return stop.exit_status
+    except KeyboardInterrupt:  # raised by Python's own handler, outside inject.signals
+        print(f"{command}: interrupted", file=sys.stderr)
+        return 128 + signal.SIGINT
+
+
+def _run(args, command):
+    """Run the subcommand; an :class:`InjectError` is one line and status 2."""
+    import functools
+
+    try:
+        with warnings.catch_warnings():
+            warnings.showwarning = functools.partial(_show_warning, command=command)
+            args.func(args)
+            sys.stdout.flush()  # a closed pipe shows here, where main catches it
     except InjectError as err:
         if args.traceback:
             raise
         # One line, whatever the library said.
-        print(f"inject {args.command}: error: {_one_line(err)}", file=sys.stderr)
+        print(f"{command}: error: {_one_line(err)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("inject: interrupted", file=sys.stderr)
-        return 130
     return 0

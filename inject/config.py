@@ -12,10 +12,10 @@ import numpy as np
 import yaml
 
 from .detector import Detector, detector_from_spec
-from .errors import InjectError, SceneError
+from .errors import InjectError, InputError, SceneError
 from .photometry import band
 from .satellite import Shape, shape_from_dict
-from .validate import positive
+from .validate import RANGES, check_memory, positive
 
 #: The embedded default scene: the paper's 550 km satellite on one full ITL CCD.
 DEFAULT_SCENE = {
@@ -25,6 +25,11 @@ DEFAULT_SCENE = {
         "height": 550.0, "phi": 90.0, "shape": {"type": "box", "length": 7.25, "width": 2.65},
         "mag": 5.0, "ref_range": 550.0, "track": {"x0": 300.0, "y0": 200.0, "angle": 33.0}}],
 }
+
+#: Peak bytes per pixel of ``inject simulate`` (all its outputs written), for the memory check:
+#: 44-46 B/px measured (growth of the peak RSS from 64^2 to 1536^2-4000^2 px, stars, noise,
+#: FITS + EXR + PNG), with a margin for the raw layout and ADU conversion.
+SIMULATE_BYTES_PER_PIXEL = 64
 
 _TOP_KEYS = {"seed", "band", "exptime", "seeing", "zenith", "detector", "sky", "stars", "noise",
              "satellites", "pointing", "dark_current", "cosmic_rays", "units"}
@@ -84,7 +89,29 @@ class Scene:
 
 class _SceneLoader(yaml.SafeLoader):
     """``yaml.SafeLoader`` reading floats as YAML 1.2 does: ``1e3`` and ``5e-1`` are numbers
-    (YAML 1.1, PyYAML's default, needs a dot and an exponent sign)."""
+    (YAML 1.1, PyYAML's default, needs a dot and an exponent sign), and refusing a key given
+    twice in one mapping (YAML 1.2 forbids it; PyYAML keeps the last silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen = {}
+            for key_node, _ in node.value:  # the mapping's own keys: a merge (<<) may override
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.setdefault(key, key_node.start_mark)
+                except TypeError:  # an unhashable key: the base class says so
+                    continue
+                if first is not key_node.start_mark:
+                    raise _DuplicateKey(key, key_node.start_mark.line + 1, first.line + 1)
+        return super().construct_mapping(node, deep)
+
+
+class _DuplicateKey(yaml.YAMLError):
+    def __init__(self, key, line, first):
+        super().__init__(f"line {line}: key {key!r} given twice (first at line {first}); "
+                         "keys must be unique")
 
 
 _SceneLoader.add_implicit_resolver(
@@ -111,6 +138,8 @@ def load_scene_file(path):
         raise SceneError(f"{path}: cannot read scene file ({err.strerror})") from None
     except UnicodeDecodeError:
         raise SceneError(f"{path}: not a text (UTF-8) scene file") from None
+    except _DuplicateKey as err:
+        raise SceneError(f"{path}: {err}") from None
     except yaml.YAMLError as err:
         raise SceneError(f"{path}: not valid YAML ({err})") from None
     if not isinstance(raw, dict):
@@ -176,6 +205,52 @@ def _number(where, value, kind=float):
     return kind(value)
 
 
+def _ranged(quantity, where, value, kind=float):
+    """``value`` as a number inside :data:`inject.validate.RANGES` ``[quantity]``."""
+    value = _number(where, value, kind)
+    try:
+        return RANGES[quantity].check(value, where)
+    except InputError as err:
+        raise SceneError(str(err)) from None
+
+
+def _check_detector(spec):
+    """Range checks of a detector mapping's numbers (its keys and types are checked by
+    :func:`inject.detector.detector_from_spec`)."""
+    if not isinstance(spec, dict):
+        return
+    from .detector import DETECTORS
+
+    sensor = DETECTORS.get(spec.get("type", "itl"))
+    for key, size in (("nx", sensor and sensor.nx), ("ny", sensor and sensor.ny)):
+        if key in spec:
+            n = _ranged(f"detector.{key}", f"detector.{key}", spec[key], int)
+            if sensor is not None and n > size:
+                raise SceneError(f"detector.{key}={n}: must be <= {size} px (the {sensor.kind} "
+                                 f"sensor's size; a scene is one CCD or a cut-out of it)")
+    for key in ("gains", "read_noise"):
+        values = spec.get(key)
+        if isinstance(values, list):
+            for j, v in enumerate(values):
+                _ranged(f"detector.{key}", f"detector.{key}[{j}]", v)
+        elif values is not None:
+            _ranged(f"detector.{key}", f"detector.{key}", values)
+    for key in ("full_well", "bias"):
+        if key in spec:
+            _ranged(f"detector.{key}", f"detector.{key}", spec[key])
+
+
+def _check_sky_and_stars(sky, stars):
+    if isinstance(sky, dict):
+        for key in ("level", "mag"):
+            if key in sky:
+                _ranged(f"sky.{key}", f"sky.{key}", sky[key])
+    if isinstance(stars, dict):
+        for key in ("galactic_l", "galactic_b", "mag_limit", "mag_bright", "density_per_deg2"):
+            if key in stars:
+                _ranged(f"stars.{key}", f"stars.{key}", stars[key])
+
+
 def _check_keys(where, mapping, allowed, required=()):
     if not isinstance(mapping, dict):
         raise SceneError(f"{where}={mapping!r}: must be a mapping")
@@ -203,19 +278,33 @@ def _satellite(i, spec):
     try:
         height = _number(f"{where}.height", spec["height"])
         positive("height_km", height)
-        return SatelliteSpec(
-            height=height,
-            shape=shape_from_dict(spec["shape"]),
-            mag=_number(f"{where}.mag", spec["mag"]),
-            phi=_number(f"{where}.phi", spec.get("phi", 90.0)),
-            ref_range=_number(f"{where}.ref_range", spec.get("ref_range", 550.0)),
-            track=Track(*(_number(f"{where}.track.{k}", track[k]) for k in ("x0", "y0", "angle")),
-                        None if length is None else _number(f"{where}.track.length", length),
-                        track.get("vertices")))
+        shape = shape_from_dict(spec["shape"])
     except SceneError:
         raise
     except InjectError as err:
         raise SceneError(f"{where}: {err}") from None
+    _ranged("size", f"{where}.shape size", round(shape.size_m, 3))
+    _check_parts(f"{where}.shape", spec["shape"])
+    return SatelliteSpec(
+        height=_ranged("height", f"{where}.height", height),
+        shape=shape,
+        mag=_ranged("mag", f"{where}.mag", spec["mag"]),
+        phi=_ranged("phi", f"{where}.phi", spec.get("phi", 90.0)),
+        ref_range=_ranged("ref_range", f"{where}.ref_range", ref_range),
+        track=Track(*(_ranged(f"track.{k}", f"{where}.track.{k}", track[k])
+                      for k in ("x0", "y0", "angle")),
+                    None if length is None else _ranged("track.length", f"{where}.track.length",
+                                                        length),
+                    track.get("vertices")))
+
+
+def _check_parts(where, shape):
+    """Range checks of a composite shape's parts (their reflectances), at any depth."""
+    for j, part in enumerate(shape.get("parts", ()) if isinstance(shape, dict) else ()):
+        if isinstance(part, dict):
+            if "reflectance" in part:
+                _ranged("reflectance", f"{where}.parts[{j}].reflectance", part["reflectance"])
+            _check_parts(f"{where}.parts[{j}]", part)
 
 
 def _polyline_track(where, track):
@@ -233,6 +322,8 @@ def _polyline_track(where, track):
             raise SceneError(f"{here}.height={values['height']}: must be > 0 (km)")
         if "zenith" in values and not 0 <= values["zenith"] < 90:
             raise SceneError(f"{here}.zenith={values['zenith']}: must be >= 0 and < 90")
+        quantity = {"x": "track.x0", "y": "track.y0"}
+        values = {k: _ranged(quantity.get(k, k), f"{here}.{k}", v) for k, v in values.items()}
         checked.append(values)
     first, second = checked[0], checked[1]
     angle = float(np.degrees(np.arctan2(second["y"] - first["y"], second["x"] - first["x"])))
@@ -243,6 +334,7 @@ def parse_scene(raw):
     """Validate a scene mapping (defaults filled from :data:`DEFAULT_SCENE`)."""
     _check_keys("scene", raw, _TOP_KEYS)
     merged = {k: v for k, v in DEFAULT_SCENE.items() if k != "satellites"} | raw
+    _check_detector(merged["detector"])
     try:
         band(merged["band"])
         detector = detector_from_spec(merged["detector"])
@@ -257,32 +349,55 @@ def parse_scene(raw):
     pointing = merged.get("pointing")
     if pointing is not None:  # ranges are checked where the WCS is made (inject.wcs)
         _check_keys("pointing", pointing, {"ra", "dec", "rotation"}, {"ra", "dec"})
-        pointing = {k: _number(f"pointing.{k}", v) for k, v in pointing.items()}
+        pointing = {k: _ranged(f"pointing.{k}", f"pointing.{k}", v) for k, v in pointing.items()}
     satellites = merged.get("satellites", [])
     if not isinstance(satellites, list):
         raise SceneError(f"satellites={satellites!r}: must be a list")
-    seed = _number("seed", merged["seed"], int)
-    if seed < 1:
-        raise SceneError(f"seed={seed}: must be >= 1 (0 means 'random' to GalSim)")
-    exptime = _number("exptime", merged["exptime"])
-    seeing = _number("seeing", merged["seeing"])
-    zenith = _number("zenith", merged["zenith"])
-    if not exptime > 0:
-        raise SceneError(f"exptime={exptime}: must be > 0")
-    if not 0 <= seeing < 30:
-        raise SceneError(f"seeing={seeing}: must be >= 0 arcsec and < 30")
-    if not 0 <= zenith < 90:
-        raise SceneError(f"zenith={zenith}: must be >= 0 and < 90")
-    rates = {}
-    for key in ("dark_current", "cosmic_rays"):
-        rates[key] = _number(key, merged.get(key, 0.0))
-        if rates[key] < 0:
-            raise SceneError(f"{key}={rates[key]}: must be >= 0 (per second)")
+    _check_sky_and_stars(merged["sky"], merged["stars"])
+    seed = _ranged("seed", "seed", merged["seed"], int)
+    exptime, seeing, zenith = (_ranged(k, k, merged[k]) for k in ("exptime", "seeing", "zenith"))
+    rates = {key: _ranged(key, key, merged.get(key, 0.0))
+             for key in ("dark_current", "cosmic_rays")}
     units = merged.get("units", "electron")
     if units not in ("electron", "adu"):
         raise SceneError(f"units={units!r}: choose electron or adu")
-    return Scene(seed=seed, band=merged["band"], exptime=exptime, seeing=seeing, zenith=zenith,
-                 detector=detector, sky=merged["sky"], stars=merged["stars"],
-                 noise=merged["noise"],
-                 satellites=tuple(_satellite(i, s) for i, s in enumerate(satellites)),
-                 pointing=pointing, units=units, raw=raw, **rates)
+    scene = Scene(seed=seed, band=merged["band"], exptime=exptime, seeing=seeing, zenith=zenith,
+                  detector=detector, sky=merged["sky"], stars=merged["stars"],
+                  noise=merged["noise"],
+                  satellites=tuple(_satellite(i, s) for i, s in enumerate(satellites)),
+                  pointing=pointing, units=units, raw=raw, **rates)
+    _check_charge(scene)
+    ny, nx = detector.shape
+    check_memory(nx * ny * SIMULATE_BYTES_PER_PIXEL, f"detector {nx} x {ny}")
+    return scene
+
+
+def _check_charge(scene):
+    """Refuse a scene whose brightest pixel would hold more charge than can be drawn.
+
+    An upper bound, from numbers alone (no profile is built): the sky, the dark current, the
+    brightest random star's whole flux and each satellite's charge per pixel of track (no
+    pixel of a streak gets more than that) at each of its vertices.
+    """
+    from .photometry import electron_rate
+    from .scene import sky_level
+    from .streak import StreakModel
+
+    base = sky_level(scene) + scene.dark_current * scene.exptime
+    if isinstance(scene.stars, dict) or scene.stars is True:
+        bright = (scene.stars if isinstance(scene.stars, dict) else {}).get("mag_bright", 12.0)
+        if not (isinstance(scene.stars, dict) and "catalog" in scene.stars):
+            base += float(electron_rate(bright, scene.band)) * scene.exptime
+    worst, where = base, "the sky, dark current and stars"
+    for i, sat in enumerate(scene.satellites):
+        for vertex in sat.track.vertices or ({},):
+            model = StreakModel(vertex.get("height", sat.height), vertex.get("zenith", scene.zenith),
+                                vertex.get("phi", sat.phi), sat.shape, vertex.get("mag", sat.mag),
+                                scene.band, ref_range_km=sat.ref_range)
+            if base + model.flux_per_px > worst:
+                worst, where = base + model.flux_per_px, f"satellites[{i}]"
+    try:
+        RANGES["charge_per_px"].check(float(f"{worst:.3g}"),
+                                      f"expected charge per pixel from {where}")
+    except InputError as err:
+        raise SceneError(str(err)) from None

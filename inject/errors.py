@@ -38,3 +38,11 @@ class FileFormatError(InjectError):
 
 class OutputError(InjectError):
     """An output cannot be written (exists without ``--overwrite``, unwritable, disk full)."""
+
+
+class ResourceError(InjectError):
+    """The work asked for cannot fit this machine (its estimated memory exceeds what is free)."""
+
+
+class InputWarning(UserWarning):
+    """A value is accepted but outside the range where it is physically plausible."""

@@ -818,7 +818,7 @@ def test_evaluate_writes_all_its_files_or_none(capsys, monkeypatch, tmp_path):
     out = tmp_path / "ev"
     status, err = run(capsys, "evaluate", "--out", out)
     assert status == 2 and "No space left on device" in err and "completeness.png" in err
-    assert os.listdir(out) == []
+    assert not out.exists()  # not even the folder made for the campaign
 
 
 def test_evaluate_refuses_to_replace_an_earlier_campaign(capsys, monkeypatch, tmp_path):

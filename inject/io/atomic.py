@@ -4,7 +4,10 @@
 same for several files written by one command: inside it, every :func:`atomic_path` (whichever
 writer calls it) keeps its finished temporary file, and the group moves them all into place
 only when its block ends without an error, undoing the moves already made if a later one
-fails. Temporary files are named ``.inject-*`` and never outlive the call.
+fails. Temporary files are named ``.inject-*`` and never outlive the call, whatever stops
+it: an error, Ctrl-C, or SIGTERM/SIGHUP under :func:`inject.signals.handling` (the steps that
+must not be cut in two, such as creating a temporary file and registering it for removal,
+hold signals until they are done).
 """
 import contextlib
 import contextvars
@@ -13,6 +16,7 @@ import shutil
 import tempfile
 
 from ..errors import OutputError
+from ..signals import deferred
 
 #: The pending ``(path, temporary, overwrite)`` moves of the active :func:`output_group`.
 _GROUP = contextvars.ContextVar("inject_output_group", default=None)
@@ -32,7 +36,8 @@ def check_writable(path, overwrite):
     ------
     OutputError
         ``path`` exists (without ``overwrite``) or is a directory, or its directory is missing
-        or not writable.
+        or not writable (a file is created and removed there to be sure: permission bits do
+        not tell, e.g. for root under /proc or on a read-only mount).
     """
     if os.path.isdir(path):
         raise OutputError(f"{path}: is a directory")
@@ -43,6 +48,11 @@ def check_writable(path, overwrite):
         raise OutputError(f"{path}: directory {directory} does not exist")
     if not os.access(directory, os.W_OK):
         raise OutputError(f"{path}: directory {directory} is not writable")
+    try:
+        with deferred():
+            _remove(_temporary(path))
+    except OSError as err:
+        raise OutputError(f"{path}: cannot write in {directory} ({err.strerror or err})") from None
 
 
 def _cannot_write(path, err):
@@ -50,14 +60,23 @@ def _cannot_write(path, err):
 
 
 def _temporary(path):
-    """A new empty file beside ``path`` (same file system, so the final rename is atomic)."""
+    """A new empty file beside ``path`` (same file system, so the final rename is atomic).
+
+    Call it inside :func:`~inject.signals.deferred`, together with what records the name
+    for removal: a signal in between would leave the file nameless. If it cannot be set up, it
+    is removed and the :class:`OSError` raised.
+    """
     directory = os.path.dirname(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(prefix=".inject-", suffix=os.path.splitext(path)[1],
                                dir=directory)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual permissions
+    try:
+        os.close(fd)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual mode
+    except BaseException:
+        _remove(tmp)
+        raise
     return tmp
 
 
@@ -85,13 +104,16 @@ def atomic_path(path, overwrite=False):
     if group is not None and any(os.path.realpath(p) == os.path.realpath(path)
                                  for p, _, _ in group):
         raise OutputError(f"{path}: given for two outputs")
-    tmp = _temporary(path)
+    tmp = None
     try:
+        with deferred():  # a signal here would lose the file's name before the finally
+            tmp = _temporary(path)
         yield tmp
-        if group is None:
-            os.replace(tmp, path)
-        else:
-            group.append((path, tmp, overwrite))  # the group moves it, or removes it
+        with deferred():
+            if group is None:
+                os.replace(tmp, path)
+            else:
+                group.append((path, tmp, overwrite))  # the group moves it, or removes it
             tmp = None
     except OSError as err:
         raise _cannot_write(path, err) from None
@@ -153,13 +175,17 @@ def _commit(pending):
         for path, _, overwrite in pending:  # one may have appeared while the others were written
             check_writable(path, overwrite)
         for path, tmp, _ in pending:
+            # Each step and its record in one block: a signal between them would leave a
+            # move that the rollback below does not know of.
             backup = None
             if os.path.lexists(path):
                 backup = tmp + ".old"  # .inject-*: never mistaken for an output
-                backups.append(backup)
-                _keep_copy(path, backup)
-            os.replace(tmp, path)
-            moved.append((path, backup))
+                with deferred():
+                    backups.append(backup)
+                    _keep_copy(path, backup)
+            with deferred():
+                os.replace(tmp, path)
+                moved.append((path, backup))
     except BaseException as err:  # an interrupt too: never leave half of the outputs moved
         for done, backup in reversed(moved):
             with contextlib.suppress(OSError):

@@ -121,6 +121,7 @@ def write_exr(path, scene, result, overwrite=False):
         out = oiio.ImageOutput.create("openexr")
         if out is None:
             raise OutputError(f"{path}: OpenImageIO has no OpenEXR writer ({oiio.geterror()})")
+        ok, error = False, ""
         try:
             ok = (out.open(tmp, [image_spec, mask_spec])
                   and out.write_image(pixels)
@@ -128,8 +129,11 @@ def write_exr(path, scene, result, overwrite=False):
                   and out.write_image(mask))
             error = out.geterror()
         finally:
-            ok = out.close() and ok
-        if not ok:
+            # Closed whatever stopped the write (an error, Ctrl-C, SIGTERM), so the file is
+            # released before atomic_path removes it; ``ok`` is set before the try, as the
+            # stop may come before the write's result is assigned.
+            closed = out.close()
+        if not (ok and closed):
             raise OutputError(f"{path}: cannot write EXR ({error or oiio.geterror()})")
 
 

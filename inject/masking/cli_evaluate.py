@@ -9,6 +9,7 @@ runs on the same images and is scored by :func:`inject.masking.evaluate.evaluate
 (per masker, height and magnitude; streak-free images form their own rows) and three PNG
 plots; prints the markdown table (or JSON with ``--json``) and progress on stderr.
 """
+import contextlib
 import csv
 import io
 import json
@@ -28,6 +29,19 @@ DEFAULT_SEEDS = 5
 #: 1-100 calibrated :data:`inject.masking.detect.FALSE_ALARM_Z`, so these are held out.
 DEFAULT_STREAK_FREE = 20
 STREAK_FREE_SEED0 = 1000
+
+#: ``inject evaluate --help``'s description (the module docstring without its markup).
+DESCRIPTION = (
+    "A seeded campaign scoring streak maskers against injected truth. The paper's satellite "
+    "(7.25 x 2.65 m box) is simulated on a detector cut-out of the default field (g band, 30 s, "
+    "zenith 70 deg, stars, noise) at every height and magnitude, on seeded random tracks "
+    "crossing the image, plus streak-free images of the same field (seeds held out from the "
+    "calibration of the detection threshold) for false positives; every masker runs on the "
+    "same images. Writes records.csv (one row per image, masker and streak), summary.csv and "
+    "summary.md (per masker, height and magnitude; streak-free images have their own rows) "
+    "and three PNG plots into the output directory; prints the markdown table (or JSON with "
+    "--json) and progress on stderr. If the campaign fails or is stopped, nothing is "
+    "written, and a directory made for it is removed.")
 
 #: Pixels of a full LSSTCam ITL CCD, for false positives per CCD from smaller images.
 CCD_PIXELS = 4072 * 4000
@@ -271,25 +285,26 @@ def add_evaluate_parser(sub):
     """Register ``inject evaluate`` on an argparse sub-parser collection."""
     p = sub.add_parser(
         "evaluate", help="score streak maskers against injected truth (seeded campaign)",
-        description=__doc__.split("\n\n")[1].replace("\n", " "))
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created)")
+        description=DESCRIPTION)
+    p.add_argument("--out", "-o", "--output", dest="out", required=True, metavar="DIR",
+                   help="output directory (created if missing)")
     p.add_argument("--seeds", type=int, default=DEFAULT_SEEDS, metavar="N",
-                   help=f"images per height and magnitude ({DEFAULT_SEEDS})")
+                   help="images per height and magnitude")
     p.add_argument("--mags", type=float, nargs="+", default=list(DEFAULT_MAGS), metavar="MAG",
                    help="stationary AB magnitudes at 550 km, face-on")
     p.add_argument("--heights", type=float, nargs="+", default=list(DEFAULT_HEIGHTS),
-                   metavar="KM", help="orbit heights (550 350)")
+                   metavar="KM", help="orbit heights")
     p.add_argument("--detector", type=int, default=DEFAULT_SIZE, metavar="PX",
-                   help=f"side of the square detector cut-out ({DEFAULT_SIZE}; 4000 for ~a CCD)")
+                   help="side of the square detector cut-out (4000 for ~a CCD)")
     p.add_argument("--masker", action="append", metavar="NAME",
                    help="masker to score: inject (ours), findsat_mrt (acstools) or "
                         "module:function taking an image and returning a bool mask; "
                         "repeatable (default: inject)")
     p.add_argument("--streak-free", type=int, default=DEFAULT_STREAK_FREE, metavar="N",
-                   help=f"streak-free images for false positives ({DEFAULT_STREAK_FREE}; seeds "
+                   help=f"streak-free images for false positives (seeds "
                         f"{STREAK_FREE_SEED0 + 1} on, held out from the threshold's calibration)")
     p.add_argument("--truth-sigma", type=float, default=1.0, metavar="T",
-                   help="true region = streak model > T x sky sigma (1)")
+                   help="true region = streak model > T x sky sigma")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the files of an earlier campaign in --out")
     p.add_argument("--json", action="store_true",
@@ -299,20 +314,54 @@ def add_evaluate_parser(sub):
 
 
 def _check(args):
+    from ..validate import check
+
     if args.seeds < 1:
         raise InputError("--seeds", args.seeds, "must be >= 1")
     if args.streak_free < 0:
         raise InputError("--streak-free", args.streak_free, "must be >= 0")
     if args.detector < 64:
         raise InputError("--detector", args.detector, "must be >= 64 px")
+    check("detector.ny", args.detector, "--detector")  # a cut-out of one CCD
     for h in args.heights:
         if not (math.isfinite(h) and h > 0):
             raise InputError("--heights", h, "must be > 0 km")
+        check("height", h, "--heights")
     for m in args.mags:
         if not math.isfinite(m):
             raise InputError("--mags", m, "must be finite")
+        check("mag", m, "--mags")
     if not (math.isfinite(args.truth_sigma) and args.truth_sigma > 0):
         raise InputError("--truth-sigma", args.truth_sigma, "must be > 0")
+
+
+@contextlib.contextmanager
+def _output_directory(path):
+    """Make ``path`` (and missing parents) for the block; remove the directories it made if
+    the block fails or is stopped and they are still empty (the outputs appear only at the
+    block's end, so on failure they are)."""
+    from ..errors import OutputError
+    from ..signals import deferred
+
+    missing, head = [], os.path.abspath(path)
+    while not os.path.isdir(head) and head != os.path.dirname(head):
+        missing.append(head)
+        head = os.path.dirname(head)
+    made = []
+    try:
+        try:
+            for directory in reversed(missing):
+                with deferred():  # made and recorded together
+                    os.mkdir(directory)
+                    made.append(directory)
+        except OSError as err:
+            raise OutputError(f"{path}: cannot create ({err.strerror or err})") from None
+        yield
+    except BaseException:
+        for directory in reversed(made):  # deepest first; one with files in it stays
+            with contextlib.suppress(OSError):
+                os.rmdir(directory)
+        raise
 
 
 def run_evaluate(args):
@@ -321,26 +370,27 @@ def run_evaluate(args):
     from ..io.atomic import output_group
     from .run import _json_safe as json_rows
 
+    from .evaluate import load_masker
+
     _check(args)
-    try:
-        os.makedirs(args.out, exist_ok=True)
-    except OSError as err:
-        raise OutputError(f"{args.out}: cannot create ({err.strerror or err})") from None
     maskers = args.masker or ["inject"]
+    for masker in maskers:  # a bad name or a missing optional package: before any work
+        load_masker(masker)
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        raise OutputError(f"{args.out}: exists and is not a directory")
 
     def progress(msg):
         print(msg, file=sys.stderr, flush=True)
 
     # The group checks every target before the campaign's minutes of work, and makes its
-    # files appear together at the end, or none of them (a full disk...).
-    with output_group([os.path.join(args.out, name) for name in OUTPUT_FILES],
-                      args.overwrite):
+    # files appear together at the end, or none of them (a full disk...); the directory is
+    # removed again if it was made for a campaign that failed.
+    with _output_directory(args.out), output_group(
+            [os.path.join(args.out, name) for name in OUTPUT_FILES], args.overwrite):
         records, summary = run_campaign(maskers, args.heights, args.mags, args.seeds,
                                         args.detector, args.truth_sigma, progress,
                                         args.streak_free)
         false = false_positive_summary(records, args.detector)
-        from .evaluate import load_masker
-
         names = [load_masker(maskers[0]).name]  # pixel loss: the first masker given
         loss = pixel_loss(summary, names[0], tuple(args.heights[:2])) \
             if len(args.heights) >= 2 else []

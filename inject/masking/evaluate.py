@@ -146,8 +146,10 @@ class Masker:
             out = MaskerOutput(np.asarray(out))
         mask = np.asarray(out.mask, dtype=bool)
         if mask.shape != np.shape(image):
-            raise ValueError(f"masker {self.name} returned a mask of shape {mask.shape} for an "
-                             f"image of shape {np.shape(image)}")
+            from . import MaskingError
+
+            raise MaskingError(f"masker {self.name} returned a mask of shape {mask.shape} for "
+                               f"an image of shape {np.shape(image)}")
         return MaskerOutput(mask, out.streaks), seconds
 
     def __repr__(self):
@@ -192,8 +194,9 @@ def load_masker(spec):
     if spec == "inject":
         return Masker(inject_masker, "inject")
     if spec == "findsat_mrt":
-        from .external import findsat_mrt_trails
+        from .external import _trail_finder, findsat_mrt_trails
 
+        _trail_finder()  # acstools is optional: say it is missing now, not after the first image
         return Masker(findsat_mrt_trails, "findsat_mrt")
     module, sep, name = str(spec).partition(":")
     if not sep or not module or not name:
@@ -360,16 +363,35 @@ def evaluate(images, maskers, truth_sigma=TRUTH_SIGMA, pixel_scale=0.2, bad=None
     """
     maskers = [load_masker(m) for m in maskers]
     records = []
-    for item in images:
+    for index, item in enumerate(images, 1):
         sim, labels = item if isinstance(item, tuple) else (item, {})
         flags = bad(sim) if bad is not None else None
         for masker in maskers:
-            out, seconds = masker(sim.image, flags)
+            try:
+                out, seconds = masker(sim.image, flags)
+            except Exception as err:  # a user's function may raise anything: say whose, where
+                from ..errors import InjectError
+                from . import MaskingError
+
+                what = err if isinstance(err, InjectError) else f"{type(err).__name__}: {err}"
+                raise MaskingError(f"masker {masker.name} failed on {_describe(index, labels)}: "
+                                   f"{what}") from err
             image, rows = score_image(sim, out, seconds, truth_sigma, pixel_scale)
             base = {"masker": masker.name, **labels, **image}
             for row in rows or [{"found": None}]:
                 records.append(base | row)
     return records
+
+
+def _describe(index, labels):
+    """``image 3 (550 km, mag 11.00, seed 2)``: which image of a campaign."""
+    if labels.get("streak_free"):
+        return f"image {index} (streak-free, seed {labels.get('seed')})"
+    parts = [f"{labels['height_km']:g} km" if labels.get("height_km") is not None else None,
+             f"mag {labels['mag']:.2f}" if labels.get("mag") is not None else None,
+             f"seed {labels['seed']}" if labels.get("seed") is not None else None]
+    parts = [p for p in parts if p]
+    return f"image {index}" + (f" ({', '.join(parts)})" if parts else "")
 
 
 def summarise(records, by=("masker", "height_km", "mag")):

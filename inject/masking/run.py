@@ -358,7 +358,7 @@ def add_mask_parser(sub):
     p.add_argument("image", metavar="IMAGE.fits")
     p.add_argument("--json", action="store_true",
                    help='print {"streaks": [...], "image": {...}} as JSON')
-    p.add_argument("-o", "--out", metavar="MASKED.fits",
+    p.add_argument("-o", "--out", "--output", metavar="MASKED.fits",
                    help="write a copy with the STREAK mask plane set")
     p.add_argument("--overwrite", action="store_true", help="replace an existing MASKED.fits")
     p.add_argument("--pixel-scale", type=float, metavar="ARCSEC",
@@ -369,9 +369,9 @@ def add_mask_parser(sub):
                         "beta 2.5 fit (maskStreaks), acstools = 6 sigma of a Gaussian fit "
                         "(findsat_mrt); all four widths are reported")
     p.add_argument("--sb-sigma", type=float, default=DEFAULT_SB_SIGMA, metavar="T",
-                   help="surface-brightness threshold of the sb rule, in sky sigma (1)")
+                   help="surface-brightness threshold of the sb rule, in sky sigma")
     p.add_argument("--fwhm-factor", type=float, default=DEFAULT_FWHM_FACTOR, metavar="K",
-                   help="k of the fwhm rule (3)")
+                   help="k of the fwhm rule")
     p.add_argument("--threshold", type=float, metavar="Z",
                    help="detection threshold on the Hough significance (default: calibrated "
                         "false-alarm level)")
