@@ -38,3 +38,13 @@ class FileFormatError(InjectError):
 
 class OutputError(InjectError):
     """An output cannot be written (exists without ``--overwrite``, unwritable, disk full)."""
+
+
+class OrbitError(InjectError):
+    """An orbit cannot be used: a TLE with a bad checksum, a decayed orbit, an epoch too far
+    from the exposure."""
+
+
+class OrbitWarning(UserWarning):
+    """An orbit or time is usable but less accurate (TLE epoch days from the exposure, a time
+    beyond the bundled IERS table)."""
