@@ -27,6 +27,7 @@ uses mean polar motion) instead of an error.
 import math
 import warnings
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from astropy import units as u
@@ -40,7 +41,7 @@ from sgp4.exporter import export_tle
 from sgp4.io import compute_checksum
 
 from .errors import InputError, OrbitError, OrbitWarning
-from .geometry import R_EARTH_KM, SIDEREAL_RATE_RAD_S
+from .geometry import R_EARTH_KM
 from .validate import finite, in_range, positive
 
 # Offline: never download Earth-orientation data; past the bundled table, warn and extrapolate.
@@ -49,6 +50,8 @@ iers.conf.auto_max_age = None
 
 #: Speed of light, km/s.
 C_KM_S = _c.to_value("km/s")
+#: Earth's rotation rate, rad/s (the rate of GMST 1982, the angle of TEME -> ITRS).
+EARTH_ROTATION_RAD_S = 7.292115855e-5
 #: Solar radius, km (astropy's IAU 2015 nominal value).
 R_SUN_KM = R_sun.to_value("km")
 #: A TLE epoch this many days from the exposure gives an OrbitWarning: SGP4's along-track error
@@ -440,9 +443,17 @@ def propagate_teme(orbits, times):
         If SGP4 fails for any orbit at any time (decayed, eccentricity out of range).
     """
     times = Time(times)
-    jd1 = np.atleast_1d(times.utc.jd1).astype(float)
-    jd2 = np.atleast_1d(times.utc.jd2).astype(float)
-    err, r, v = SatrecArray([o.satrec for o in orbits]).sgp4(jd1, jd2)
+    return _sgp4(orbits, np.atleast_1d(times.utc.jd1).astype(float),
+                 np.atleast_1d(times.utc.jd2).astype(float))
+
+
+def _sgp4(orbits, jd1, jd2):
+    """:func:`propagate_teme` at UTC Julian dates ``jd1 + jd2`` (avoids astropy Time overhead)."""
+    if len(orbits) == 1:
+        err, r, v = orbits[0].satrec.sgp4_array(jd1, jd2)
+        err, r, v = err[None], r[None], v[None]
+    else:
+        err, r, v = SatrecArray([o.satrec for o in orbits]).sgp4(jd1, jd2)
     if np.any(err):
         i, k = np.argwhere(err)[0]
         raise OrbitError(f"orbit {orbits[i].name!r}: SGP4 error {err[i, k]} at "
@@ -457,28 +468,13 @@ def teme_to_itrs(r_teme_km, times):
     return c.transform_to(ITRS(obstime=times)).cartesian.xyz.to_value(u.km).T
 
 
-def itrs_to_altaz(r_itrs_km, times, site):
-    """Topocentric AltAz of geocentric ITRS positions (km, (n, 3)) seen from ``site``.
-
-    Returns (alt_deg, az_deg, range_km, unit vectors (n, 3) in astropy's AltAz cartesian axes:
-    North, East, Up). Geometric, no refraction: the site is subtracted here, and astropy's
-    topocentric ITRS -> AltAz is then a rotation. (Handing astropy geocentric ITRS would send it
-    through its ITRS -> CIRS -> ITRS location change, which treats the satellite as a
-    celestial source: ~100" off at LEO.)
-    """
-    loc = site.location
-    top = CartesianRepresentation((r_itrs_km - site.itrs_km).T, unit=u.km)
-    c = SkyCoord(top, frame=ITRS(obstime=times, location=loc))
-    aa = c.transform_to(AltAz(obstime=times, location=loc))
-    dist = aa.distance.to_value(u.km)
-    unit = aa.cartesian.xyz.to_value(u.km).T / dist[:, None]
-    return aa.alt.to_value(u.deg), aa.az.to_value(u.deg), dist, unit
-
-
 def altaz_basis(site):
     """The site's North, East and Up unit vectors in ITRS (geodetic latitude and longitude).
 
-    The axes of astropy's AltAz cartesian representation in its direct ITRS -> AltAz transform.
+    The axes of astropy's AltAz cartesian representation in its topocentric ITRS -> AltAz (a
+    test checks them against :attr:`FieldFrame.itrs_to_altaz`). Note that astropy must be given
+    *topocentric* ITRS (site subtracted, ``location`` set): from geocentric ITRS it goes through
+    ITRS -> CIRS -> ITRS, which treats the satellite as a celestial source, ~100" off at LEO.
     """
     lat, lon = np.radians(site.lat_deg), np.radians(site.lon_deg)
     up = np.array([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)])
@@ -494,16 +490,39 @@ def _check_iers(times):
         end = Time(last, format="mjd").utc.isot[:10]
         warnings.warn(f"time {Time(np.max(times.utc.mjd), format='mjd').utc.isot} is beyond the "
                       f"bundled IERS table (ends {end}): UT1 and polar motion extrapolated, "
-                      f"positions may be off by arcseconds", OrbitWarning, stacklevel=3)
+                      f"positions may be off by arcseconds", OrbitWarning, stacklevel=4)
+
+
+def _rot_z(angle):
+    """Matrices (n, 3, 3) turning vectors by ``angle`` (rad, shape (n,)) about z."""
+    c, s = np.cos(angle), np.sin(angle)
+    m = np.zeros(np.shape(angle) + (3, 3))
+    m[..., 0, 0], m[..., 0, 1], m[..., 1, 0], m[..., 1, 1], m[..., 2, 2] = c, -s, s, c, 1.0
+    return m
 
 
 @dataclass(frozen=True, eq=False)
 class FieldFrame:
-    """The tracked field at each sample time: the pointing's basis in the AltAz frame.
+    """Everything one exposure's satellites share, from astropy, at each sample time.
 
-    ``centre``, ``east``, ``north`` are unit vectors (n_times, 3) in astropy's AltAz cartesian
-    axes, from the ICRS pointing transformed to AltAz (so with the stars' aberration). Shared by
-    every satellite of one exposure.
+    Built once per (times, pointing, site) by :meth:`build` with one astropy call per frame
+    chain; each satellite then needs SGP4 and matrix products only.
+
+    Attributes
+    ----------
+    centre, east, north : ndarray (n_times, 3)
+        The boresight and its local East and North, unit vectors in astropy's AltAz cartesian
+        axes (North, East, Up), from the ICRS pointing transformed to AltAz: with the stars'
+        aberration, so the tracked star field.
+    alt_deg, az_deg : ndarray (n_times,)
+        The boresight's (unrefracted) altitude and azimuth.
+    teme_to_itrs : ndarray (n_times, 3, 3)
+        astropy's TEME -> ITRS rotation of geocentric vectors (GMST 1982 and polar motion from
+        the IERS table), obtained by rotating the axes.
+    itrs_to_altaz : ndarray (3, 3)
+        astropy's topocentric ITRS -> AltAz rotation at the site.
+    sun_itrs : ndarray (n_times, 3)
+        Geocentric Sun (astropy ``get_sun``) in ITRS, km.
     """
 
     times: Time
@@ -514,28 +533,62 @@ class FieldFrame:
     north: np.ndarray
     alt_deg: np.ndarray
     az_deg: np.ndarray
+    teme_to_itrs: np.ndarray
+    itrs_to_altaz: np.ndarray
+    sun_itrs: np.ndarray
+
+    @cached_property
+    def jd_utc(self):
+        """UTC Julian dates of the samples as two float arrays (SGP4's input)."""
+        return (np.atleast_1d(self.times.utc.jd1).astype(float),
+                np.atleast_1d(self.times.utc.jd2).astype(float))
 
     @classmethod
     def build(cls, times, pointing, site=RUBIN):
+        """Compute the frames at ``times`` (warns once if they lie beyond the IERS table)."""
         times = Time(times)
-        frame = AltAz(obstime=times, location=site.location)
+        _check_iers(times)
+        n = times.size
+        loc = site.location
+        frame = AltAz(obstime=times, location=loc)
         centre = pointing.icrs
         # Offsets of 1 arcmin: the tangent directions of North and East at the boresight; the
-        # aberration's change over 1' (1e-4 x 60" = 6 mas) is negligible.
+        # aberration's change over 1' (1e-4 x 60" = 6 mas) is negligible. One (3, n) transform.
         pts = [centre, centre.directional_offset_by(0 * u.deg, 1 * u.arcmin),
                centre.directional_offset_by(90 * u.deg, 1 * u.arcmin)]
-        vec = []
-        for p in pts:
-            aa = p.transform_to(frame)
-            vec.append(aa.cartesian.xyz.value.T)
-            if p is centre:
-                alt, az = aa.alt.to_value(u.deg), aa.az.to_value(u.deg)
-        c, n, e = (v / np.linalg.norm(v, axis=-1, keepdims=True) for v in vec)
-        n = _unit(n - _dot(n, c)[:, None] * c)
-        e_perp = _unit(np.cross(c, n))
+        radec = SkyCoord([p.ra.deg for p in pts] * u.deg, [p.dec.deg for p in pts] * u.deg,
+                         frame="icrs")
+        aa = radec[:, None].transform_to(frame)
+        vec = np.moveaxis(aa.cartesian.xyz.value, 0, -1)  # (3 points, n, 3)
+        c, nn, e = (_unit(v) for v in vec)
+        nn = _unit(nn - _dot(nn, c)[:, None] * c)
+        e_perp = _unit(np.cross(c, nn))
         # AltAz cartesian axes are left-handed on the sky: take East's sign from the offset point.
         e = e_perp * np.sign(_dot(e, e_perp))[:, None]
-        return cls(times, site, pointing, c, e, n, alt, az)
+        # TEME -> ITRS: rotate the three axes (1e4 km long, for round-off) in one call.
+        axes = np.broadcast_to(np.eye(3)[:, None, :] * 1e4, (3, n, 3))
+        rep = CartesianRepresentation(np.moveaxis(axes, -1, 0), unit=u.km)
+        rot = SkyCoord(rep, frame=TEME(obstime=times)).transform_to(ITRS(obstime=times))
+        cols = np.moveaxis(rot.cartesian.xyz.to_value(u.km), 0, -1) / 1e4  # (axis, n, 3)
+        m_teme = np.stack([cols[0], cols[1], cols[2]], axis=-1)  # M @ r_teme = r_itrs
+        # Topocentric ITRS -> AltAz: a rotation, the same at every time.
+        t0 = times[:1] if times.shape else times
+        topo = SkyCoord(CartesianRepresentation(np.eye(3) * 1e4, unit=u.km),
+                        frame=ITRS(obstime=t0, location=loc))
+        m_aa = topo.transform_to(AltAz(obstime=t0, location=loc)).cartesian.xyz.to_value(
+            u.km) / 1e4  # columns: images of the ITRS axes
+        sun = get_sun(times).transform_to(ITRS(obstime=times)).cartesian.xyz.to_value(u.km).T
+        return cls(times, site, pointing, c, e, nn, aa[0].alt.to_value(u.deg),
+                   aa[0].az.to_value(u.deg), m_teme, m_aa, sun)
+
+    def to_altaz(self, r_itrs_km):
+        """Topocentric unit vectors (AltAz axes), range (km), alt and az (deg) of ITRS points."""
+        top = (r_itrs_km - self.site.itrs_km) @ self.itrs_to_altaz.T
+        rng = np.linalg.norm(top, axis=-1)
+        unit = top / rng[..., None]
+        alt = np.degrees(np.arcsin(np.clip(unit[..., 2], -1.0, 1.0)))
+        az = np.degrees(np.arctan2(unit[..., 1], unit[..., 0])) % 360.0
+        return unit, rng, alt, az
 
     def field_angles(self, unit):
         """Gnomonic field angles (deg) of unit vectors (n_times, 3) in this frame.
@@ -603,6 +656,16 @@ def illumination(r_sat_km, r_sun_km, earth_radius_km=R_EARTH_KM):
     fraction = np.clip(1.0 - overlap / (np.pi * a ** 2), 0.0, 1.0)
     state = np.where(fraction >= 1.0, "sunlit", np.where(fraction <= 0.0, "umbra", "penumbra"))
     return fraction, state
+
+
+def sunlight(orbit, times):
+    """Visible fraction of the Sun's disc and shadow state of ``orbit`` at ``times``.
+
+    See :func:`illumination`; the Sun from astropy's ``get_sun``, both in ITRS.
+    """
+    times = Time(times)
+    r_teme, _ = propagate_teme([orbit], times)
+    return illumination(teme_to_itrs(r_teme[0], times), sun_itrs(times))
 
 
 # --- the pass ------------------------------------------------------------------------------------
@@ -723,25 +786,28 @@ def compute_pass(orbit, exposure, pointing, site=RUBIN, step_s=1.0, t_s=None,
     if check_epoch:
         orbit.check_epoch(exposure.start)
     ts = exposure.sample_times(step_s) if t_s is None else np.sort(finite("t_s", t_s))
-    times = exposure.start + ts * u.s
-    _check_iers(times)
     if frame is None:
-        frame = FieldFrame.build(times, pointing, site)
-    r_teme, v_teme = (a[0] for a in propagate_teme([orbit], times))
-    r_itrs = teme_to_itrs(r_teme, times)
-    # The satellite's inertial velocity in ITRS axes: TEME -> ITRS is a rotation for geocentric
-    # vectors, so rotate the displacement over 1 s of inertial motion.
-    v_in = teme_to_itrs(r_teme + v_teme, times) - r_itrs
-    alt, az, rng, _ = itrs_to_altaz(r_itrs, times, site)
+        frame = FieldFrame.build(exposure.start + ts * u.s, pointing, site)
+    elif (frame.times.shape != ts.shape or frame.pointing != pointing or frame.site != site
+          or np.any(np.abs((frame.times - exposure.start).to_value(u.s) - ts) > 1e-6)):
+        raise InputError("frame", "FieldFrame", "was built for other times, pointing or site")
+    times = frame.times
+    jd1, jd2 = frame.jd_utc
+    m = frame.teme_to_itrs
+    r_teme, v_teme = (a[0] for a in _sgp4([orbit], jd1, jd2))
+    r_itrs = np.einsum("tij,tj->ti", m, r_teme)
+    v_in = np.einsum("tij,tj->ti", m, v_teme)  # inertial velocity in ITRS axes
+    _, rng, alt, az = frame.to_altaz(r_itrs)
 
     # Light time: the retarded position (one iteration is exact to < 1 mm at LEO) in the
-    # Earth-fixed frame of its own time, seen from the site at the sample time.
+    # Earth-fixed frame of its own time, seen from the site at the sample time. The ITRS of
+    # t - tau is that of t turned back by the Earth's rotation over tau (GMST 1982's rate; polar
+    # motion's share of it is 1e-13 rad): a vector fixed in TEME appears turned by +w tau.
     tau = rng / C_KM_S
-    t_ret = times - tau * u.s
-    r_ret_teme, _ = (a[0] for a in propagate_teme([orbit], t_ret))
-    r_ret = teme_to_itrs(r_ret_teme, t_ret)
-    tau = np.linalg.norm(r_ret - site.itrs_km, axis=-1) / C_KM_S
-    app_alt, app_az, _, app_unit = itrs_to_altaz(r_ret, times, site)
+    r_ret_teme, _ = (a[0] for a in _sgp4([orbit], jd1, jd2 - tau / 86400.0))
+    r_ret = np.einsum("tij,tj->ti", _rot_z(EARTH_ROTATION_RAD_S * tau) @ m, r_ret_teme)
+    app_unit, app_rng, app_alt, app_az = frame.to_altaz(r_ret)
+    tau = app_rng / C_KM_S
     xi, eta, fx, fy, front = frame.field_angles(app_unit)
 
     # Paper geometry at the satellite (rotation-invariant, computed in ITRS axes).
@@ -759,13 +825,13 @@ def compute_pass(orbit, exposure, pointing, site=RUBIN, step_s=1.0, t_s=None,
     # Speed across the tracked star field: the inertial relative velocity perpendicular to the
     # line of sight over the range (stars are fixed in inertial axes; Earth's spin axis is ITRS z
     # to within polar motion, 0.3").
-    omega = np.array([0.0, 0.0, SIDEREAL_RATE_RAD_S])
+    omega = np.array([0.0, 0.0, EARTH_ROTATION_RAD_S])
     v_rel = v_in - np.cross(omega, obs)
     s = _unit(r_itrs - obs)
     v_perp = v_rel - _dot(v_rel, s)[:, None] * s
     ang_speed = np.linalg.norm(v_perp, axis=-1) / rng
 
-    frac, state = illumination(r_itrs, sun_itrs(times))
+    frac, state = illumination(r_itrs, frame.sun_itrs)
 
     above = app_alt > 0.0
     inside_pts = front & above & (np.hypot(xi, eta) <= field_radius_deg)
@@ -798,20 +864,12 @@ def compute_pass(orbit, exposure, pointing, site=RUBIN, step_s=1.0, t_s=None,
 
 # --- many satellites -----------------------------------------------------------------------------
 
-def _teme_to_itrs_matrices(times):
-    """TEME -> ITRS rotation matrices (n_times, 3, 3) from astropy, by rotating the axes."""
-    n = len(times)
-    eye = np.broadcast_to(np.eye(3) * 1e4, (n, 3, 3))  # rows: x, y, z axes (km)
-    cols = [teme_to_itrs(eye[:, k, :], times) / 1e4 for k in range(3)]
-    return np.stack(cols, axis=-1)  # M @ r_teme = r_itrs
-
-
 def crossing_candidates(orbits, exposure, pointing, site=RUBIN, step_s=5.0, margin_deg=1.0,
                         field_radius_deg=FIELD_RADIUS_DEG):
     """Indices of the orbits that may cross the field: a coarse vectorised prefilter.
 
-    SGP4 (``SatrecArray``) at every ``step_s``; the TEME -> ITRS rotations and the pointing's
-    AltAz direction come from astropy once per time and are applied to all satellites with numpy.
+    SGP4 (``SatrecArray``) for the whole catalog at every ``step_s``, with the shared
+    :class:`FieldFrame` of those times; no light time, no shadow.
     An orbit is a candidate when, above the horizon, a straight segment between consecutive
     coarse samples passes within ``field_radius_deg + margin_deg`` of the boresight in the tangent
     plane (the margin covers the track's curvature between samples and the light time).
@@ -819,13 +877,9 @@ def crossing_candidates(orbits, exposure, pointing, site=RUBIN, step_s=5.0, marg
     ts = exposure.sample_times(step_s)
     times = exposure.start + ts * u.s
     frame = FieldFrame.build(times, pointing, site)
-    mats = _teme_to_itrs_matrices(times)
     r_teme, _ = propagate_teme(orbits, times)
-    r_itrs = np.einsum("tij,stj->sti", mats, r_teme)
-    north, east, up = altaz_basis(site)
-    top = r_itrs - site.itrs_km
-    top_aa = np.stack([top @ north, top @ east, top @ up], axis=-1)
-    unit = top_aa / np.linalg.norm(top_aa, axis=-1, keepdims=True)
+    r_itrs = np.einsum("tij,stj->sti", frame.teme_to_itrs, r_teme)
+    unit, _, _, _ = frame.to_altaz(r_itrs)
     above = unit[..., 2] > 0
     cz = np.einsum("sti,ti->st", unit, frame.centre)
     front = cz > 0.05
