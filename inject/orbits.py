@@ -366,10 +366,10 @@ def aimed_orbit(time, alt_deg, az_deg, site=RUBIN, height_km=550.0, inclination_
     """A circular orbit (epoch ``time``) that is at (alt, az) seen from ``site`` at ``time``.
 
     Example data: builds Starlink-like shell orbits timed to cross a chosen pointing, for tests
-    and sample fields; returned as the TLE it writes (:meth:`Orbit.as_tle`). The orbit's geocentric direction is aimed at the point of the line of
-    sight at the orbit's radius, refined against SGP4 itself (a few iterations), so the result
-    is on target to well under an arcminute. ``ascending`` picks the northbound or southbound
-    pass through that point.
+    and sample fields; returned as the TLE it writes (:meth:`Orbit.as_tle`). The orbit's
+    geocentric direction is aimed at the point of the line of sight at the orbit's radius,
+    refined against SGP4 itself (a few iterations); the TLE's rounding leaves it ~0.01 deg off.
+    ``ascending`` picks the northbound or southbound pass through that point.
 
     Raises
     ------

@@ -232,7 +232,7 @@ def test_nadir_angle_and_phi_match_the_paper_formulas(centred, sat, ts, topos):
     np.testing.assert_allclose(toward, np.sum(v_sat * l_hat, axis=1), atol=0.02)
 
 
-# --- the field ---------------------------------------------------------------------------------------
+# --- the field -----------------------------------------------------------------------------------
 
 def test_pointing_on_the_satellite_centres_the_track(centred):
     p = centred
@@ -352,8 +352,8 @@ def _sun_of_date_low_precision(jd_ut):
     lam = np.radians((280.460 + 0.9856474 * n) % 360 + 1.915 * np.sin(g) + 0.020 * np.sin(2 * g))
     eps = np.radians(23.439 - 0.0000004 * n)
     dist = (1.00014 - 0.01671 * np.cos(g) - 0.00014 * np.cos(2 * g)) * 1.495978707e8
-    return dist[..., None] * np.stack([np.cos(lam), np.cos(eps) * np.sin(lam), np.sin(eps) * np.sin(lam)],
-                           axis=-1)
+    return dist[..., None] * np.stack(
+        [np.cos(lam), np.cos(eps) * np.sin(lam), np.sin(eps) * np.sin(lam)], axis=-1)
 
 
 def test_shadow_entry_matches_a_cylindrical_shadow(sat, ts):
@@ -428,3 +428,33 @@ def test_shared_rotations_are_astropys(exposure):
                        @ frame.teme_to_itrs, r)
     np.testing.assert_allclose(turned, teme_to_itrs(r, times - tau * u.s), atol=1e-6)
     np.testing.assert_allclose(frame.itrs_to_altaz, np.stack(altaz_basis(RUBIN)), atol=1e-12)
+
+
+def test_tle_file_with_a_name_line(sat, tmp_path):
+    path = tmp_path / "example.tle"
+    path.write_text("EXAMPLE 550/53 (example data)\n" + "\n".join(sat.tle_lines()) + "\n")
+    back = Orbit.read_tle(path)
+    assert back.name == "EXAMPLE 550/53 (example data)" and back.kind == "tle"
+    assert back.tle_lines() == sat.tle_lines()
+    with pytest.raises(OrbitError, match="cannot be read"):
+        Orbit.read_tle(tmp_path / "missing.tle")
+
+
+def test_in_field_pass_to_json(centred):
+    out = json.loads(json.dumps(centred.to_dict()))
+    assert out["in_field"] is True and out["visible"] is True
+    assert len(out["samples"]) == 31 and out["samples"][15]["t_s"] == 15.0
+    s = out["samples"][15]
+    assert s["sunlit"] is True and s["shadow"] == "sunlit"
+    assert abs(s["field_x_deg"]) < 1e-3 and abs(s["field_y_deg"]) < 1e-3
+    assert Orbit.from_tle(*out["tle"]).tle_lines() == centred.orbit.tle_lines()
+
+
+def test_a_shared_frame_must_match(centred):
+    from inject.orbits import FieldFrame
+    p = centred
+    frame = FieldFrame.build(p.utc, p.pointing, RUBIN)
+    again = compute_pass(p.orbit, p.exposure, p.pointing, frame=frame)
+    np.testing.assert_array_equal(again.xi_deg, p.xi_deg)
+    with pytest.raises(InputError, match="frame"):
+        compute_pass(p.orbit, p.exposure, Pointing(0.0, 0.0), frame=frame)
