@@ -42,6 +42,7 @@ from sgp4.io import compute_checksum
 
 from .errors import InputError, OrbitError, OrbitWarning
 from .geometry import R_EARTH_KM
+from .photometry import apparent_magnitude
 from .validate import finite, in_range, positive
 
 # Offline: never download Earth-orientation data; past the bundled table, warn and extrapolate.
@@ -719,6 +720,18 @@ class Pass:
     @property
     def sunlit(self):
         return self.sun_fraction > 0.0
+
+    def magnitude(self, mag_ref, ref_range_km=550.0):
+        """Apparent magnitude per sample from the paper's scaling, dimmed by the penumbra.
+
+        ``mag_ref`` is the stationary magnitude at ``ref_range_km``, face-on
+        (:func:`~inject.photometry.apparent_magnitude`: flux ~ cos(theta_N) / r^2), plus
+        ``-2.5 log10(sun_fraction)``; ``inf`` in the umbra (no light).
+        """
+        m = apparent_magnitude(mag_ref, self.range_km, self.nadir_angle_deg, ref_range_km)
+        lit = self.sun_fraction > 0
+        dim = -2.5 * np.log10(np.where(lit, self.sun_fraction, 1.0))
+        return np.where(lit, m + dim, np.inf)
 
     def samples(self):
         """The samples as a list of JSON-ready dicts (the keys of CONTRACT.md's ``inject pass``

@@ -458,3 +458,24 @@ def test_a_shared_frame_must_match(centred):
     np.testing.assert_array_equal(again.xi_deg, p.xi_deg)
     with pytest.raises(InputError, match="frame"):
         compute_pass(p.orbit, p.exposure, Pointing(0.0, 0.0), frame=frame)
+
+
+def test_magnitude_along_the_pass_follows_the_paper_and_fades_in_the_penumbra(centred, sat):
+    from inject.photometry import apparent_magnitude
+    p = centred
+    m = p.magnitude(5.0)
+    np.testing.assert_allclose(m, apparent_magnitude(5.0, p.range_km, p.nadir_angle_deg))
+    # At mid-exposure: range 666 km, nadir angle 31.8 deg -> 5 log10(666/550) + 0.19 mag fainter.
+    mid = len(p.t_s) // 2
+    expected = 5.0 + 5 * math.log10(p.range_km[mid] / 550.0) - 2.5 * math.log10(
+        math.cos(math.radians(p.nadir_angle_deg[mid])))
+    assert m[mid] == pytest.approx(expected)
+    # Into the shadow (~215 s after the start): fainter through the penumbra, then no light.
+    late = compute_pass(sat, Exposure(Time(START) + 195 * u.s, 40.0), p.pointing,
+                        check_epoch=False)
+    ml = late.magnitude(5.0)
+    pen = late.shadow == "penumbra"
+    assert pen.any() and np.all(np.isinf(ml[late.shadow == "umbra"]))
+    base = apparent_magnitude(5.0, late.range_km, late.nadir_angle_deg)
+    np.testing.assert_allclose((ml - base)[pen], -2.5 * np.log10(late.sun_fraction[pen]))
+    assert np.all(np.diff(late.sun_fraction[pen]) <= 0)
