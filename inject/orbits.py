@@ -37,6 +37,7 @@ from astropy.coordinates import (
 from astropy.time import Time
 from astropy.utils import iers
 from sgp4.api import SGP4_ERRORS, WGS72, Satrec, SatrecArray
+from sgp4.earth_gravity import wgs72
 from sgp4.exporter import export_tle
 from sgp4.io import compute_checksum
 
@@ -65,8 +66,6 @@ EPOCH_REFUSE_DAYS = 60.0
 #: LSSTCam science CCD (the outer corner of R01 is at 370 mm, ~2.06 deg); the focal-plane module
 #: decides which CCDs are actually crossed.
 FIELD_RADIUS_DEG = 2.1
-#: SGP4 minutes per day.
-_MIN_PER_DAY = 1440.0
 
 
 # --- site, exposure, pointing ------------------------------------------------------------------
@@ -84,13 +83,13 @@ class Site:
         in_range("site longitude", self.lon_deg, -360.0, 360.0, hi_open=False, scalar=True)
         in_range("site height", self.height_m, -500.0, 10000.0, scalar=True)
 
-    @property
+    @cached_property
     def location(self):
         """The site as an astropy :class:`~astropy.coordinates.EarthLocation`."""
         return EarthLocation.from_geodetic(self.lon_deg * u.deg, self.lat_deg * u.deg,
                                            self.height_m * u.m)
 
-    @property
+    @cached_property
     def itrs_km(self):
         """Geocentric ITRS position of the site, km, shape (3,)."""
         return np.array([q.to_value(u.km) for q in self.location.geocentric])
@@ -323,13 +322,12 @@ class Orbit:
 
 
 def _wgs72_radius_km():
-    return 6378.135  # SGP4's WGS72 equatorial radius, the unit of Satrec.a and altp
+    return wgs72.radiusearthkm  # SGP4's Earth radius, the unit of Satrec.a and altp
 
 
 def _mean_motion_rad_min(a_er):
     """Keplerian mean motion (rad/min) for a semi-major axis in WGS72 Earth radii."""
-    xke = 60.0 / math.sqrt(6378.135 ** 3 / 398600.8)  # SGP4's WGS72 constant
-    return xke / a_er ** 1.5
+    return wgs72.xke / a_er ** 1.5
 
 
 def _sgp4init(satnum, epoch, inc, raan, ma, no_kozai):
@@ -543,6 +541,11 @@ class FieldFrame:
         """UTC Julian dates of the samples as two float arrays (SGP4's input)."""
         return (np.atleast_1d(self.times.utc.jd1).astype(float),
                 np.atleast_1d(self.times.utc.jd2).astype(float))
+
+    def t_from(self, start):
+        """Seconds of the samples from ``start`` (UTC Time)."""
+        jd1, jd2 = self.jd_utc
+        return ((jd1 - start.utc.jd1) + (jd2 - start.utc.jd2)) * 86400.0
 
     @classmethod
     def build(cls, times, pointing, site=RUBIN):
@@ -762,13 +765,13 @@ class Pass:
                 "field_radius_deg": self.field_radius_deg, "samples": self.samples()}
 
 
-def _segments_in_disc(x, y, radius):
-    """Per segment between consecutive points: does it come within ``radius`` of the origin?"""
-    x0, y0, x1, y1 = x[:-1], y[:-1], x[1:], y[1:]
+def _segment_distances(x, y):
+    """Per segment between consecutive points: its closest distance to the origin."""
+    x0, y0, x1, y1 = x[..., :-1], y[..., :-1], x[..., 1:], y[..., 1:]
     dx, dy = x1 - x0, y1 - y0
     len2 = dx * dx + dy * dy
     t = np.clip(-(x0 * dx + y0 * dy) / np.where(len2 > 0, len2, 1.0), 0.0, 1.0)
-    return np.hypot(x0 + t * dx, y0 + t * dy) <= radius
+    return np.hypot(x0 + t * dx, y0 + t * dy)
 
 
 def compute_pass(orbit, exposure, pointing, site=RUBIN, step_s=1.0, t_s=None,
@@ -802,7 +805,7 @@ def compute_pass(orbit, exposure, pointing, site=RUBIN, step_s=1.0, t_s=None,
     if frame is None:
         frame = FieldFrame.build(exposure.start + ts * u.s, pointing, site)
     elif (frame.times.shape != ts.shape or frame.pointing != pointing or frame.site != site
-          or np.any(np.abs((frame.times - exposure.start).to_value(u.s) - ts) > 1e-6)):
+          or np.any(np.abs(frame.t_from(exposure.start) - ts) > 1e-6)):
         raise InputError("frame", "FieldFrame", "was built for other times, pointing or site")
     times = frame.times
     jd1, jd2 = frame.jd_utc
@@ -847,21 +850,22 @@ def compute_pass(orbit, exposure, pointing, site=RUBIN, step_s=1.0, t_s=None,
     frac, state = illumination(r_itrs, frame.sun_itrs)
 
     above = app_alt > 0.0
-    inside_pts = front & above & (np.hypot(xi, eta) <= field_radius_deg)
-    seg_ok = front[:-1] & front[1:] & above[:-1] & above[1:]
-    seg_in = np.zeros(max(len(ts) - 1, 0), dtype=bool)
-    if len(ts) > 1:
-        seg_in = seg_ok & _segments_in_disc(np.nan_to_num(xi), np.nan_to_num(eta),
-                                            field_radius_deg)
-    in_field = bool(inside_pts.any() or seg_in.any())
+    ok = front & above
+    inside_pts = ok & (np.hypot(xi, eta) <= field_radius_deg)
+    # Gnomonic: great circles are straight, so a segment between samples is the track's chord.
+    seg_d = np.where(ok[:-1] & ok[1:], _segment_distances(np.nan_to_num(xi),
+                                                          np.nan_to_num(eta)), np.inf)
+    in_field = bool(inside_pts.any() or (seg_d <= field_radius_deg).any())
     lit_inside = inside_pts & (frac > 0)
     visible = bool(lit_inside.any()) if inside_pts.any() else bool(
         in_field and (frac > 0).any())
     if not above.any():
         msg = f"below the horizon (altitude {alt.max():.1f} deg at most)"
     elif not in_field:
-        sep = np.hypot(xi, eta)[front & above]
-        closest = f"{np.nanmin(sep):.2f} deg" if sep.size else "more than 90 deg"
+        near = min(np.min(np.hypot(xi, eta)[ok], initial=np.inf), np.min(seg_d, initial=np.inf))
+        # The true angle from the boresight of a tangent-plane distance (deg of tan).
+        closest = (f"{np.degrees(np.arctan(np.radians(near))):.2f} deg" if np.isfinite(near)
+                   else "more than 90 deg")
         msg = f"misses the field (closest {closest} from the boresight, field radius " \
               f"{field_radius_deg:g} deg)"
     elif not visible:
@@ -901,11 +905,7 @@ def crossing_candidates(orbits, exposure, pointing, site=RUBIN, step_s=5.0, marg
     eta = np.degrees(np.einsum("sti,ti->st", unit, frame.north) / safe)
     ok = above & front
     radius = field_radius_deg + margin_deg
-    x0, y0, x1, y1 = xi[:, :-1], eta[:, :-1], xi[:, 1:], eta[:, 1:]
-    dx, dy = x1 - x0, y1 - y0
-    len2 = dx * dx + dy * dy
-    t = np.clip(-(x0 * dx + y0 * dy) / np.where(len2 > 0, len2, 1.0), 0.0, 1.0)
-    near = np.hypot(x0 + t * dx, y0 + t * dy) <= radius
+    near = _segment_distances(xi, eta) <= radius
     hit = (near & ok[:, :-1] & ok[:, 1:]).any(axis=1) | (ok & (np.hypot(xi, eta) <= radius)).any(
         axis=1)
     return np.flatnonzero(hit)
