@@ -46,3 +46,13 @@ class ResourceError(InjectError):
 
 class InputWarning(UserWarning):
     """A value is accepted but outside the range where it is physically plausible."""
+
+
+class OrbitError(InjectError):
+    """An orbit cannot be used: a TLE with a bad checksum, a decayed orbit, an epoch too far
+    from the exposure."""
+
+
+class OrbitWarning(UserWarning):
+    """An orbit or time is usable but less accurate (TLE epoch days from the exposure, a time
+    beyond the bundled IERS table)."""
