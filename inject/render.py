@@ -566,7 +566,7 @@ class ProfileCache:
     max_entries : int
     """
 
-    def __init__(self, max_bytes=512 * 2 ** 20, max_entries=256):
+    def __init__(self, max_bytes=256 * 2 ** 20, max_entries=256):
         self.max_bytes, self.max_entries = int(max_bytes), int(max_entries)
         self._items = OrderedDict()  # key -> (value, nbytes)
         self._lock = threading.Lock()

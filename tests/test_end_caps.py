@@ -63,3 +63,21 @@ def test_reference_step_converges_for_a_narrow_gaussian():
                    for s in (0.04, 0.02))
     # error(0.02) ~ (fine - finer) / 3 for a second-order rule
     assert np.abs(fine - finer).max() / 3 < TOL / 4 * finer.max()
+
+
+@pytest.mark.parametrize("length", [0.5, 3.0])
+def test_short_narrow_tracks_against_brute_force(length):
+    """Tracks shorter than the profile: within the budget of their own (lower) peak, with the
+    budget tightened by :func:`inject.render.short_track_budget` as the renderer does."""
+    from inject.render import short_track_budget
+
+    profile = galsim.Gaussian(fwhm=2.0 * PIXEL, gsparams=GSPARAMS)
+    budget = short_track_budget(Budget(), profile, PIXEL, 23.0, length)
+    assert (budget.tolerance < TOL) == (length < 2.0)  # shorter than the profile: tightened
+    seg = Segment(24.3, 22.6, 23.0, length)
+    shape = (48, 52)
+    image = np.zeros(shape)
+    render_segment(image, SweptProfile(profile, PIXEL, 23.0, budget), seg, 1.0)
+    ref = render_brute_force(shape, profile, PIXEL, seg, 1.0, step_px=0.02)
+    assert ends_error(image, ref) <= TOL
+    assert image.sum() == pytest.approx(length, rel=1e-4)
