@@ -16,8 +16,8 @@ from .errors import SceneError
 from .instrument import LSST
 from .photometry import sky_per_pixel
 from .profile import Seeing
-from .render import (AUTO_MIN_TOLERANCE, PROFILE_CACHE, Budget, render_polyline, render_segment,
-                     snap_tolerance, swept_profile)
+from .render import (AUTO_MIN_TOLERANCE, PROFILE_CACHE, SHORT_TRACK_CHECK_PX, Budget,
+                     render_polyline, render_segment, snap_tolerance, swept_profile)
 from .streak import StreakModel
 from .trajectory import Polyline, Segment
 
@@ -148,17 +148,15 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0,
         One row per streak.
     """
     model_image = np.zeros(shape)
-    truth = []
+    budgets = [_own_budget(budget, model, noise_sigma) for model in models]
+    truth = [None] * len(tracks)
     counter = _Progress(len(tracks), progress)
-    for model, track in zip(models, tracks):
-        own = budget
-        if noise_sigma > 0:
-            tolerance = max(AUTO_MIN_TOLERANCE,
-                            snap_tolerance(NOISE_FRACTION * noise_sigma / model.peak_e_per_px))
-            if tolerance < budget.tolerance:
-                own = replace(budget, tolerance=tolerance)
+    # Streaks that share tables are rendered one after the other, so a bounded cache builds
+    # each table once (the image changes only by the order of float additions).
+    for i in _grouped(models, tracks, budgets):
+        model, track, own = models[i], tracks[i], budgets[i]
         if track.vertices is not None:
-            truth.append(_render_polyline_track(model_image, model, track, own, cache))
+            truth[i] = _render_polyline_track(model_image, model, track, own, cache)
             counter.step()
             continue
         swept = swept_profile(model, track.angle, own,
@@ -176,9 +174,34 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0,
         ends = (track.x0, track.y0, track.x0, track.y0, 0.0) if segment is None else (
             segment.x0, segment.y0, segment.x1, segment.y1, segment.length)
         expected = model.flux_per_px * ends[-1]
-        truth.append(_truth_row(model, track, ends, charge, expected, own))
+        truth[i] = _truth_row(model, track, ends, charge, expected, own)
         counter.step()
     return model_image, truth
+
+
+def _own_budget(budget, model, noise_sigma):
+    """The budget tightened for a bright streak in noise (see :func:`render_tracks`)."""
+    if noise_sigma > 0:
+        tolerance = max(AUTO_MIN_TOLERANCE,
+                        snap_tolerance(NOISE_FRACTION * noise_sigma / model.peak_e_per_px))
+        if tolerance < budget.tolerance:
+            return replace(budget, tolerance=tolerance)
+    return budget
+
+
+def _grouped(models, tracks, budgets):
+    """Streak indices, those with the same profile, angle, budget and (short) length
+    together, groups in order of first appearance; polylines keep their own place."""
+    groups = {}
+    for i, (model, track, own) in enumerate(zip(models, tracks, budgets)):
+        if track.vertices is not None:
+            key = ("polyline", i)
+        else:
+            length = np.inf if track.length is None else track.length
+            key = (model.profile_key, track.angle, own,
+                   length if length < SHORT_TRACK_CHECK_PX else np.inf)
+        groups.setdefault(key, []).append(i)
+    return [i for members in groups.values() for i in members]
 
 
 _VERTEX_FIELDS = {"height": "height_km", "zenith": "zenith_deg", "phi": "phi_deg", "mag": "mag"}

@@ -89,8 +89,9 @@ def main(argv=None):
               f"({(best['angles'] - one) / (k - 1) * 1e3:.0f} ms per extra streak)")
     fresh_caches()
     scene_mod.render_streaks(scenes["mixed"])
-    print(f"tables built for the mixed scene: {render.PROFILE_CACHE.misses} cache entries, "
-          f"{render.PROFILE_CACHE.nbytes / 2 ** 20:.0f} MiB")
+    swept = [k for k in render.PROFILE_CACHE._items if k[0] == "swept"]
+    print(f"mixed scene: {len(swept)} swept profiles kept ({render.PROFILE_CACHE.misses} "
+          f"cache misses in all), {render.PROFILE_CACHE.nbytes / 2 ** 20:.0f} MiB")
     if args.check:
         shared, _ = scene_mod.render_streaks(scenes["train"])
         alone, _ = scene_mod.render_tracks(
