@@ -49,9 +49,11 @@ SHORT_TRACK_CHECK_PX = 1000.0
 #: reports the mismatch it reached as its predicted error instead.
 MAX_TABLE_SIZE = 4096
 
-#: Tightened tolerances (noise, short tracks) are rounded down to this grid of powers of two
-#: (quarter octaves), so streaks of slightly different brightness or length share tables.
-TOLERANCE_STEPS_PER_OCTAVE = 4
+#: Tightened tolerances (noise, short tracks) are rounded down to this grid of powers of two,
+#: so streaks of different brightness or length share tables: a scene of magnitudes 1-9
+#: builds 5 tables between AUTO_MIN_TOLERANCE and the default (19 at quarter octaves, whose
+#: tightest few cost as much as all of these), each at most twice as tight as needed.
+TOLERANCE_STEPS_PER_OCTAVE = 1
 
 
 def snap_tolerance(tolerance):

@@ -4,8 +4,8 @@ import pytest
 
 from inject.config import Track
 from inject.profile import Seeing
-from inject.render import (Budget, ProfileCache, render_streak, snap_tolerance,
-                           swept_profile)
+from inject.render import (TOLERANCE_STEPS_PER_OCTAVE, Budget, ProfileCache, render_streak,
+                           snap_tolerance, swept_profile)
 from inject.scene import PROGRESS_MIN_STREAKS, render_tracks
 from inject.streak import StreakModel
 from inject.trajectory import Segment
@@ -79,11 +79,12 @@ def test_cache_is_bounded():
 
 
 def test_snapped_tolerances_are_never_looser_and_on_the_grid():
+    n = TOLERANCE_STEPS_PER_OCTAVE
     for tol in np.geomspace(2e-6, 5e-5, 37):
         snapped = snap_tolerance(tol)
-        assert snapped <= tol and snapped > tol / 2 ** 0.25 * (1 - 1e-12)
+        assert snapped <= tol and snapped > tol / 2 ** (1 / n) * (1 - 1e-12)
         assert snap_tolerance(snapped) == snapped
-        steps = np.log2(snapped) * 4
+        steps = np.log2(snapped) * n
         assert abs(steps - round(steps)) < 1e-9
 
 
