@@ -59,6 +59,8 @@ TOLERANCE_STEPS_PER_OCTAVE = 1
 def snap_tolerance(tolerance):
     """Round a tolerance down to the grid of :data:`TOLERANCE_STEPS_PER_OCTAVE` steps per
     factor of two: never looser than asked, and a discrete key for shared tables."""
+    if not tolerance > 0:  # a zero-length (or invalid) track: the callers clamp it
+        return float(tolerance)
     n = TOLERANCE_STEPS_PER_OCTAVE
     snapped = 2.0 ** (np.floor(np.log2(tolerance) * n + 1e-9) / n)
     return float(min(tolerance, snapped))

@@ -4,8 +4,8 @@ import pytest
 
 from inject.config import Track
 from inject.profile import Seeing
-from inject.render import (TOLERANCE_STEPS_PER_OCTAVE, Budget, ProfileCache, render_streak,
-                           snap_tolerance, swept_profile)
+from inject.render import (AUTO_MIN_TOLERANCE, TOLERANCE_STEPS_PER_OCTAVE, Budget, ProfileCache,
+                           render_streak, short_track_budget, snap_tolerance, swept_profile)
 from inject.scene import PROGRESS_MIN_STREAKS, render_tracks
 from inject.streak import StreakModel
 from inject.trajectory import Segment
@@ -86,6 +86,11 @@ def test_snapped_tolerances_are_never_looser_and_on_the_grid():
         assert snap_tolerance(snapped) == snapped
         steps = np.log2(snapped) * n
         assert abs(steps - round(steps)) < 1e-9
+    # A zero-length track: no log of 0 (a RuntimeWarning), the budget clamped as before.
+    assert snap_tolerance(0.0) == 0.0
+    model = StreakModel(550, 70)
+    assert short_track_budget(Budget(), model.profile, 0.2, 23.0, 0.0).tolerance == \
+        AUTO_MIN_TOLERANCE
 
 
 def test_progress_only_for_many_streaks(capsys):
