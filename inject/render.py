@@ -16,6 +16,8 @@ so ``C`` meets its limits exactly and every track, however short, keeps its flux
 drawn on pixels the streak cannot reach: the support across and along the track follows from an
 accuracy budget.
 """
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 
 import galsim
@@ -46,6 +48,22 @@ SHORT_TRACK_CHECK_PX = 1000.0
 #: Largest end-cap table (samples on a side) before the renderer stops widening it and
 #: reports the mismatch it reached as its predicted error instead.
 MAX_TABLE_SIZE = 4096
+
+#: Tightened tolerances (noise, short tracks) are rounded down to this grid of powers of two,
+#: so streaks of different brightness or length share tables: a scene of magnitudes 1-9
+#: builds 5 tables between AUTO_MIN_TOLERANCE and the default (19 at quarter octaves, whose
+#: tightest few cost as much as all of these), each at most twice as tight as needed.
+TOLERANCE_STEPS_PER_OCTAVE = 1
+
+
+def snap_tolerance(tolerance):
+    """Round a tolerance down to the grid of :data:`TOLERANCE_STEPS_PER_OCTAVE` steps per
+    factor of two: never looser than asked, and a discrete key for shared tables."""
+    if not tolerance > 0:  # a zero-length (or invalid) track: the callers clamp it
+        return float(tolerance)
+    n = TOLERANCE_STEPS_PER_OCTAVE
+    snapped = 2.0 ** (np.floor(np.log2(tolerance) * n + 1e-9) / n)
+    return float(min(tolerance, snapped))
 
 
 @dataclass(frozen=True)
@@ -522,7 +540,8 @@ def short_track_budget(budget, profile, pixel_scale, angle_deg, length_px):
     A track shorter than the profile along it peaks below an infinite streak's ``F p
     max LSF``, which the tables are budgeted against: the tolerance is scaled by the ratio of
     the two peaks, ``min(1, L max phi)`` (``phi`` the pixel-convolved marginal along the
-    track, exact for separable profiles as ``L -> 0``), down to :data:`AUTO_MIN_TOLERANCE`.
+    track, exact for separable profiles as ``L -> 0``), rounded down to the grid of
+    :func:`snap_tolerance`, down to :data:`AUTO_MIN_TOLERANCE`.
     """
     if not np.isfinite(length_px):
         return budget
@@ -532,34 +551,111 @@ def short_track_budget(budget, profile, pixel_scale, angle_deg, length_px):
     if ratio >= 1.0:
         return budget
     return replace(budget, tolerance=max(min(AUTO_MIN_TOLERANCE, budget.tolerance),
-                                         budget.tolerance * ratio))
+                                         snap_tolerance(budget.tolerance * ratio)))
 
 
-def swept_profile(model, angle_deg, budget=Budget(), length_px=np.inf):
+class ProfileCache:
+    """What streaks share, built once: swept profiles (LSF and end-cap tables), the profile
+    chosen for a budget, short-track budgets. A bounded LRU, thread-safe.
+
+    Every key holds exactly what determines the value: the model's
+    :attr:`~inject.streak.StreakModel.profile_key` (geometry, shape, seeing, telescope; not
+    the magnitude or band, which only scale the charge), the track angle, the budget and, for
+    short-track budgets, the length. A hit therefore returns what a fresh build would.
+
+    Parameters
+    ----------
+    max_bytes : int
+        Memory the cached tables may hold; the least recently used are dropped beyond it.
+    max_entries : int
+    """
+
+    def __init__(self, max_bytes=256 * 2 ** 20, max_entries=256):
+        self.max_bytes, self.max_entries = int(max_bytes), int(max_entries)
+        self._items = OrderedDict()  # key -> (value, nbytes)
+        self._lock = threading.Lock()
+        self.hits = self.misses = 0
+
+    @property
+    def nbytes(self):
+        return sum(size for _, size in self._items.values())
+
+    def __len__(self):
+        return len(self._items)
+
+    def clear(self):
+        with self._lock:
+            self._items.clear()
+            self.hits = self.misses = 0
+
+    def get(self, key, build):
+        """The value for ``key``, from ``build()`` on a miss."""
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                self.hits += 1
+                return self._items[key][0]
+        value = build()  # outside the lock: tables take seconds at tight budgets
+        size = _nbytes(value)
+        with self._lock:
+            self.misses += 1
+            self._items[key] = (value, size)
+            self._items.move_to_end(key)
+            while self._items and (len(self._items) > self.max_entries
+                                   or self.nbytes > self.max_bytes):
+                self._items.popitem(last=False)
+        return value
+
+
+def _nbytes(value):
+    """Memory held by a cached value (a SweptProfile's tables, including K's inputs and
+    table, built on first use; small objects count as 0)."""
+    if not isinstance(value, SweptProfile):
+        return 0
+    coeffs = value._second_inputs[0]
+    return int(2 * value._table.nbytes + coeffs.nbytes + value.lsf.lsf.nbytes)
+
+
+#: The cache :func:`swept_profile` uses unless told otherwise.
+PROFILE_CACHE = ProfileCache()
+
+
+def swept_profile(model, angle_deg, budget=Budget(), length_px=np.inf, cache=PROFILE_CACHE):
     """A :class:`SweptProfile` of a :class:`~inject.streak.StreakModel`, with components
     that cannot matter at this budget dropped, and that decision in its plan.
 
     ``length_px``, if given, tightens the tolerance of a track too short to reach the
-    long streak's peak (:func:`short_track_budget`).
+    long streak's peak (:func:`short_track_budget`). ``cache`` (a :class:`ProfileCache`, or
+    None to build afresh) shares the result between streaks with the same profile, angle and
+    budget.
     """
+    if cache is None:
+        cache = ProfileCache()  # a throwaway one: nothing shared with other calls
+    key = model.profile_key
+    angle_deg = float(angle_deg)
     if length_px < SHORT_TRACK_CHECK_PX:
-        budget = short_track_budget(budget, model.profile, model.pixel_scale, angle_deg,
-                                    length_px)
-    profile, dropped, error = model.render_profile(budget.tolerance)
-    swept = SweptProfile(profile, model.pixel_scale, angle_deg, budget)
-    if dropped:
-        swept.plan = replace(swept.plan, dropped=dropped,
-                             predicted_error=swept.plan.predicted_error | {"dropped": error})
-    return swept
+        budget = cache.get(("budget", key, angle_deg, float(length_px), budget),
+                           lambda: short_track_budget(budget, model.profile, model.pixel_scale,
+                                                      angle_deg, length_px))
+
+    def build():
+        profile, dropped, error = cache.get(("profile", key, budget.tolerance),
+                                            lambda: model.render_profile(budget.tolerance))
+        swept = SweptProfile(profile, model.pixel_scale, angle_deg, budget)
+        if dropped:
+            swept.plan = replace(swept.plan, dropped=dropped,
+                                 predicted_error=swept.plan.predicted_error | {"dropped": error})
+        return swept
+    return cache.get(("swept", key, angle_deg, budget), build)
 
 
-def render_streak(image, model, segment, budget=Budget()):
+def render_streak(image, model, segment, budget=Budget(), cache=PROFILE_CACHE):
     """Render a :class:`~inject.streak.StreakModel` along a segment into ``image``."""
-    swept = swept_profile(model, segment.angle_deg, budget, segment.length)
+    swept = swept_profile(model, segment.angle_deg, budget, segment.length, cache)
     return render_segment(image, swept, segment, model.flux_per_px)
 
 
-def render_polyline(image, polyline, models, budget=Budget()):
+def render_polyline(image, polyline, models, budget=Budget(), cache=PROFILE_CACHE):
     """Render a track through vertices whose streak models differ (width, speed, brightness).
 
     Each piece between two vertices is split at its middle: the first half is swept with the
@@ -574,6 +670,9 @@ def render_polyline(image, polyline, models, budget=Budget()):
     models : list of StreakModel
         One per vertex.
     budget : Budget
+    cache : ProfileCache or None
+        Shared swept profiles (see :func:`swept_profile`); within the polyline each model and
+        angle is built once even without it.
 
     Returns
     -------
@@ -582,13 +681,10 @@ def render_polyline(image, polyline, models, budget=Budget()):
     """
     if len(models) != len(polyline.xs):
         raise InputError("models", len(models), f"need one per vertex ({len(polyline.xs)})")
-    swept = {}
+    local = ProfileCache() if cache is None else cache
 
     def profile_for(model, angle):
-        key = (id(model), round(angle, 9))
-        if key not in swept:
-            swept[key] = swept_profile(model, angle, budget)
-        return swept[key]
+        return swept_profile(model, angle, budget, cache=local)
 
     total, vertex = 0.0, 0
     for seg in polyline.segments():

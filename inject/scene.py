@@ -4,6 +4,7 @@ The engine takes a validated :class:`~inject.config.Scene` and returns arrays an
 table; writing files is :mod:`inject.io`'s job.
 """
 import os
+import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
@@ -16,7 +17,8 @@ from .instrument import LSST
 from .maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, MASK_PLANES  # noqa: F401
 from .photometry import sky_per_pixel
 from .profile import Seeing
-from .render import AUTO_MIN_TOLERANCE, Budget, render_polyline, render_segment, swept_profile
+from .render import (AUTO_MIN_TOLERANCE, PROFILE_CACHE, SHORT_TRACK_CHECK_PX, Budget,
+                     render_polyline, render_segment, snap_tolerance, swept_profile)
 from .streak import StreakModel
 from .trajectory import Polyline, Segment
 
@@ -79,7 +81,35 @@ def pixel_noise(scene):
 NOISE_FRACTION = 0.05
 
 
-def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0):
+#: Scenes with at least this many streaks report their progress on stderr.
+PROGRESS_MIN_STREAKS = 20
+
+
+class _Progress:
+    """A counter line on stderr for scenes with many streaks (``\\r``-updated on a terminal,
+    a line per tenth otherwise); silent below :data:`PROGRESS_MIN_STREAKS`."""
+
+    def __init__(self, total, enabled=None):
+        self.total, self.done = total, 0
+        self.enabled = total >= PROGRESS_MIN_STREAKS if enabled is None else bool(enabled)
+        self.tty = self.enabled and sys.stderr.isatty()
+        self.next_line = 0
+
+    def step(self):
+        self.done += 1
+        if not self.enabled:
+            return
+        if self.tty:
+            end = "\n" if self.done == self.total else ""
+            print(f"\rinject: streak {self.done}/{self.total}", end=end, file=sys.stderr,
+                  flush=True)
+        elif self.done >= self.next_line or self.done == self.total:
+            print(f"inject: streak {self.done}/{self.total}", file=sys.stderr, flush=True)
+            self.next_line = self.done + max(1, self.total // 10)
+
+
+def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0,
+                  cache=PROFILE_CACHE, progress=None):
     """Render streak models along tracks into a new image of ``shape``.
 
     Parameters
@@ -93,8 +123,14 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0):
     noise_sigma : float
         Per-pixel noise, e-. A bright streak's seeing wings stay above the noise far beyond
         the budget's relative tolerance: the tolerance is tightened (down to
-        ``AUTO_MIN_TOLERANCE``) so that errors and the wings left out stay below
-        ``NOISE_FRACTION`` of the noise (a cut would show as an edge).
+        ``AUTO_MIN_TOLERANCE``, on the grid of :func:`~inject.render.snap_tolerance`) so
+        that errors and the wings left out stay below ``NOISE_FRACTION`` of the noise (a cut
+        would show as an edge).
+    cache : ProfileCache or None
+        Streaks with the same profile, angle and budget share one swept profile (its tables
+        take most of a short streak's time); None builds each afresh.
+    progress : bool, optional
+        Count the streaks on stderr; by default only for :data:`PROGRESS_MIN_STREAKS` or more.
 
     Returns
     -------
@@ -104,19 +140,19 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0):
         One row per streak.
     """
     model_image = np.zeros(shape)
-    truth = []
-    for model, track in zip(models, tracks):
-        own = budget
-        if noise_sigma > 0:
-            tolerance = max(AUTO_MIN_TOLERANCE,
-                            NOISE_FRACTION * noise_sigma / model.peak_e_per_px)
-            if tolerance < budget.tolerance:
-                own = replace(budget, tolerance=tolerance)
+    budgets = [_own_budget(budget, model, noise_sigma) for model in models]
+    truth = [None] * len(tracks)
+    counter = _Progress(len(tracks), progress)
+    # Streaks that share tables are rendered one after the other, so a bounded cache builds
+    # each table once (the image changes only by the order of float additions).
+    for i in _grouped(models, tracks, budgets):
+        model, track, own = models[i], tracks[i], budgets[i]
         if track.vertices is not None:
-            truth.append(_render_polyline_track(model_image, model, track, own))
+            truth[i] = _render_polyline_track(model_image, model, track, own, cache)
+            counter.step()
             continue
         swept = swept_profile(model, track.angle, own,
-                              np.inf if track.length is None else track.length)
+                              np.inf if track.length is None else track.length, cache)
         if track.length is None:
             # The profile reaches support_px across and cap_px along: a line that far outside
             # the image still lights it.
@@ -130,20 +166,46 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0):
         ends = (track.x0, track.y0, track.x0, track.y0, 0.0) if segment is None else (
             segment.x0, segment.y0, segment.x1, segment.y1, segment.length)
         expected = model.flux_per_px * ends[-1]
-        truth.append(_truth_row(model, track, ends, charge, expected, own))
+        truth[i] = _truth_row(model, track, ends, charge, expected, own)
+        counter.step()
     return model_image, truth
+
+
+def _own_budget(budget, model, noise_sigma):
+    """The budget tightened for a bright streak in noise (see :func:`render_tracks`)."""
+    if noise_sigma > 0:
+        tolerance = max(AUTO_MIN_TOLERANCE,
+                        snap_tolerance(NOISE_FRACTION * noise_sigma / model.peak_e_per_px))
+        if tolerance < budget.tolerance:
+            return replace(budget, tolerance=tolerance)
+    return budget
+
+
+def _grouped(models, tracks, budgets):
+    """Streak indices, those with the same profile, angle, budget and (short) length
+    together, groups in order of first appearance; polylines keep their own place."""
+    groups = {}
+    for i, (model, track, own) in enumerate(zip(models, tracks, budgets)):
+        if track.vertices is not None:
+            key = ("polyline", i)
+        else:
+            length = np.inf if track.length is None else track.length
+            key = (model.profile_key, track.angle, own,
+                   length if length < SHORT_TRACK_CHECK_PX else np.inf)
+        groups.setdefault(key, []).append(i)
+    return [i for members in groups.values() for i in members]
 
 
 _VERTEX_FIELDS = {"height": "height_km", "zenith": "zenith_deg", "phi": "phi_deg", "mag": "mag"}
 
 
-def _render_polyline_track(image, model, track, budget):
+def _render_polyline_track(image, model, track, budget, cache=PROFILE_CACHE):
     """Render a polyline track whose vertices may override the model; return its truth row."""
     vertex_models = [replace(model, **{_VERTEX_FIELDS[k]: v for k, v in vertex.items()
                                        if k in _VERTEX_FIELDS})
                      for vertex in track.vertices]
     poly = Polyline(tuple(v["x"] for v in track.vertices), tuple(v["y"] for v in track.vertices))
-    charge = render_polyline(image, poly, vertex_models, budget)
+    charge = render_polyline(image, poly, vertex_models, budget, cache)
     pieces = poly.segments()
     fluxes = [m.flux_per_px for m in vertex_models]
     expected = sum(0.5 * (a + b) * seg.length

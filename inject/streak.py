@@ -5,7 +5,7 @@ need: the stationary profile in the track frame, the charge per pixel of track l
 cross-section across the track, its FWHM and peak.
 """
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import galsim
 import numpy as np
@@ -81,6 +81,14 @@ class StreakModel:
                                    self.telescope.pixel_scale_arcsec)
 
     @property
+    def profile_key(self):
+        """What the stationary profile (and so every table built from it) depends on: the
+        geometry, shape, seeing and telescope; not the magnitude or band, which only scale
+        the charge. Models with equal keys share swept profiles (:mod:`inject.render`)."""
+        return (self.height_km, self.zenith_deg, self.phi_deg, self.shape, self.seeing,
+                self.telescope)
+
+    @property
     def pixel_scale(self):
         return self.telescope.pixel_scale_arcsec
 
@@ -102,10 +110,9 @@ class StreakModel:
 
     @cached_property
     def profile(self):
-        """Unit-flux stationary profile in the track frame (arcsec, motion along +x)."""
-        g = self.geometry
-        shape = self.shape.profile(g.range_km, g.nadir_angle_deg, g.phi_deg)
-        return stationary_profile(shape, g.range_km, self.seeing, self.telescope)
+        """Unit-flux stationary profile in the track frame (arcsec, motion along +x); one
+        object for all models of equal :attr:`profile_key`."""
+        return _shared_profile(_ByProfile(self))
 
     def _profile_without(self, drop):
         g = self.geometry
@@ -148,12 +155,12 @@ class StreakModel:
     @cached_property
     def lsf(self):
         """Line-spread function across the track, without pixel response."""
-        return line_spread(self.profile, step_arcsec=self._fine_step)
+        return _shared_line_spreads(_ByProfile(self))[0]
 
     @cached_property
     def pixel_lsf(self):
         """Line-spread function with the response of pixels aligned with the track."""
-        return line_spread(self.profile, self.pixel_scale, step_arcsec=self._fine_step)
+        return _shared_line_spreads(_ByProfile(self))[1]
 
     @property
     def _fine_step(self):
@@ -201,3 +208,35 @@ class StreakModel:
             "peak_e_per_px": self.peak_e_per_px,
             "pixel_scale_arcsec": self.pixel_scale,
         }
+
+
+class _ByProfile:
+    """A model that hashes and compares by its :attr:`StreakModel.profile_key`, so that
+    ``lru_cache`` shares what depends on the profile alone between models of any brightness."""
+
+    __slots__ = ("model", "key")
+
+    def __init__(self, model):
+        self.model, self.key = model, model.profile_key
+
+    def __hash__(self):
+        return hash(self.key)
+
+    def __eq__(self, other):
+        return self.key == other.key
+
+
+@lru_cache(maxsize=256)
+def _shared_profile(ref):
+    model = ref.model
+    g = model.geometry
+    shape = model.shape.profile(g.range_km, g.nadir_angle_deg, g.phi_deg)
+    return stationary_profile(shape, g.range_km, model.seeing, model.telescope)
+
+
+@lru_cache(maxsize=256)  # two arrays of a few thousand samples each
+def _shared_line_spreads(ref):
+    model = ref.model
+    step = model._fine_step
+    return (line_spread(model.profile, step_arcsec=step),
+            line_spread(model.profile, model.pixel_scale, step_arcsec=step))

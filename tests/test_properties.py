@@ -1,6 +1,6 @@
-"""Property tests (hypothesis) of the streak engine and the writers, and known bugs found by
-``scripts/stress.py`` (strict xfails: they pass once the bug is fixed, and then must lose
-their mark).
+"""Property tests (hypothesis) of the streak engine and the writers, and regression tests of
+bugs found by ``scripts/stress.py`` (narrow profiles' end caps, short tracks' own peak and
+flux, lines outside the image, saturation on a cut-out).
 
 Properties: flux conservation, translation by whole pixels, rotation by 90 deg about a pixel
 centre, reversal of symmetric shapes, additivity, brightness monotonic in magnitude, agreement

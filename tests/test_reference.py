@@ -60,8 +60,20 @@ def test_flux_of_lsst_profiles(model):
     assert image.sum() == pytest.approx(model.flux_per_px * seg.length, rel=1e-4)
 
 
+def test_default_stamp_half_size_from_closed_forms():
+    # A Gaussian's stepk radius: where the flux outside falls to folding_threshold,
+    # exp(-R^2 / 2 sigma^2) = ft, but at least stepk_minimum_hlr half-light radii (GalSim).
+    sigma_px = 2.5
+    radius = max(sigma_px * np.sqrt(-2 * np.log(GSPARAMS.folding_threshold)),
+                 GSPARAMS.stepk_minimum_hlr * sigma_px * np.sqrt(2 * np.log(2)))
+    assert default_stamp_half_size(GAUSS, SCALE) == np.ceil(radius) + 1
+    # For any profile: half of GalSim's getGoodImageSize (its stepk rule), plus a pixel.
+    for model in (PAPER_550, DISK_350):
+        size = model.profile.getGoodImageSize(SCALE)
+        assert default_stamp_half_size(model.profile, SCALE) == size // 2 + 1
+
+
 def test_default_stamp_loses_less_than_folding_threshold():
-    assert default_stamp_half_size(PAPER_550.profile, SCALE) == 200
     seg = Segment(250.3, 240.6, 30.0, 0.5)
     image = brute(PAPER_550, (500, 510), seg, step_px=0.25)
     lost = 1 - image.sum() / (PAPER_550.flux_per_px * seg.length)

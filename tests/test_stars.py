@@ -233,16 +233,16 @@ def test_bad_catalogs(tmp_path):
 
 @pytest.mark.slow
 def test_full_ccd_twenty_thousand_stars():
-    import time
+    # How fast (~1 s, against ~25 s for GalSim star by star) is scripts/bench_stars.py's job,
+    # not a unit test's: here only that all of them are drawn, with their flux.
     shape = (4000, 4072)
     area = shape[0] * shape[1] * (PIXEL / 3600) ** 2
     spec = st.StarFieldSpec(galactic_l=90, galactic_b=30, density_per_deg2=20000 / area)
     field = st.star_field(spec, shape, PIXEL, "r", rng(1, "stars"))
     flux = 10 ** (0.4 * (28.36 - field["mag"])) * 30.0
     image = np.zeros(shape)
-    t0 = time.perf_counter()
     drawn = st.draw_stars(image, field["x"], field["y"], flux, PSF, PIXEL)
-    assert time.perf_counter() - t0 < 10.0  # ~1 s measured; GalSim per star takes ~25 s
+    assert field["x"].size > 15000
     assert image.sum() == pytest.approx(drawn.sum(), rel=1e-9)
     assert drawn.sum() / flux.sum() > 0.998
 
