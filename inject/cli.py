@@ -277,6 +277,9 @@ def build_parser():
 
     add_mask_parser(sub)
     add_evaluate_parser(sub)
+    from .cli_focalplane import add_focalplane_parser
+
+    add_focalplane_parser(sub)
     return parser
 
 

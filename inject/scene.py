@@ -250,8 +250,13 @@ def sky_level(scene):
     return float(level)
 
 
-def simulate(scene, budget=Budget(), detector_index=0, wcs=None):
+def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
+             add_stars=None):
     """Simulate one CCD of a scene.
+
+    ``rendered`` (the ``(image, truth)`` of :func:`render_tracks`) and ``add_stars`` (a
+    function adding the stars' expected charge to an image in place) let a caller that places
+    streaks and stars itself, such as the focal plane, reuse the rest.
 
     The order follows the charge: streaks, sky, stars and dark current are expected charge;
     Poisson noise draws the collected charge; saturation bleeds it along columns; cosmic rays
@@ -271,10 +276,12 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None):
         raise SceneError(f"scene={type(scene).__name__}: pass a Scene "
                          f"(inject.config.parse_scene of the mapping)")
     det = scene.detector
-    streaks, truth = render_streaks(scene, budget)
+    streaks, truth = render_streaks(scene, budget) if rendered is None else rendered
     sky = sky_level(scene)
     expected = streaks + sky
-    if scene.stars:
+    if scene.stars and add_stars is not None:
+        add_stars(expected)
+    elif scene.stars:
         from .stars import add_star_field
 
         add_star_field(expected, scene, rng(scene.seed, "stars", detector_index), wcs=wcs)

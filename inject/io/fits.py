@@ -55,6 +55,12 @@ def raw_hdu(raw, sections, bias):
     return hdu
 
 
+def _with_cards(header, cards):
+    for key, value in (cards or {}).items():
+        header[key] = value
+    return header
+
+
 def write_truth_csv(path, rows, overwrite=False):
     """The truth table as CSV (one row per streak), written atomically."""
     table = Table(truth_table(rows).data)
@@ -62,15 +68,17 @@ def write_truth_csv(path, rows, overwrite=False):
         table.write(tmp, format="ascii.csv", overwrite=True)
 
 
-def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False):
-    """Write a simulated CCD to ``path`` atomically."""
+def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
+                   primary_cards=None):
+    """Write a simulated CCD to ``path`` atomically; ``primary_cards`` (a mapping of keyword
+    to value or ``(value, comment)``) are appended to the primary header."""
     image_hdr = fits.Header()
     image_hdr["BUNIT"] = (scene.units, "pixel values")
     image_hdr["GAIN"] = (gain, "[e-/ADU] detector gain")
     if wcs_header is not None:
         image_hdr.extend(wcs_header)
     hdus = fits.HDUList([
-        fits.PrimaryHDU(header=primary_header(scene)),
+        fits.PrimaryHDU(header=_with_cards(primary_header(scene), primary_cards)),
         fits.ImageHDU(result.image.astype(np.float32), header=image_hdr, name="IMAGE"),
         fits.ImageHDU(result.mask.astype(np.int32), header=_mask_header(fits.Header()),
                       name="MASK"),
