@@ -19,7 +19,9 @@ import csv
 import fcntl
 import hashlib
 import io
+import multiprocessing
 import os
+import resource
 import sys
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -40,8 +42,8 @@ _LIMITED = False
 
 
 def limit_threads():
-    """One thread for BLAS/OpenMP (threadpoolctl and the environment), OpenCV and
-    OpenImageIO in this process: the parallelism is one CCD per worker. Idempotent."""
+    """One thread for BLAS/OpenMP (threadpoolctl and the environment), OpenCV, OpenImageIO
+    and the noise draws in this process: the parallelism is one CCD per worker. Idempotent."""
     global _LIMITED
     if _LIMITED:
         return
@@ -59,6 +61,9 @@ def limit_threads():
         import OpenImageIO
 
         OpenImageIO.attribute("threads", 1)
+    from . import scene
+
+    scene.NOISE_THREADS = 1  # the amplifiers' noise draws (bytes do not depend on it)
     _LIMITED = True
 
 
@@ -85,10 +90,12 @@ class Task:
 def render_ccd(task):
     """Simulate one CCD and write ``OUTDIR/<detector>.fits``; return its manifest row.
 
-    Runs in a worker: threads are limited first. The file is replaced if present (the runner
-    decided beforehand that it may be).
+    In a worker process threads are limited first (a thread pool in the caller's process is
+    left alone). The file is replaced if present (the runner decided beforehand that it may
+    be).
     """
-    limit_threads()
+    if multiprocessing.parent_process() is not None:
+        limit_threads()
     from . import focalplane as fp
     from .focalscene import simulate_ccd
     from .io.fits import write_exposure
@@ -96,6 +103,7 @@ def render_ccd(task):
     start = time.perf_counter()
     ccd = fp.ccd(task.detector)
     scene, result, streaks, wcs = simulate_ccd(task.fscene, ccd, task.margins)
+    simulated = time.perf_counter()
     path = os.path.join(task.outdir, f"{ccd.name}.fits")
     pointing = task.fscene.pointing
     cards = {"DETNAME": (ccd.name, "detector name"),
@@ -111,10 +119,15 @@ def render_ccd(task):
     digest = sha256_file(path)
     if not task.keep:
         os.remove(path)
+    end = time.perf_counter()
     return {"detector": ccd.name, "id": ccd.id, "vendor": ccd.vendor,
             "file": os.path.basename(path), "sha256": digest, "streaks": len(streaks),
-            "seconds": round(time.perf_counter() - start, 3), "status": "done",
-            "scene_sha256": task.fscene.digest, "inject_version": __version__, "error": ""}
+            "seconds": round(end - start, 3), "status": "done",
+            "scene_sha256": task.fscene.digest, "inject_version": __version__, "error": "",
+            # Not in the manifest: for benchmarks.
+            "simulate_s": simulated - start, "write_s": end - simulated,
+            "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "pid": os.getpid()}
 
 
 # -------------------------------------------------------------------------------------------
@@ -303,10 +316,30 @@ def run(fscene, outdir, executor, ccds=None, overwrite=False, retries=2, progres
     skipped = [rows[c.name] for c in done]
     progress = progress or _Progress(len(todo))
     attempts = {c.name: 0 for c in todo}
-    pending = {executor.submit(render_ccd, Task(fscene, c.name, outdir, margins, keep)): c
-               for c in todo}
+    pending = {}
     rendered, failed = [], []
+
+    def fail(ccd, err):
+        row = {"detector": ccd.name, "id": ccd.id, "vendor": ccd.vendor,
+               "file": f"{ccd.name}.fits", "sha256": "", "streaks": "", "seconds": "",
+               "status": "failed", "scene_sha256": fscene.digest,
+               "inject_version": __version__,
+               "error": " ".join(f"{type(err).__name__}: {err}".split())[:300]}
+        failed.append(row)
+        update_manifest(outdir, [row])
+        progress.update(row)
+
+    def submit(ccd):
+        try:
+            future = executor.submit(render_ccd, Task(fscene, ccd.name, outdir, margins, keep))
+        except Exception as err:  # a broken pool (a worker killed): report, go on
+            fail(ccd, err)
+        else:
+            pending[future] = ccd
+
     try:
+        for ccd in todo:
+            submit(ccd)
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for future in finished:
@@ -316,17 +349,11 @@ def run(fscene, outdir, executor, ccds=None, overwrite=False, retries=2, progres
                 except Exception as err:  # a worker's failure must not lose the others
                     attempts[ccd.name] += 1
                     if attempts[ccd.name] <= retries:
-                        task = Task(fscene, ccd.name, outdir, margins, keep)
-                        pending[executor.submit(render_ccd, task)] = ccd
-                        continue
-                    row = {"detector": ccd.name, "id": ccd.id, "vendor": ccd.vendor,
-                           "file": f"{ccd.name}.fits", "sha256": "", "streaks": "",
-                           "seconds": "", "status": "failed", "scene_sha256": fscene.digest,
-                           "inject_version": __version__,
-                           "error": " ".join(f"{type(err).__name__}: {err}".split())[:300]}
-                    failed.append(row)
-                else:
-                    rendered.append(row)
+                        submit(ccd)
+                    else:
+                        fail(ccd, err)
+                    continue
+                rendered.append(row)
                 update_manifest(outdir, [row])
                 progress.update(row)
     finally:

@@ -183,6 +183,11 @@ def _truth_row(model, track, ends, charge, expected, budget):
     }
 
 
+#: Threads drawing the noise (None: the machine's cores); the focal-plane runner's workers set
+#: 1, as their parallelism is one CCD per process.
+NOISE_THREADS = None
+
+
 class AmplifierNoise:
     """Poisson and read noise drawn amplifier by amplifier, on a thread pool.
 
@@ -198,7 +203,7 @@ class AmplifierNoise:
                        for x in range(0, nx, detector.amp_nx)]
         root = np.random.SeedSequence(seed, spawn_key=(detector_index, STREAMS["noise"]))
         self.generators = [np.random.default_rng(s) for s in root.spawn(len(self.blocks))]
-        self.threads = threads or min(len(self.blocks), os.cpu_count() or 1)
+        self.threads = threads or NOISE_THREADS or min(len(self.blocks), os.cpu_count() or 1)
 
     def _each(self, work):
         with ThreadPoolExecutor(self.threads) as pool:

@@ -186,8 +186,10 @@ def test_killed_run_resumes_with_identical_files(tmp_path):
     finally:
         _stop(proc)
     assert 1 <= _done_rows(killed) < 6
-    assert not [f for f in os.listdir(killed) if f.startswith(".inject-") and
-                not f.endswith(".fits")]
+    # Whatever the kill caught, no visible CCD file is half-written.
+    for name in os.listdir(killed):
+        if name.endswith(".fits") and not name.startswith("."):
+            assert parallel.sha256_file(killed / name) == expected[name[:-5]]
     assert _main(scene, "-o", killed, "--workers", "2") == 0
     assert shas(str(killed)) == expected
     assert (killed / "mosaic.png").stat().st_size > 0
@@ -259,3 +261,70 @@ def test_job_slices_and_streak_ccds_only(tmp_path):
     assert sorted(crossed) == ["R22_S10", "R22_S11", "R22_S12"]
     assert all(shas(str(out))[k] == v for k, v in crossed.items())
     assert _main(scene, "-o", out, "--job", 2, "--njobs", 2) == 2
+
+
+def test_mosaic_bins_each_ccd_and_draws_the_track(fscene, tmp_path):
+    from astropy.io import fits
+    from matplotlib.image import imread
+
+    from inject.io.mosaic import binned_ccds, track_paths, write_mosaic
+    from inject.io.quicklook import block_mean
+
+    out = str(tmp_path)
+    with ThreadPoolExecutor(2) as pool:
+        parallel.run(fscene, out, pool, ccds=TWO)
+    binned = binned_ccds(fscene, out, 8)
+    assert sorted(c.name for c in binned) == sorted(c.name for c in TWO)
+    with fits.open(tmp_path / "R22_S12.fits") as hdus:
+        image = hdus["IMAGE"].data.astype(np.float64)
+    np.testing.assert_allclose(binned[fp.ccd("R22_S12")], block_mean(image, 8), rtol=1e-6)
+    # A line is drawn across the focal plane: clipped to its extent, on the scene's line.
+    ((x0, x1), (y0, y1)), = track_paths(fscene)
+    xmin, xmax, _, _ = fp.extent_mm()
+    assert (x0, x1) == pytest.approx((xmin, xmax))
+    a = np.radians(0.4)
+    assert abs(-(x1 + 21.0) * np.sin(a) + (y1 + 19.7) * np.cos(a)) < 1e-9
+    path = tmp_path / "mosaic.png"
+    assert write_mosaic(str(path), fscene, out, factor=64) == 2
+    picture = imread(path)
+    assert picture.shape[0] > 500 and picture.shape[1] > 500
+
+
+_REAL_RENDER = parallel.render_ccd
+
+
+def _die_on_r01(task):
+    """Kills its worker process on R01_S00 (as the OOM killer would)."""
+    if task.detector == "R01_S00":
+        os._exit(3)
+    return _REAL_RENDER(task)
+
+
+def test_a_killed_worker_is_reported_and_a_rerun_finishes(fscene, reference, tmp_path,
+                                                          monkeypatch):
+    out = str(tmp_path)
+    monkeypatch.setattr(parallel, "render_ccd", _die_on_r01)
+    with parallel.process_pool(1) as pool:
+        result = parallel.run(fscene, out, pool, retries=1)
+    assert "R01_S00" in {r["detector"] for r in result.failed}
+    rows = parallel.read_manifest(out)
+    assert rows["R01_S00"]["status"] == "failed"
+    monkeypatch.setattr(parallel, "render_ccd", _REAL_RENDER)
+    with parallel.process_pool(2) as pool:
+        again = parallel.run(fscene, out, pool)
+    assert not again.failed
+    assert shas(out) == reference
+
+
+@pytest.mark.slow
+def test_full_size_ccds_same_bytes_with_1_and_2_workers(tmp_path):
+    raw = dict(RAW, detectors=["R22_S11", "R22_S12", "R01_S00"])
+    del raw["cutout"]
+    full = parse_focal_scene(raw)
+    got = []
+    for workers in (1, 2):
+        out = str(tmp_path / f"w{workers}")
+        with parallel.process_pool(workers) as pool:
+            parallel.run(full, out, pool)
+        got.append(shas(out))
+    assert got[0] == got[1] and len(got[0]) == 3

@@ -3,7 +3,7 @@
 Each CCD's IMAGE is block-averaged and drawn at its place in focal-plane millimetres, so the
 gaps between CCDs and rafts are to scale; one z-scale stretch for all CCDs; detector names on
 each; the true track of every satellite drawn over it (dashed, in focal-plane mm). CCDs of the
-exposure that have no file yet are outlined only.
+exposure that have no file yet are filled grey; the gaps are dark blue.
 """
 import os
 
@@ -88,20 +88,24 @@ def write_mosaic(path, fscene, outdir, factor=DEFAULT_BIN, overwrite=True, margi
         if ccd in binned:
             ax.imshow(binned[ccd], origin="lower", cmap="gray", vmin=vmin, vmax=vmax,
                       extent=(x0, x1, y0, y1), interpolation="nearest")
-        else:
-            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, lw=0.4,
-                                   ec="#7f8fa6"))
+        else:  # not rendered (yet): grey, so it is not mistaken for a gap
+            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fc="#5a6270", lw=0.4,
+                                   ec="#8d99ae"))
         if names:
             fx0, fx1, fy0, fy1 = ccd.bounds_mm()
             ax.text(0.5 * (fx0 + fx1), fy1 - 2.0, ccd.name, ha="center", va="top",
                     fontsize=max(3.0, inches * 0.28), color="#ffd166")
     for i, (xs, ys) in enumerate(track_paths(fscene)):
         if len(xs):
-            ax.plot(xs, ys, ls=(0, (4, 4)), lw=0.6, color="#ef476f", label=f"satellite {i}")
+            ax.plot(xs, ys, ls=(0, (4, 4)), lw=0.5, alpha=0.7, color="#ef476f",
+                    label=f"satellite {i}")
     ax.set_xlim(xmin - 2, xmax + 2)
     ax.set_ylim(ymin - 2, ymax + 2)
     ax.set_aspect("equal")
-    ax.set_axis_off()
+    ax.set_xticks([])  # no axes drawn, but keep the axes' background: it shows the gaps
+    ax.set_yticks([])
+    for spine in ax.spines.values():
+        spine.set_visible(False)
     pointing = fscene.pointing
     fig.suptitle(title or (f"inject focal plane: {len(binned)} of {len(fscene.ccds)} CCDs, "
                            f"binned {factor}x{factor}, z-scale [{vmin:.0f}, {vmax:.0f}]; "
