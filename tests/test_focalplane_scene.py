@@ -1,8 +1,6 @@
 """Focal-plane scenes: parsing, the CCDs a streak reaches, tracks across CCDs, charge lost in
 the gaps, per-CCD profiles and plate scale, stars consistent across CCDs."""
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -160,19 +158,20 @@ def test_stars_are_where_the_scene_puts_them_whatever_is_rendered():
     np.testing.assert_array_equal(a[:300, :400], b)
 
 
-def test_cli_plan_json(tmp_path):
+def test_cli_plan_json(tmp_path, capsys):
+    from inject.cli import main
+
     scene = tmp_path / "focal.yaml"
     scene.write_text(json.dumps({"pointing": {"ra": 10, "dec": -5}, "stars": False,
                                  "detectors": ["R22_S11", "R22_S12", "R30_S00"],
                                  "satellites": [dict(SAT, track={"x0_mm": -19.0, "y0_mm": 0.0,
                                                                  "angle": 0.0})]}))
-    out = subprocess.run([sys.executable, "-m", "inject", "focalplane", str(scene), "--plan",
-                          "--json"], capture_output=True, text=True, check=True)
-    result = json.loads(out.stdout)
+    assert main(["focalplane", str(scene), "--plan", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
     assert [d["name"] for d in result["detectors"]] == ["R22_S11", "R22_S12"]
     for d in result["detectors"]:
         assert set(d) >= {"name", "id", "vendor", "streaks"}
         assert set(d["streaks"][0]) >= {"x0", "y0", "x1", "y1"}
-    bad = subprocess.run([sys.executable, "-m", "inject", "focalplane", str(scene), "--plan",
-                          "--detectors", "R00_S00"], capture_output=True, text=True)
-    assert bad.returncode == 2 and "R00_S00" in bad.stderr and len(bad.stderr.splitlines()) == 1
+    assert main(["focalplane", str(scene), "--plan", "--detectors", "R00_S00"]) == 2
+    err = capsys.readouterr().err
+    assert "R00_S00" in err and len(err.splitlines()) == 1
