@@ -91,6 +91,14 @@ def run_focalplane(args):
         raise OutputError(f"{args.output}: exists and is not a directory")
     if not ccds:
         raise InputError("--detectors/--job", (args.detectors, args.job), "no CCD to render")
+    mosaic = os.path.join(args.output, "mosaic.png")
+    if not args.no_mosaic and os.path.exists(mosaic) and not args.overwrite:
+        from .parallel import read_manifest
+
+        rows = read_manifest(args.output).values()
+        if not any(r.get("scene_sha256") == fscene.digest for r in rows):
+            raise OutputError(f"{mosaic}: exists (not this scene's); pass --overwrite to "
+                              "replace it")
     _render(fscene, ccds, margins, args)
 
 

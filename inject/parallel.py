@@ -365,8 +365,14 @@ def run(fscene, outdir, executor, ccds=None, overwrite=False, retries=2, progres
 
 def process_pool(workers=None):
     """The default executor: a process pool of ``workers`` (default: the machine's cores),
-    each worker limited to one thread per library."""
+    each worker limited to one thread per library.
+
+    Workers start from a fork server, not by forking the caller: a caller with threads
+    (OpenImageIO's pool, BLAS, a thread pool) would hand its children locks held by threads
+    that do not exist there, and they can hang on their first call into that library.
+    """
     return ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1,
+                               mp_context=multiprocessing.get_context("forkserver"),
                                initializer=limit_threads)
 
 

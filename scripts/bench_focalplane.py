@@ -23,7 +23,6 @@ import resource
 import shutil
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
@@ -107,7 +106,7 @@ def main(argv=None):
     try:
         rates = {}
         for workers in (1, 2):
-            with ProcessPoolExecutor(workers, initializer=parallel.limit_threads) as pool:
+            with parallel.process_pool(workers) as pool:
                 seconds, rows = timed_run(fscene, sample, pool, os.path.join(work, "r"),
                                           margins)
             rates[workers] = len(sample) / seconds
@@ -125,7 +124,7 @@ def main(argv=None):
         if not args.skip_whole:
             base_dir = os.path.join(work, "b")
             os.makedirs(base_dir, exist_ok=True)
-            with ProcessPoolExecutor(2, initializer=parallel.limit_threads) as pool:
+            with parallel.process_pool(2) as pool:
                 start = time.perf_counter()
                 base_rows = list(pool.map(baseline_ccd, [(ccd_scene(fscene, c), c.name,
                                                           base_dir) for c in fp.CCDS]))
