@@ -41,6 +41,15 @@ LSST_N_ALPHA = 5.0
 #: acstools ``findsat_mrt``: the trail reaches this many Gaussian sigma each side.
 ACSTOOLS_N_SIGMA = 3.0
 
+#: Width of the ``sb`` mask, in FWHM (the measured one, else the detection's estimate), when
+#: the profile's drop below the level is measured on neither side (both cut by an image edge,
+#: a hole or a neighbour) or not inside the widest window: a failed measurement must not set
+#: a mask hundreds of pixels wide.
+FALLBACK_FWHM = 3.0
+
+#: Widest fallback mask, px (3 x the widest matched filter's FWHM, 26 px).
+FALLBACK_MAX_PX = 80.0
+
 
 def mask_widths(measurement, sky_sigma, sb_sigma=STREAK_MASK_SIGMA, fwhm_factor=FWHM_FACTOR):
     """Full mask widths (px) of a measured streak under every rule of :data:`RULES`.
@@ -61,16 +70,40 @@ def mask_widths(measurement, sky_sigma, sb_sigma=STREAK_MASK_SIGMA, fwhm_factor=
         ``{rule: width}``; NaN where the measurement does not allow it (a failed fit).
     """
     fwhm = measurement.fwhm_px
-    reach = wing_half_width(measurement.profile, sb_sigma * sky_sigma)
-    if reach is None:  # still above the level at the window's edge: mask the whole window
-        reach = float(measurement.profile.distance[-1])
-    floor = 0.5 * MIN_FWHM * measurement.width_px
     return {
-        "sb": 2 * max(reach, floor),
+        "sb": sb_width(measurement, sky_sigma, sb_sigma)[0],
         "fwhm": fwhm_factor * fwhm,
         "lsst": 2 * LSST_N_ALPHA * measurement.moffat_alpha_px,
         "acstools": 2 * ACSTOOLS_N_SIGMA * measurement.gaussian_sigma_px,
     }
+
+
+def sb_width(measurement, sky_sigma, sb_sigma=STREAK_MASK_SIGMA):
+    """Full width (px) of the ``sb`` mask and, if it is not the measured one, the rule used.
+
+    The half-width is where the profile drops below ``sb_sigma x sky_sigma`` on the side(s)
+    where it is measured (a side cut by an image edge, a hole or a neighbour's midline is left
+    out), never below :data:`MIN_FWHM` / 2 FWHM. Where that drop is measured on neither side,
+    or not inside the widest window, the mask is :data:`FALLBACK_FWHM` FWHM wide (at most
+    :data:`FALLBACK_MAX_PX`), and the rule is said.
+
+    Returns
+    -------
+    width : float
+    fallback : str or None
+        The rule applied instead of the measured drop, in words; None if measured.
+    """
+    width = measurement.width_px
+    reach = wing_half_width(measurement.profile, sb_sigma * sky_sigma, near=width)
+    if reach is not None and np.isfinite(reach):
+        return 2 * max(reach, 0.5 * MIN_FWHM * width), None
+    why = ("still above the level at the widest window" if reach is None else
+           "cut on both sides by image edges, holes or neighbours")
+    fallback = min(FALLBACK_FWHM * width, FALLBACK_MAX_PX)
+    source = "measured" if measurement.fwhm_measured else "detection's"
+    return float(fallback), (f"{FALLBACK_FWHM:g} x the {source} FWHM ({width:.1f} px), at most "
+                             f"{FALLBACK_MAX_PX:g} px: the profile's drop below "
+                             f"{sb_sigma:g} sky sigma was not measured ({why})")
 
 
 def fitted_fwhm(measurement):
