@@ -37,7 +37,7 @@ from scipy import ndimage
 from ..errors import InputError
 from . import MaskingError
 from .geometry import Line, angle_difference, band_pixels
-from .measure import stack_samples, trace_streak, wing_reach
+from .measure import DIP_LEVEL, profile_fwhm, stack_samples, trace_streak, wing_reach
 
 #: Binning factor of the search image (4: a 7-10 px wide LSSTCam streak is ~2 binned px).
 BIN = 4
@@ -855,7 +855,8 @@ def detect_streaks(prep, threshold=FALSE_ALARM_Z, max_streaks=MAX_STREAKS):
             continue
         sides = erase_half_width(prep, tr.line, tr.fwhm_px)
         erase(prep, work, tr.line, sides)
-        if any(_same_streak(tr.line, d.line, band) for d, band in zip(found, erased)):
+        if (any(_same_streak(tr.line, d.line, band) for d, band in zip(found, erased))
+                and not _own_peak(tr)):
             continue  # leftover light of a streak already found
         found.append(Detection(line=tr.line, significance=z, filter_fwhm_px=width, trace=tr))
         erased.append(sides)
@@ -928,6 +929,13 @@ def hole_norms(valid, bin_factor=BIN, levels=LEVELS):
     for image, f in pyramid(valid, levels):
         out.append(_hole_norm(image, max(16, MIN_LINE_PX // (bin_factor * f))))
     return out
+
+
+def _own_peak(trace):
+    """Whether a traced line, its pixels nearer to the streaks already found left out, has a
+    profile of its own (both half-maximum crossings measured): a close neighbour does, the
+    wing of a found streak (rising to the cut at the midline) does not."""
+    return bool(np.isfinite(profile_fwhm(trace.template, dip=DIP_LEVEL)[0]))
 
 
 def _same_streak(a, b, band):
