@@ -330,9 +330,10 @@ def bench_edges(seeds, distances=(1, 2, 3, 4, 6, 8, 12), mag=10.5, size=1024):
                     plane = ((r.mask >> MASK_PLANES["STREAK"]) & 1).astype(bool)
                     found += mask[plane].mean() >= 0.9
                     true_fwhm = t["fwhm_arcsec"] / 0.2
-                    fwhm_ok += bool(s["fwhm_measured"]
-                                    and abs(s["fwhm_px"] / true_fwhm - 1) <= 0.05)
-                    flagged += not s["fwhm_measured"]
+                    # (.get: the same script measures versions before the flag existed)
+                    measured = s.get("fwhm_measured", bool(np.isfinite(s["fwhm_px"])))
+                    fwhm_ok += bool(measured and abs(s["fwhm_px"] / true_fwhm - 1) <= 0.05)
+                    flagged += not measured
                 widest = max([widest] + [s["mask_width_px"] for s in res.streaks])
             rows.append({"distance_px": e, "found": found / len(seeds),
                          "fwhm_measured": fwhm_ok / len(seeds),

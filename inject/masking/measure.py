@@ -25,7 +25,7 @@ import numpy as np
 from scipy.optimize import curve_fit
 from scipy.signal import savgol_coeffs, savgol_filter
 
-from .geometry import Line, band_pixels
+from .geometry import Line, angle_difference, band_pixels
 
 #: The median of N Gaussian values scatters by sqrt(pi / 2) sigma / sqrt(N).
 MEDIAN_NOISE = float(np.sqrt(np.pi / 2))
@@ -934,6 +934,9 @@ def trace_streak(prep, coarse, width_px, exclude=()):
     line, template, snr = refine_line(prep, coarse, width_px, exclude=exclude)
     if template is None:  # no usable pixel along the line
         return None
+    # A coarse line more than a few tenths of a degree off can leave the first refinement
+    # short of convergence: then a second one, even for a streak crossing the image.
+    settled = angle_difference(line.angle_deg, coarse.angle_deg) < 0.1
     for attempt in range(2):
         fwhm, _, _, _ = profile_fwhm(template, dip=DIP_LEVEL)
         fwhm = float(fwhm) if np.isfinite(fwhm) else width_px
@@ -944,7 +947,7 @@ def trace_streak(prep, coarse, width_px, exclude=()):
         if extent is None:
             return None
         line = chord.trimmed(extent.t0, extent.t1)
-        if attempt == 1 or extent.at_edge == (True, True):
+        if attempt == 1 or (extent.at_edge == (True, True) and settled):
             break
         line, template, snr = refine_line(prep, line, fwhm, exclude=exclude)
     return Trace(line=line, at_edge=extent.at_edge, template=template, snr=snr, fwhm_px=fwhm)

@@ -432,10 +432,16 @@ def _print_table(result):
         widths = (8, 8, 8, 8, 8, 7, 6, 7, 9, 7, 7)
         print(" ".join(name.rjust(w) for name, w in zip(names, widths)))
     for s in result.streaks:
+        # An unmeasured FWHM (a streak cut by an edge, a hole or a neighbour) reads n/a.
+        fwhm = (f"{s['fwhm_arcsec']:7.3f} {s['fwhm_err_arcsec']:6.3f}" if s["fwhm_measured"]
+                else f"{'n/a':>7s} {'':6s}")
         print(f"{s['angle_deg']:8.3f} {s['x0']:8.1f} {s['y0']:8.1f} {s['x1']:8.1f} "
-              f"{s['y1']:8.1f} {s['fwhm_arcsec']:7.3f} {s['fwhm_err_arcsec']:6.3f} "
+              f"{s['y1']:8.1f} {fwhm} "
               f"{s['mask_width_px']:7.1f} {s['masked_pixels']:9d} {s['masked_fraction']:7.4f} "
               f"{s['significance']:7.1f}")
+    for k, s in enumerate(result.streaks):
+        if s["mask_fallback"]:
+            print(f"streak {k + 1}: mask width {s['mask_width_px']:.1f} px by {s['mask_fallback']}")
     npix = result.shape[0] * result.shape[1]
     print(f"masked {result.masked_pixels} px ({result.masked_pixels / npix:.4%}), "
           f"{result.lost_pixels} not already flagged")
