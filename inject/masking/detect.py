@@ -20,13 +20,18 @@ line and a full CCD costs milliseconds per transform:
    pixels; the wider filters run on smaller images, so all three cost 1.3 times the first.
 5. **Fast Hough transform** (OpenCV ``ximgproc``) of each level: every line sum, divided by
    the square root of its pixel count and standardised per angle (median and interquartile
-   range over offsets), is a significance ``z`` with unit noise.
+   range over offsets), is a significance ``z`` with unit noise. Blocks with some unusable
+   pixels are in units of their own noise; in an image with holes (NaN, flagged or constant
+   regions) the holes are guarded like the image edges and the count is that of the usable
+   cells each line crosses (:func:`hole_norms`), so the false-alarm level holds on what is
+   left.
 6. **Peaks**: the best ``z`` over levels (the outer :data:`EDGE_GUARD` binned pixels left
    out) is compared with :data:`FALSE_ALARM_Z` (higher for images under 512 px:
    :func:`threshold_for`). Above it, the line is refined and its extent found
-   (:mod:`.measure`), the streak is erased from the binned image, and the search repeats
-   (standardised with the first round's scales), so several streaks are found one after the
-   other.
+   (:mod:`.measure`), the streak is erased from the binned image (out to its wings, or to a
+   valley before a parallel neighbour), and the search repeats (standardised with the first
+   round's scales), so several streaks are found one after the other; near-parallel ones
+   are then retraced without each other's pixels (:func:`_retrace_neighbours`).
 """
 from dataclasses import dataclass, field, replace
 
