@@ -25,7 +25,7 @@ import numpy as np
 from scipy.optimize import curve_fit
 from scipy.signal import savgol_coeffs, savgol_filter
 
-from .geometry import Line, angle_difference, band_pixels
+from .geometry import Line, band_pixels
 
 #: The median of N Gaussian values scatters by sqrt(pi / 2) sigma / sqrt(N).
 MEDIAN_NOISE = float(np.sqrt(np.pi / 2))
@@ -712,7 +712,7 @@ def _robust_line_fit(t, s, w):
     return float(a), float(b)
 
 
-def refine_line(prep, line, width_px, iterations=3, exclude=()):
+def refine_line(prep, line, width_px, iterations=3, exclude=(), converged=None):
     """Correct a line's position and angle from the cross-track offsets of its segments.
 
     Parameters
@@ -726,6 +726,9 @@ def refine_line(prep, line, width_px, iterations=3, exclude=()):
         At most; it stops when the line moves by less than 0.05 px.
     exclude : sequence of Line
         Streaks already found (see :func:`samples`).
+    converged : list, optional
+        If given, ``True`` or ``False`` is appended: whether the last step moved the line by
+        less than 0.05 px (else ``iterations`` ran out).
 
     Returns
     -------
@@ -740,6 +743,7 @@ def refine_line(prep, line, width_px, iterations=3, exclude=()):
     bw = 0.5
     max_shift = 0.5 * half_width
     snr, template = 0.0, None
+    settled = False
     for _ in range(iterations):
         t, d, v = samples(prep, line, half_width, exclude=exclude)
         if t.size == 0:
@@ -779,11 +783,14 @@ def refine_line(prep, line, width_px, iterations=3, exclude=()):
         a += centre if np.isfinite(centre) and abs(centre) < 0.5 * half_width else 0.0
         line = line.shifted(a, b)
         if abs(a) < 0.05 and abs(b) * 0.5 * length < 0.05:
+            settled = True
             break
         # The first window allowed for a coarse line and a guessed width; now both are known.
         max_shift = min(max_shift, 3.0)
         if np.isfinite(fwhm):
             half_width = min(half_width, max(2.5 * fwhm, 8.0) + 3.0)
+    if converged is not None:
+        converged.append(settled)
     return line, template, snr
 
 
@@ -931,12 +938,14 @@ def trace_streak(prep, coarse, width_px, exclude=()):
     # A bright streak is a broad ridge in the clipped search image, so the Hough peak can be
     # a degree off: refine over the whole chord first (segments beyond the streak's ends
     # carry no weight), then find the extent, then refine over the extent alone.
-    line, template, snr = refine_line(prep, coarse, width_px, exclude=exclude)
+    converged = []
+    line, template, snr = refine_line(prep, coarse, width_px, exclude=exclude,
+                                      converged=converged)
     if template is None:  # no usable pixel along the line
         return None
-    # A coarse line more than a few tenths of a degree off can leave the first refinement
-    # short of convergence: then a second one, even for a streak crossing the image.
-    settled = angle_difference(line.angle_deg, coarse.angle_deg) < 0.1
+    # A coarse line a few tenths of a degree off can leave the first refinement short of
+    # convergence: then a second one, even for a streak crossing the image.
+    settled = converged[0]
     for attempt in range(2):
         fwhm, _, _, _ = profile_fwhm(template, dip=DIP_LEVEL)
         fwhm = float(fwhm) if np.isfinite(fwhm) else width_px
