@@ -441,7 +441,8 @@ def _print_table(result):
               f"{s['significance']:7.1f}")
     for k, s in enumerate(result.streaks):
         if s["mask_fallback"]:
-            print(f"streak {k + 1}: mask width {s['mask_width_px']:.1f} px by {s['mask_fallback']}")
+            print(f"streak {k + 1}: mask width {s['mask_width_px']:.1f} px by "
+                  f"{s['mask_fallback']}")
     npix = result.shape[0] * result.shape[1]
     print(f"masked {result.masked_pixels} px ({result.masked_pixels / npix:.4%}), "
           f"{result.lost_pixels} not already flagged")
