@@ -46,6 +46,11 @@ MIN_TRACE_SNR = 3.0
 #: Shortest streak accepted, px.
 MIN_LENGTH = 2 * EXTENT_BIN
 
+#: :func:`trace_streak` refines a line crossing the image a second time if the first
+#: refinement's last step still moved it by this much (px) or turned it by this much (deg).
+SETTLED_PX = 2.0
+SETTLED_DEG = 0.05
+
 #: Largest half-width of the window of a stacked profile, px.
 MAX_WINDOW = 400.0
 
@@ -727,8 +732,8 @@ def refine_line(prep, line, width_px, iterations=3, exclude=(), converged=None):
     exclude : sequence of Line
         Streaks already found (see :func:`samples`).
     converged : list, optional
-        If given, ``True`` or ``False`` is appended: whether the last step moved the line by
-        less than 0.05 px (else ``iterations`` ran out).
+        If given, the last step's move is appended: ``(offset px, rotation deg)`` (both
+        small if it converged, else ``iterations`` ran out).
 
     Returns
     -------
@@ -743,7 +748,7 @@ def refine_line(prep, line, width_px, iterations=3, exclude=(), converged=None):
     bw = 0.5
     max_shift = 0.5 * half_width
     snr, template = 0.0, None
-    settled = False
+    moved = (float("inf"), float("inf"))
     for _ in range(iterations):
         t, d, v = samples(prep, line, half_width, exclude=exclude)
         if t.size == 0:
@@ -782,15 +787,15 @@ def refine_line(prep, line, width_px, iterations=3, exclude=(), converged=None):
             centre = peak_offset(template)
         a += centre if np.isfinite(centre) and abs(centre) < 0.5 * half_width else 0.0
         line = line.shifted(a, b)
+        moved = (abs(a), float(np.degrees(np.arctan(abs(b)))))
         if abs(a) < 0.05 and abs(b) * 0.5 * length < 0.05:
-            settled = True
             break
         # The first window allowed for a coarse line and a guessed width; now both are known.
         max_shift = min(max_shift, 3.0)
         if np.isfinite(fwhm):
             half_width = min(half_width, max(2.5 * fwhm, 8.0) + 3.0)
     if converged is not None:
-        converged.append(settled)
+        converged.append(moved)
     return line, template, snr
 
 
@@ -943,9 +948,10 @@ def trace_streak(prep, coarse, width_px, exclude=()):
                                       converged=converged)
     if template is None:  # no usable pixel along the line
         return None
-    # A coarse line a few tenths of a degree off can leave the first refinement short of
-    # convergence: then a second one, even for a streak crossing the image.
-    settled = converged[0]
+    # A coarse line a few tenths of a degree off can leave the first refinement still
+    # turning it by tenths of a degree (not the jitter of a faint streak, hundredths): then a
+    # second one, even for a streak crossing the image.
+    settled = converged[0][0] < SETTLED_PX and converged[0][1] < SETTLED_DEG
     for attempt in range(2):
         fwhm, _, _, _ = profile_fwhm(template, dip=DIP_LEVEL)
         fwhm = float(fwhm) if np.isfinite(fwhm) else width_px
