@@ -12,7 +12,12 @@ seeing, Poisson and read noise, stars to mag 24) with the paper's satellite (7.2
 4. **false positives** on 20 streak-free CCDs with stars (seeds 1001-1020, held out from the
    calibration of the threshold);
 5. **small false positives** on 60 streak-free 512 x 512 and 60 256 x 256 cut-outs with stars
-   (seeds 3001-3060, held out from the calibration of the small-image thresholds).
+   (seeds 3001-3060, held out from the calibration of the small-image thresholds);
+6. **limits** (1024 x 1024 cut-outs): the closest parallel pair resolved (mag 9) against the
+   separation, per angle; the nearest edge distance at which a streak (mag 10.5) is found,
+   located to 1 px and masked, and its FWHM measured, per edge and angle; false detections on
+   streak-free images with holes of several shapes (NaN half plane, vignetted corners, bad
+   columns, zero-filled mosaic gaps, a flagged band).
 
 ``--calibrate`` instead records the largest Hough significance of streak-free images, from
 which :data:`inject.masking.detect.FALSE_ALARM_Z` was set.
@@ -21,6 +26,7 @@ Usage::
 
     python scripts/bench_mask.py [--seeds 5] [--out out/bench_mask.json] [--figures docs/masking]
     python scripts/bench_mask.py --sections timing
+    python scripts/bench_mask.py --sections limits --seeds 2
     python scripts/bench_mask.py --calibrate --full 40 --cutouts 100
 """
 import argparse
@@ -44,7 +50,8 @@ MAGS = (10.0, 11.0, 12.0, 13.0, 13.5, 14.0, 14.5, 15.0, 15.5)
 
 BAD_BITS = sum(1 << MASK_PLANES[p] for p in BAD_PLANES)
 
-SECTIONS = ("timing", "completeness", "fwhm", "false_positives", "small_false_positives")
+SECTIONS = ("timing", "completeness", "fwhm", "false_positives", "small_false_positives",
+            "limits")
 
 
 def make_scene(seed, satellites, size=None, stars=True):
@@ -240,6 +247,163 @@ def bench_small_false_positives(count, sizes=(512, 256)):
     return out
 
 
+def _located(streak, truth, max_px=1.0, max_deg=0.2):
+    """Whether a found streak lies on a true track: both ends within ``max_px`` of the line
+    and the angle within ``max_deg``."""
+    from inject.masking.geometry import Line, angle_difference
+
+    line = Line(truth["x0"], truth["y0"], truth["x1"], truth["y1"])
+    ends = max(abs(line.coordinates(streak[f"x{k}"], streak[f"y{k}"])[1]) for k in (0, 1))
+    return ends < max_px and angle_difference(streak["angle_deg"], line.angle_deg) < max_deg
+
+
+def bench_pairs(seeds, angles=(0.0, 30.0, 75.0), separations=(12, 16, 20, 24, 28, 32, 40, 60),
+                mag=9.0, size=1024):
+    """Close parallel pairs (mag 9, 550 km): per angle and separation (px, across the track),
+    the fraction of images where both are found and located (1 px, 0.2 deg), and the closest
+    separation from which every larger one is resolved."""
+    out = []
+    for angle in angles:
+        a = np.radians(angle)
+        nx, ny = -np.sin(a), np.cos(a)
+        rows = []
+        for sep in separations:
+            ok = 0
+            widths = []
+            for seed in seeds:
+                cx, cy = 0.45 * size, 0.5 * size
+                x0, y0 = cx - 0.5 * sep * nx, cy - 0.5 * sep * ny
+                scene = make_scene(seed, [satellite(550, mag, x0, y0, angle),
+                                          satellite(550, mag, x0 + sep * nx, y0 + sep * ny,
+                                                    angle)], size)
+                r, bad = image_of(scene)
+                res = analyse(r.image, bad=bad, n_boot=0)
+                hit = all(any(_located(s, t) for s in res.streaks) for t in r.truth)
+                ok += hit and len(res.streaks) == 2
+                widths += [s["mask_width_px"] for s in res.streaks]
+            rows.append({"separation_px": sep, "resolved": ok / len(seeds),
+                         "mask_width_px": float(np.median(widths)) if widths else None})
+        limit = None
+        for row in reversed(rows):
+            if row["resolved"] < 1:
+                break
+            limit = row["separation_px"]
+        out.append({"angle_deg": angle, "rows": rows, "closest_resolved_px": limit})
+        print(f"  {angle:5.1f} deg: " + ", ".join(f"{r['separation_px']} px {r['resolved']:.0%}"
+                                                 for r in rows)
+              + f"  -> all resolved from {limit} px (mask width ~"
+              f"{np.median([r['mask_width_px'] for r in rows if r['mask_width_px']]):.1f} px)",
+              flush=True)
+    return out
+
+
+def bench_edges(seeds, distances=(1, 2, 3, 4, 6, 8, 12), mag=10.5, size=1024):
+    """Streaks near an edge: the track runs ``distance`` px from the outermost pixel centre
+    (``distance + 0.5`` px from the image's edge) at its nearest. Per configuration, the
+    nearest distance at which every seed's streak is found and located (1 px, 0.2 deg) with a
+    mask covering >= 90% of the simulator's truth STREAK plane, and the nearest at which its
+    FWHM is measured (within 5%)."""
+    from inject.masking.geometry import Line
+    from inject.masking.mask import mask_spans, paint
+
+    last = size - 1
+    configs = {"bottom, 0 deg": lambda e: (0.0, e, 0.0),
+               "right, 90 deg": lambda e: (last - e, 0.0, 90.0),
+               "bottom, 2 deg (leaving)": lambda e: (0.0, e, 2.0),
+               "top, 2 deg (leaving)": lambda e: (last, last - e, 2.0)}
+    out = []
+    for name, track in configs.items():
+        rows = []
+        for e in distances:
+            found = fwhm_ok = flagged = 0
+            widest = 0.0
+            for seed in seeds:
+                x0, y0, angle = track(float(e))
+                r, bad = image_of(make_scene(seed, [satellite(550, mag, x0, y0, angle)], size))
+                res = analyse(r.image, bad=bad, n_boot=0)
+                t = r.truth[0]
+                hits = [s for s in res.streaks if _located(s, t)]
+                if hits and len(res.streaks) == 1:
+                    s = hits[0]
+                    mask = paint(np.zeros(r.image.shape, bool), mask_spans(
+                        r.image.shape, Line(s["x0"], s["y0"], s["x1"], s["y1"]),
+                        s["mask_width_px"]))
+                    plane = ((r.mask >> MASK_PLANES["STREAK"]) & 1).astype(bool)
+                    found += mask[plane].mean() >= 0.9
+                    true_fwhm = t["fwhm_arcsec"] / 0.2
+                    # (.get: the same script measures versions before the flag existed)
+                    measured = s.get("fwhm_measured", bool(np.isfinite(s["fwhm_px"])))
+                    fwhm_ok += bool(measured and abs(s["fwhm_px"] / true_fwhm - 1) <= 0.05)
+                    flagged += not measured
+                widest = max([widest] + [s["mask_width_px"] for s in res.streaks])
+            rows.append({"distance_px": e, "found": found / len(seeds),
+                         "fwhm_measured": fwhm_ok / len(seeds),
+                         "fwhm_flagged": flagged / len(seeds), "widest_mask_px": widest})
+
+        def nearest(key):
+            best = None
+            for row in reversed(rows):
+                if row[key] < 1:
+                    break
+                best = row["distance_px"]
+            return best
+
+        out.append({"config": name, "rows": rows, "nearest_found_px": nearest("found"),
+                    "nearest_fwhm_px": nearest("fwhm_measured")})
+        print(f"  {name}: " + ", ".join(
+            f"{r['distance_px']} px {r['found']:.0%}/{r['fwhm_measured']:.0%}" for r in rows)
+            + f"  -> found from {out[-1]['nearest_found_px']} px, FWHM from "
+            f"{out[-1]['nearest_fwhm_px']} px; widest mask "
+            f"{max(r['widest_mask_px'] for r in rows):.1f} px", flush=True)
+    return out
+
+
+HOLE_SHAPES = ("half_nan", "vignetted_corners", "bad_columns", "mosaic_gap_zeros",
+               "masked_band")
+
+
+def with_hole(name, image, bad):
+    """Copy of an image (and bad mask) with a hole of the named shape."""
+    ny, nx = image.shape
+    yy, xx = np.indices(image.shape)
+    img = image.astype(np.float32).copy()
+    bad = bad.copy()
+    if name == "half_nan":
+        img[:, : nx // 2] = np.nan
+    elif name == "vignetted_corners":
+        img[np.hypot(xx - nx / 2, yy - ny / 2) > 0.6 * nx] = np.nan
+    elif name == "bad_columns":
+        for x, w in ((nx // 8, 1), (nx // 3, 3), (nx // 2, 8), (2 * nx // 3, 1)):
+            bad[:, x:x + w] = True
+    elif name == "mosaic_gap_zeros":
+        img[:, nx // 2 - 25:nx // 2 + 25] = 0.0
+        img[ny // 2 + 40:ny // 2 + 70, :] = 0.0
+    elif name == "masked_band":
+        bad |= np.abs(yy - 0.7 * xx - 0.2 * ny) < 30
+    return img, bad
+
+
+def bench_holes(count, sizes=(512, 1024)):
+    """False detections on streak-free cut-outs with holes (seeds after
+    :data:`SMALL_FALSE_POSITIVE_SEED0`)."""
+    out = []
+    seeds = range(SMALL_FALSE_POSITIVE_SEED0 + 1, SMALL_FALSE_POSITIVE_SEED0 + count + 1)
+    for size in sizes:
+        for name in HOLE_SHAPES:
+            found = images = 0
+            for seed in seeds:
+                r, bad = image_of(make_scene(seed, [], size))
+                img, b = with_hole(name, r.image, bad)
+                n = len(analyse(img, bad=b, n_boot=0).streaks)
+                found += n
+                images += n > 0
+            out.append({"size": size, "shape": name, "images": count,
+                        "detections": found, "images_with_detections": images})
+            print(f"  {size} x {size}, {name}: {found} detection(s) on {images} of {count}",
+                  flush=True)
+    return out
+
+
 def calibrate(n_full, n_cut):
     """Largest Hough significance of streak-free full CCDs and 1024 x 1024 cut-outs."""
     out = {}
@@ -318,6 +482,8 @@ def main(argv=None):
     p.add_argument("--small-fp-images", type=int, default=60,
                    help="streak-free cut-outs of each small size for false positives (60)")
     p.add_argument("--no-baseline", action="store_true", help="skip the baseline's completeness")
+    p.add_argument("--hole-images", type=int, default=10,
+                   help="limits: streak-free images per hole shape and size (10)")
     p.add_argument("--calibrate", action="store_true", help="calibrate the false-alarm level")
     p.add_argument("--full", type=int, default=40, help="--calibrate: full CCDs (40)")
     p.add_argument("--cutouts", type=int, default=100, help="--calibrate: 1024 cut-outs (100)")
@@ -373,6 +539,16 @@ def main(argv=None):
                   f"stars (seeds {SMALL_FALSE_POSITIVE_SEED0 + 1}-"
                   f"{SMALL_FALSE_POSITIVE_SEED0 + args.small_fp_images}):")
             results["small_false_positives"] = bench_small_false_positives(args.small_fp_images)
+        if "limits" in args.sections:
+            print("limits, close parallel pairs (mag 9, 550 km, 1024 x 1024; resolved = both "
+                  "within 1 px and 0.2 deg):")
+            results["pairs"] = bench_pairs(seeds)
+            print("limits, streaks near an edge (mag 10.5; found = located and >= 90% of the "
+                  "truth plane masked / FWHM measured within 5%):")
+            results["edges"] = bench_edges(seeds)
+            print(f"limits, holes ({args.hole_images} streak-free cut-outs per shape and size, "
+                  f"seeds {SMALL_FALSE_POSITIVE_SEED0 + 1}-):")
+            results["holes"] = bench_holes(args.hole_images)
     if args.figures and not args.calibrate:
         for path in write_figures(results, args.figures):
             print(f"wrote {path}")

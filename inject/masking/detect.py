@@ -20,15 +20,20 @@ line and a full CCD costs milliseconds per transform:
    pixels; the wider filters run on smaller images, so all three cost 1.3 times the first.
 5. **Fast Hough transform** (OpenCV ``ximgproc``) of each level: every line sum, divided by
    the square root of its pixel count and standardised per angle (median and interquartile
-   range over offsets), is a significance ``z`` with unit noise.
+   range over offsets), is a significance ``z`` with unit noise. Blocks with some unusable
+   pixels are in units of their own noise; in an image with holes (NaN, flagged or constant
+   regions) the holes are guarded like the image edges and the count is that of the usable
+   cells each line crosses (:func:`hole_norms`), so the false-alarm level holds on what is
+   left.
 6. **Peaks**: the best ``z`` over levels (the outer :data:`EDGE_GUARD` binned pixels left
    out) is compared with :data:`FALSE_ALARM_Z` (higher for images under 512 px:
    :func:`threshold_for`). Above it, the line is refined and its extent found
-   (:mod:`.measure`), the streak is erased from the binned image, and the search repeats
-   (standardised with the first round's scales), so several streaks are found one after the
-   other.
+   (:mod:`.measure`), the streak is erased from the binned image (out to its wings, or to a
+   valley before a parallel neighbour), and the search repeats (standardised with the first
+   round's scales), so several streaks are found one after the other; near-parallel ones
+   are then retraced without each other's pixels (:func:`_retrace_neighbours`).
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -37,7 +42,7 @@ from scipy import ndimage
 from ..errors import InputError
 from . import MaskingError
 from .geometry import Line, angle_difference, band_pixels
-from .measure import stack_samples, trace_streak, wing_half_width
+from .measure import DIP_LEVEL, profile_fwhm, stack_samples, trace_streak, wing_reach
 
 #: Binning factor of the search image (4: a 7-10 px wide LSSTCam streak is ~2 binned px).
 BIN = 4
@@ -164,6 +169,11 @@ class Prepared:
         Binned residual in units of its own noise, stars removed, clipped (the search image).
     bin : int
         Binning factor.
+    zbinned : ndarray or None
+        The same before clipping (profiles of found streaks, to erase them).
+    holes : ndarray or None
+        Bool, binned pixels with no usable pixel (NaN, flagged bad or dead) outside stars;
+        None if there are none.
     """
 
     residual: np.ndarray
@@ -171,6 +181,8 @@ class Prepared:
     stars_binned: np.ndarray
     binned: np.ndarray
     bin: int
+    zbinned: np.ndarray | None = None
+    holes: np.ndarray | None = None
 
     @property
     def shape(self):
@@ -237,6 +249,13 @@ def _bin(image, bad, bad_index, factor):
         float32.
     nonfinite : ndarray of int
         Flat indices of the non-finite pixels of whole blocks that ``bad`` does not flag.
+    count : ndarray
+        Usable pixels of each block (float64, the binned shape).
+
+    Raises
+    ------
+    InputError
+        If a block's mean is beyond :data:`MAX_ABS_VALUE`.
     """
     ny, nx = (n // factor for n in image.shape)
     crop = image[:ny * factor, :nx * factor]
@@ -267,9 +286,50 @@ def _bin(image, bad, bad_index, factor):
         ok &= ~flagged
         total[broken] = np.where(ok, pix, 0.0).sum(axis=(1, 2))
         count[broken] = ok.sum(axis=(1, 2))
-    out = np.full(ny * nx, np.nan, dtype=np.float32)
-    np.divide(total, count, out=out, where=count > 0, casting="unsafe")
-    return out.reshape(ny, nx), nonfinite
+    mean = np.divide(total, count, out=np.full(ny * nx, np.nan), where=count > 0)
+    top = np.nanmax(np.abs(mean)) if (count > 0).any() else 0.0
+    if not top <= MAX_ABS_VALUE:
+        raise InputError("image", f"values up to {_largest(image):.3g}",
+                         f"the search works in float32 and needs |value| <= "
+                         f"{MAX_ABS_VALUE:.0e}: rescale the image or flag those pixels bad")
+    return mean.astype(np.float32).reshape(ny, nx), nonfinite, count.reshape(ny, nx)
+
+
+def _largest(image):
+    """Largest finite ``|value|`` of an image (for the error message)."""
+    a = np.abs(np.asarray(image, dtype=np.float64))
+    return float(np.max(a, where=np.isfinite(a), initial=0.0))
+
+
+#: Largest usable ``|value|`` of an image (image units): the search runs in float32 (largest
+#: 3.4e38), and sums and squares of the residual over a CCD must stay finite. An infinite
+#: pixel is unusable, like NaN; a finite one beyond this is refused.
+MAX_ABS_VALUE = 1e30
+
+
+def _dead_blocks(crop, factor, binned):
+    """Blocks whose pixels are all equal (a gap of a mosaic filled with 0, a dead region):
+    a noisy sky never gives ``factor^2`` equal values. Bool, the binned shape.
+
+    Candidates are the blocks whose mean (``binned``) equals a neighbour's bit for bit, as
+    the blocks of a dead region do and noisy ones never (two comparisons of the binned
+    image, cheap); only these are checked in full. A lone dead block is missed, which no
+    line notices.
+    """
+    ny, nx = binned.shape
+    same = np.zeros((ny, nx), dtype=bool)
+    for axis in (0, 1):
+        a, b = [slice(None)] * 2, [slice(None)] * 2
+        a[axis], b[axis] = slice(1, None), slice(None, -1)
+        eq = binned[tuple(a)] == binned[tuple(b)]
+        same[tuple(a)] |= eq
+        same[tuple(b)] |= eq
+    by, bx = np.nonzero(same)
+    if by.size:
+        r = np.arange(factor)
+        pix = crop[(by[:, None] * factor + r)[:, :, None], (bx[:, None] * factor + r)[:, None, :]]
+        same[by, bx] = (pix == pix[:, :1, :1]).all(axis=(1, 2))
+    return same
 
 
 def _clipped_row_medians(a, passes=2, k=3.0):
@@ -460,8 +520,13 @@ def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
         bad_index = np.flatnonzero(bad)  # few on a real image
     else:
         bad_index = np.zeros(0, dtype=np.intp)
-    binned, nonfinite = _bin(img, bad, bad_index, bin_factor)
-    unusable = bad_index.size + nonfinite.size
+    binned, nonfinite, count = _bin(img, bad, bad_index, bin_factor)
+    dead = _dead_blocks(img[:binned.shape[0] * bin_factor, :binned.shape[1] * bin_factor],
+                        bin_factor, binned)
+    if dead.any():
+        binned[dead] = np.nan
+        count[dead] = 0
+    unusable = img.size - int(count.sum())
     if unusable > 0.9 * img.size:
         raise MaskingError(f"only {img.size - unusable} of {img.size} pixels are usable")
     grid, boxes = _box_medians(binned, max(4, box // bin_factor))
@@ -472,6 +537,11 @@ def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
     flat = residual.reshape(-1)
     flat[bad_index] = np.nan
     flat[nonfinite] = np.nan
+    if dead.any():
+        by, bx = np.nonzero(dead)
+        r = np.arange(bin_factor)
+        residual[(by[:, None] * bin_factor + r)[:, :, None],
+                 (bx[:, None] * bin_factor + r)[:, None, :]] = np.nan
     # Half a million pixels pin the noise to ~0.2% and keep this fast on a full CCD: whole
     # rows, evenly spaced (contiguous memory, ~3x faster than every n-th pixel).
     sigma = robust_sigma(residual[::max(1, residual.size // 500_000)].ravel())
@@ -480,11 +550,20 @@ def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
                            "thresholds and mask widths are set against the sky noise")
     rb = binned - _background(grid, boxes, binned.shape)
     z = rb / robust_sigma(rb.ravel()[::max(1, rb.size // 300_000)])
+    area = bin_factor * bin_factor
+    partial = (count < area) & (count > 0)
+    if partial.any():
+        # A block of n usable pixels has sqrt(area / n) times the noise of a whole one: in
+        # units of its own noise, a bad column or a hole's edge raises no false line.
+        z[partial] *= np.sqrt(count[partial] / area)
     z[~np.isfinite(z)] = 0
     stars_b = _star_mask(z)
     work = np.where(stars_b, 0, np.clip(z, -CLIP_SIGMA, CLIP_SIGMA)).astype(np.float32)
+    # Holes: unusable blocks that no star covers (a star's saturated core is a star's).
+    holes = (count == 0) & ~stars_b
     return Prepared(residual=residual, sigma=sigma, stars_binned=stars_b, binned=work,
-                    bin=bin_factor)
+                    bin=bin_factor, zbinned=np.where(stars_b, 0, z).astype(np.float32),
+                    holes=holes if holes.any() else None)
 
 
 def _row_scales(h, n_usable, every=8):
@@ -530,10 +609,22 @@ def _line_norm(shape, min_length):
     return _NORM[key]
 
 
-def _normalised_transform(image, min_length):
+def _hole_norm(valid, min_length):
+    """As :func:`_line_norm` for an image with holes: a line's count is the sum of the
+    usable fraction ``valid`` of its cells, so a line sum of unit-noise cells has unit noise
+    whatever part of it crosses a hole, and lines with fewer than ``min_length`` usable cells
+    are not searched (their row's median and spread are those of real lines)."""
+    counts = fast_hough(valid)
+    usable = counts >= min_length
+    return (np.where(usable, 1 / np.sqrt(np.maximum(counts, 1)), np.nan).astype(np.float32),
+            usable, usable.sum(axis=1))
+
+
+def _normalised_transform(image, min_length, norm=None):
     """Filtered transform divided by the square root of each line's pixel count (NaN for
-    unusable cells), and its row scales (or None); see :func:`hough_significance`."""
-    norm, usable, n_usable = _line_norm(image.shape, min_length)
+    unusable cells), and its row scales (or None); see :func:`hough_significance`.
+    ``norm``: the :func:`_hole_norm` of an image with holes (default :func:`_line_norm`)."""
+    norm, usable, n_usable = _line_norm(image.shape, min_length) if norm is None else norm
     h = fast_hough(cv2.GaussianBlur(image, (0, 0), FILTER_SIGMA))
     h *= norm
     return h, usable, _row_scales(h, n_usable)
@@ -575,7 +666,7 @@ def hough_significance(image, min_length):
     return h
 
 
-def hough_peak(image, min_length, scales=None):
+def hough_peak(image, min_length, scales=None, norm=None):
     """Largest significance of :func:`hough_significance` and its cell, without forming the
     map: the standardisation is monotonic within a row, so each row's largest normalised sum
     gives its largest ``z``.
@@ -591,7 +682,7 @@ def hough_peak(image, min_length, scales=None):
     scales : tuple or None
         The scales used.
     """
-    h, _, own = _normalised_transform(image, min_length)
+    h, _, own = _normalised_transform(image, min_length, norm)
     if scales is None:
         scales = own
     if scales is None:
@@ -628,18 +719,20 @@ class Candidate:
     scales: list | None = field(default=None, repr=False)
 
 
-def best_line(prep, work, scales=None):
+def best_line(prep, work, scales=None, norms=None):
     """The most significant line over all pyramid levels of ``work`` (a binned image).
 
     ``scales``: per level, the row scales to standardise with (the :attr:`Candidate.scales`
-    of the search before any streak was erased); default each level's own.
+    of the search before any streak was erased); default each level's own. ``norms``: per
+    level, the line counts of an image with holes (:func:`hole_norms`).
     """
     best = None
     used = []
     for k, (image, f) in enumerate(pyramid(work)):
         factor = prep.bin * f
         z, row, col, sc = hough_peak(image, max(16, MIN_LINE_PX // factor),
-                                     None if scales is None else scales[k])
+                                     None if scales is None else scales[k],
+                                     None if norms is None else norms[k])
         used.append(sc)
         if best is None or z > best[0]:
             best = (z, (row, col), image, factor)
@@ -653,9 +746,12 @@ def best_line(prep, work, scales=None):
 
 
 def erase(prep, work, line, half_width):
-    """Zero the binned pixels within ``half_width`` image pixels of a found streak."""
-    hw = half_width / prep.bin + 1.0
-    yy, xx = band_pixels(work.shape, prep.to_binned(line), hw, extend=hw)
+    """Zero the binned pixels within ``half_width`` image pixels of a found streak, or, for a
+    pair ``(negative side, positive side)``, that far on each side (plus a binned pixel)."""
+    neg, pos = (half_width, half_width) if np.ndim(half_width) == 0 else half_width
+    centre = prep.to_binned(line.shifted(0.5 * (pos - neg)))
+    hw = 0.5 * (neg + pos) / prep.bin + 1.0
+    yy, xx = band_pixels(work.shape, centre, hw, extend=hw)
     work[yy, xx] = 0
 
 
@@ -667,19 +763,36 @@ ERASE_LEVEL = 0.1
 #: Widest erased band, image pixels (each side).
 MAX_ERASE = 300.0
 
+#: A side of the erased band also stops at a valley of the (unclipped) stacked profile, below
+#: :data:`~.measure.DIP_LEVEL` of its peak, beyond which the profile rises again by this many
+#: times its bin noise: a close parallel streak, which must survive to be found next.
+VALLEY_RISE = 6.0
+
 
 def erase_half_width(prep, line, fwhm_px):
-    """Image-pixel half-width of the band to erase around a found streak (see
-    :data:`ERASE_LEVEL`), plus one FWHM of margin."""
+    """Image-pixel half-widths ``(negative side, positive side)`` of the band to erase around
+    a found streak: out to where its stacked profile drops below :data:`ERASE_LEVEL`, plus one
+    FWHM of margin, or to a valley before a neighbour (:data:`VALLEY_RISE`), without margin;
+    :data:`MAX_ERASE` where the profile is cut (an image edge) or still above the level."""
     b = prep.to_binned(line)
     reach = MAX_ERASE / prep.bin
     yy, xx = band_pixels(prep.binned.shape, b, reach)
     _, d = b.coordinates(xx, yy)
-    profile, _ = stack_samples(d, prep.binned[yy, xx].astype(np.float64), reach, 0.5, 1.0,
+    image = prep.binned if prep.zbinned is None else prep.zbinned
+    profile, _ = stack_samples(d, image[yy, xx].astype(np.float64), reach, 0.5, 1.0,
                                b.angle_deg)
-    wing = wing_half_width(profile, ERASE_LEVEL)
-    wing = reach if wing is None else wing
-    return float(min(MAX_ERASE, prep.bin * wing + fwhm_px))
+    sides = []
+    near = fwhm_px / prep.bin
+    for valley, level in zip(wing_reach(profile, ERASE_LEVEL, valley=VALLEY_RISE, near=near),
+                             wing_reach(profile, ERASE_LEVEL, near=near)):
+        if valley is not None and np.isfinite(valley) and level is not None and \
+                np.isfinite(level) and valley < level - 1e-9:
+            sides.append(float(prep.bin * valley))  # stops at the valley
+        elif level is None or not np.isfinite(level):
+            sides.append(MAX_ERASE)
+        else:
+            sides.append(float(min(MAX_ERASE, prep.bin * level + fwhm_px)))
+    return tuple(sides)
 
 
 @dataclass
@@ -721,36 +834,80 @@ def detect_streaks(prep, threshold=FALSE_ALARM_Z, max_streaks=MAX_STREAKS):
     list of Detection
         In order of decreasing significance.
     """
-    work = search_image(prep)
+    if not (isinstance(threshold, (int, float, np.integer, np.floating))
+            and np.isfinite(threshold) and threshold > 0):
+        # A significance <= 0 passes every line of the noise.
+        raise InputError("threshold", threshold, "must be a finite number > 0")
+    work, valid = search_image(prep)
+    norms = None if valid is None else hole_norms(valid, prep.bin)
     limit = threshold_for(work.shape, threshold)
     scales = None
-    found = []
+    found, erased = [], []
     # Candidates that refinement rejects are erased too; a few spare rounds allow for them.
     for _ in range(max_streaks + 4):
         # Later rounds keep the first round's noise scales (see :func:`hough_peak`).
-        cand = best_line(prep, work, scales)
+        cand = best_line(prep, work, scales, norms)
         scales = cand.scales
         if not cand.z >= limit:
             break
         coarse, width, z = cand.line, cand.fwhm_px, cand.z
         if coarse is None:  # cannot happen for a cell of this image's transform
             break
-        tr = trace_streak(prep, coarse, width)
+        # Pixels nearer to a streak already found are not this one's (a close neighbour).
+        tr = trace_streak(prep, coarse, width, exclude=[d.line for d in found])
         if tr is None:
             erase(prep, work, coarse, 2 * width)
             continue
-        hw = erase_half_width(prep, tr.line, tr.fwhm_px)
-        erase(prep, work, tr.line, hw)
-        if any(_same_streak(tr.line, d.line, hw) for d in found):
+        sides = erase_half_width(prep, tr.line, tr.fwhm_px)
+        erase(prep, work, tr.line, sides)
+        if (any(_same_streak(tr.line, d.line, band) for d, band in zip(found, erased))
+                and not _own_peak(tr)):
             continue  # leftover light of a streak already found
         found.append(Detection(line=tr.line, significance=z, filter_fwhm_px=width, trace=tr))
+        erased.append(sides)
         if len(found) == max_streaks:
             break
-    return found
+    return _retrace_neighbours(prep, found)
+
+
+#: Streaks within this angle (deg) and :data:`MAX_ERASE` of each other are neighbours.
+NEIGHBOUR_ANGLE = 2.0
+
+
+def _retrace_neighbours(prep, found):
+    """Trace again, each without the other's pixels, the streaks that have a near-parallel
+    neighbour: the first of a close pair was traced before the second was known, and the
+    Hough line of two parallel ridges can run across both (a degree off), which refinement
+    alone follows. A retrace that lands on another streak is dropped."""
+    def near(a, b):
+        return (angle_difference(a.angle_deg, b.angle_deg) < NEIGHBOUR_ANGLE
+                and abs(a.offset_from(b)) < MAX_ERASE)
+
+    out = list(found)
+    for i, det in enumerate(found):
+        others = [d.line for j, d in enumerate(out) if j != i]
+        if not any(near(det.line, o) for o in others):
+            continue
+        tr = trace_streak(prep, det.line, det.trace.fwhm_px, exclude=others)
+        if tr is None:
+            continue
+        if any(_same_streak(tr.line, o, (tr.fwhm_px, tr.fwhm_px)) for o in others):
+            continue
+        out[i] = replace(det, line=tr.line, trace=tr)
+    return out
 
 
 def search_image(prep):
-    """A copy of the binned search image with the outer :data:`EDGE_GUARD` pixels set to 0."""
+    """A copy of the binned search image with the outer :data:`EDGE_GUARD` pixels set to 0,
+    and, if the image has holes, every pixel within :data:`EDGE_GUARD` of one (a hole's edge
+    is guarded as the image's are).
+
+    Returns
+    -------
+    work : ndarray
+    valid : ndarray or None
+        float32, 1 where ``work`` holds data, 0 in holes and guards (None without holes).
+    """
     work = prep.binned.copy()
     g = min(EDGE_GUARD, min(work.shape) // 4)
     if g > 0:
@@ -758,15 +915,44 @@ def search_image(prep):
         work[-g:] = 0
         work[:, :g] = 0
         work[:, -g:] = 0
-    return work
+    if prep.holes is None:
+        return work, None
+    valid = (~prep.holes).view(np.uint8)
+    if g > 0:
+        kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * g + 1, 2 * g + 1))
+        valid = cv2.erode(valid, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    valid = valid.astype(np.float32)
+    work *= valid
+    return work, valid
 
 
-def _same_streak(a, b, half_width):
-    """Whether line ``a`` runs along ``b`` within ``half_width`` (wings of one streak)."""
-    return (angle_difference(a.angle_deg, b.angle_deg) < 1.0
-            and abs(a.offset_from(b)) < half_width)
+def hole_norms(valid, bin_factor=BIN, levels=LEVELS):
+    """Per pyramid level, the line counts of an image with holes (:func:`_hole_norm`): the
+    usable fraction of each level's cells is the block mean of ``valid``, as the level's
+    values are block means of the search image."""
+    out = []
+    for image, f in pyramid(valid, levels):
+        out.append(_hole_norm(image, max(16, MIN_LINE_PX // (bin_factor * f))))
+    return out
+
+
+def _own_peak(trace):
+    """Whether a traced line, its pixels nearer to the streaks already found left out, has a
+    profile of its own (both half-maximum crossings measured): a close neighbour does, the
+    wing of a found streak (rising to the cut at the midline) does not."""
+    return bool(np.isfinite(profile_fwhm(trace.template, dip=DIP_LEVEL)[0]))
+
+
+def _same_streak(a, b, band):
+    """Whether line ``a`` runs along ``b`` inside the band erased around it (``(negative
+    side, positive side)`` half-widths, px): the wings of one streak, not a neighbour."""
+    if angle_difference(a.angle_deg, b.angle_deg) >= 1.0:
+        return False
+    offset = a.offset_from(b)
+    return -band[0] < offset < band[1]
 
 
 def max_significance(prep):
     """Largest Hough significance of an image (for calibrating :data:`FALSE_ALARM_Z`)."""
-    return best_line(prep, search_image(prep)).z
+    work, valid = search_image(prep)
+    return best_line(prep, work, norms=None if valid is None else hole_norms(valid, prep.bin)).z

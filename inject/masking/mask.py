@@ -24,7 +24,7 @@ import numpy as np
 
 from ..scene import STREAK_MASK_SIGMA
 from .geometry import rectangle_spans, span_indices
-from .measure import GAUSSIAN_FWHM_PER_SIGMA, MOFFAT_FWHM_PER_ALPHA, wing_half_width
+from .measure import GAUSSIAN_FWHM_PER_SIGMA, MOFFAT_FWHM_PER_ALPHA, wing_reach
 
 #: Mask-width rules, the default first.
 RULES = ("sb", "fwhm", "lsst", "acstools")
@@ -40,6 +40,15 @@ LSST_N_ALPHA = 5.0
 
 #: acstools ``findsat_mrt``: the trail reaches this many Gaussian sigma each side.
 ACSTOOLS_N_SIGMA = 3.0
+
+#: Width of the ``sb`` mask, in FWHM (the measured one, else the detection's estimate), when
+#: the profile's drop below the level is measured on neither side (both cut by an image edge,
+#: a hole or a neighbour) or not inside the widest window: a failed measurement must not set
+#: a mask hundreds of pixels wide.
+FALLBACK_FWHM = 3.0
+
+#: Widest fallback mask, px (3 x the widest matched filter's FWHM, 26 px).
+FALLBACK_MAX_PX = 80.0
 
 
 def mask_widths(measurement, sky_sigma, sb_sigma=STREAK_MASK_SIGMA, fwhm_factor=FWHM_FACTOR):
@@ -61,16 +70,52 @@ def mask_widths(measurement, sky_sigma, sb_sigma=STREAK_MASK_SIGMA, fwhm_factor=
         ``{rule: width}``; NaN where the measurement does not allow it (a failed fit).
     """
     fwhm = measurement.fwhm_px
-    reach = wing_half_width(measurement.profile, sb_sigma * sky_sigma)
-    if reach is None:  # still above the level at the window's edge: mask the whole window
-        reach = float(measurement.profile.distance[-1])
-    floor = 0.5 * MIN_FWHM * measurement.width_px
     return {
-        "sb": 2 * max(reach, floor),
+        "sb": sb_width(measurement, sky_sigma, sb_sigma)[0],
         "fwhm": fwhm_factor * fwhm,
         "lsst": 2 * LSST_N_ALPHA * measurement.moffat_alpha_px,
         "acstools": 2 * ACSTOOLS_N_SIGMA * measurement.gaussian_sigma_px,
     }
+
+
+def sb_width(measurement, sky_sigma, sb_sigma=STREAK_MASK_SIGMA):
+    """Full width (px) of the ``sb`` mask and, if it is not the measured one, the rule used.
+
+    The half-width is where the profile drops below ``sb_sigma x sky_sigma`` on the side(s)
+    where it is measured, or out to where a side is cut while still above it (an image edge,
+    a hole or a neighbour's midline; at most twice the measured side's), never below
+    :data:`MIN_FWHM` / 2 FWHM. Where that drop is measured on neither side,
+    or not inside the widest window, the mask is :data:`FALLBACK_FWHM` FWHM wide (at most
+    :data:`FALLBACK_MAX_PX`), and the rule is said.
+
+    Returns
+    -------
+    width : float
+    fallback : str or None
+        The rule applied instead of the measured drop, in words; None if measured.
+    """
+    width = measurement.width_px
+    profile = measurement.profile
+    sides = wing_reach(profile, sb_sigma * sky_sigma, near=width)
+    measured = [r for r in sides if r is not None and np.isfinite(r)]
+    if measured and None not in sides:
+        reach = max(measured)
+        # A side cut while still above the level is masked out to the cut at least (the
+        # image edge, a hole's edge or the midline to a neighbour), within twice the
+        # measured reach.
+        ends = profile.distance[profile.measured]
+        for r, end in zip(sides, (-ends[0], ends[-1])):
+            if not np.isfinite(r):
+                reach = max(reach, min(end + 0.5 * profile.step, 2 * max(measured)))
+        return 2 * max(reach, 0.5 * MIN_FWHM * width), None
+    reach = None if None in sides else float("nan")
+    why = ("still above the level at the widest window" if reach is None else
+           "cut on both sides by image edges, holes or neighbours")
+    fallback = min(FALLBACK_FWHM * width, FALLBACK_MAX_PX)
+    source = "measured" if measurement.fwhm_measured else "detection's"
+    return float(fallback), (f"{FALLBACK_FWHM:g} x the {source} FWHM ({width:.1f} px), at most "
+                             f"{FALLBACK_MAX_PX:g} px: the profile's drop below "
+                             f"{sb_sigma:g} sky sigma was not measured ({why})")
 
 
 def fitted_fwhm(measurement):

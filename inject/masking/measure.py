@@ -46,8 +46,17 @@ MIN_TRACE_SNR = 3.0
 #: Shortest streak accepted, px.
 MIN_LENGTH = 2 * EXTENT_BIN
 
+#: :func:`trace_streak` refines a line crossing the image a second time if the first
+#: refinement's last step still moved it by this much (px) or turned it by this much (deg).
+SETTLED_PX = 2.0
+SETTLED_DEG = 0.05
+
 #: Largest half-width of the window of a stacked profile, px.
 MAX_WINDOW = 400.0
+
+#: A profile bin holding fewer pixels than this fraction of the fullest bin's (or fewer than
+#: 3) is not measured (see :func:`stack_samples`).
+SPARSE_BIN = 0.05
 
 #: Moffat index of the LSST ``maskStreaks`` line profile.
 MOFFAT_BETA = 2.5
@@ -251,8 +260,12 @@ def _bin_value_order(bins, values):
     return np.argsort(key)
 
 
-def samples(prep, line, half_width, extend=0.0):
+def samples(prep, line, half_width, extend=0.0, exclude=()):
     """Usable pixels within ``half_width`` of ``line`` (between its ends, plus ``extend``).
+
+    ``exclude``: lines of other streaks; a pixel nearer to one of them (within its extent)
+    than to ``line`` is left out, so that a close parallel neighbour is not stacked into this
+    streak's profile (its side of the profile is then cut at the midline, as at an image edge).
 
     Returns
     -------
@@ -263,7 +276,16 @@ def samples(prep, line, half_width, extend=0.0):
     v = prep.residual[yy, xx]
     ok = np.isfinite(v) & ~prep.star_at(yy, xx)
     t, d = line.coordinates(xx[ok], yy[ok])
-    return t, d, v[ok].astype(np.float64)
+    v = v[ok]
+    if len(exclude):
+        keep = np.ones(t.size, dtype=bool)
+        xs, ys = xx[ok], yy[ok]
+        for other in exclude:
+            to, do = other.coordinates(xs, ys)
+            # Beyond the other's ends by as much as the distance: its end caps.
+            keep &= ~((np.abs(do) < np.abs(d)) & (np.abs(to) <= 0.5 * other.length + np.abs(d)))
+        t, d, v = t[keep], d[keep], v[keep]
+    return t, d, v.astype(np.float64)
 
 
 @dataclass
@@ -305,8 +327,19 @@ class Profile:
         """Noise of each bin's value."""
         return STAT_NOISE[self.statistic] * self.noise / np.sqrt(np.maximum(self.count, 1))
 
+    @property
+    def measured(self):
+        """Bins between the first and the last that hold pixels: beyond them the window runs
+        off the image, into a hole or past a neighbour's midline, and nothing is measured."""
+        full = np.flatnonzero(self.count > 0)
+        out = np.zeros(self.count.shape, dtype=bool)
+        if full.size:
+            out[full[0]:full[-1] + 1] = True
+        return out
+
     def filled(self):
-        """Values with empty bins interpolated from their neighbours."""
+        """Values with empty bins interpolated from their neighbours (held constant beyond
+        the measured bins: see :attr:`measured`)."""
         ok = np.isfinite(self.value)
         if ok.all():
             return self.value.copy()
@@ -352,31 +385,65 @@ def remove_pixel_response(values, step, angle_deg):
     return 2 * values - np.convolve(values, pixel_response(step, angle_deg), mode="same")
 
 
-def half_max_width(distance, values):
+#: A profile's half-maximum region is followed across dips down to this fraction of the peak
+#: (the horns of a defocused streak, :func:`half_max_width`), but not across deeper ones,
+#: which separate a close parallel neighbour: the horns of LSST streaks from 160 to 550 km
+#: never dip below 0.51 of the peak, the valley between two streaks two mask widths apart
+#: is below ~0.2.
+DIP_LEVEL = 0.25
+
+
+def half_max_width(distance, values, valid=None, dip=None):
     """Distance between the outermost half-maximum crossings of a smooth profile.
 
     A defocused cross-section can have two horns (and dip between them), so the crossings are
     the outermost ones, searched within 1.5 equivalent widths of the peak (further out, only
     noise can cross).
 
+    Parameters
+    ----------
+    distance, values : ndarray
+    valid : ndarray of bool, optional
+        Bins where the profile is measured (see :attr:`Profile.measured`); the peak is looked
+        for there, and a crossing whose bins are not valid is no crossing (the profile was cut
+        by an image edge, a hole or a neighbour's midline).
+    dip : float, optional
+        Follow the region above half maximum only across dips that stay above ``dip`` times
+        the peak (:data:`DIP_LEVEL`), so that a close neighbour's crossings are not taken;
+        default: the outermost crossings within the reach, whatever the dips.
+
     Returns
     -------
     fwhm, centre, peak : float
-        NaN when the profile has no positive peak or the crossings are outside the window.
+        NaN when the profile has no positive peak or the crossings are outside the window
+        (or outside the valid bins).
     """
-    i = int(np.argmax(values))
-    peak = float(values[i])
     nan = (float("nan"),) * 3
+    valid = np.ones(values.shape, dtype=bool) if valid is None else np.asarray(valid, bool)
+    if not valid.any():
+        return nan
+    i = int(np.argmax(np.where(valid, values, -np.inf)))
+    peak = float(values[i])
     if not peak > 0:
         return nan
     step = distance[1] - distance[0]
-    reach = 1.5 * np.clip(values, 0, None).sum() * step / peak
+    reach = 1.5 * np.clip(np.where(valid, values, 0), 0, None).sum() * step / peak
     near = np.abs(distance - distance[i]) <= reach
+    if dip is not None:
+        # The run of bins above dip x peak around the peak.
+        low = np.flatnonzero(values < dip * peak)
+        left_low, right_low = low[low < i], low[low > i]
+        first = left_low[-1] + 1 if left_low.size else 0
+        last = right_low[0] - 1 if right_low.size else len(values) - 1
+        near[:first] = False
+        near[last + 1:] = False
     half = 0.5 * peak
     above = np.flatnonzero(near & (values >= half))
     lo, hi = above[0], above[-1]
     if lo == 0 or hi == len(values) - 1:
         return nan
+    if not (valid[lo - 1] and valid[hi + 1]):
+        return nan  # cut before it drops to half: unmeasurable
     if not (values[lo - 1] < half and values[hi + 1] < half):
         return nan  # a neighbour beyond the reach is above half: noise, no clean crossing
 
@@ -388,7 +455,24 @@ def half_max_width(distance, values):
     return float(right - left), float(0.5 * (left + right)), peak
 
 
-def profile_fwhm(profile, value=None, smooth_px=1.0):
+def _trusted(profile, smooth_px):
+    """Measured bins at least a smoothing window plus 1 px inside the measured span (nearer
+    the cut, the smoothing and the pixel-response step see the values held constant beyond
+    it), or None when every bin holds pixels."""
+    measured = profile.measured
+    if measured.all():
+        return None
+    margin = int(np.ceil((0.5 * smooth_px + 1.0) / profile.step))
+    inner = np.flatnonzero(measured)
+    out = np.zeros(measured.shape, dtype=bool)
+    if inner.size:
+        a = inner[0] + (margin if inner[0] > 0 else 0)
+        b = inner[-1] - (margin if inner[-1] < measured.size - 1 else 0)
+        out[a:b + 1] = True
+    return out
+
+
+def profile_fwhm(profile, value=None, smooth_px=1.0, dip=None):
     """FWHM of a stacked profile, with and without the pixel response.
 
     Parameters
@@ -397,11 +481,14 @@ def profile_fwhm(profile, value=None, smooth_px=1.0):
     value : ndarray, optional
         Replacement values (a bootstrap replicate).
     smooth_px : float
+    dip : float, optional
+        See :func:`half_max_width`.
 
     Returns
     -------
     fwhm : float
-        Of the line-spread function (pixel response removed).
+        Of the line-spread function (pixel response removed); NaN when a half-maximum
+        crossing falls where the profile is cut (an image edge, a hole, a neighbour).
     fwhm_pixelated : float
         Of the stacked pixel values.
     centre : float
@@ -411,22 +498,45 @@ def profile_fwhm(profile, value=None, smooth_px=1.0):
     """
     if value is not None:
         profile = replace(profile, value=value)
+    valid = _trusted(profile, smooth_px)
     smooth = profile.smoothed(smooth_px)
-    pixelated, _, peak = half_max_width(profile.distance, smooth)
+    pixelated, _, peak = half_max_width(profile.distance, smooth, valid, dip)
     true = remove_pixel_response(smooth, profile.step, profile.angle_deg)
-    fwhm, centre, _ = half_max_width(profile.distance, true)
+    fwhm, centre, _ = half_max_width(profile.distance, true, valid, dip)
+    if not np.isfinite(peak) and valid is not None and valid.any():
+        peak = float(np.max(smooth[valid]))
     return fwhm, pixelated, centre, peak
+
+
+def peak_offset(profile, smooth_px=1.0):
+    """Distance (px from the line) of the maximum of the smoothed profile, refined by a
+    parabola, if it lies inside the measured bins (not at their end); else NaN. The position
+    of a streak whose half-maximum crossings are not both measured (at an image edge)."""
+    valid = _trusted(profile, smooth_px)
+    valid = np.ones(profile.value.shape, bool) if valid is None else valid
+    f = profile.smoothed(smooth_px)
+    if not valid.any():
+        return float("nan")
+    i = int(np.argmax(np.where(valid, f, -np.inf)))
+    if not (0 < i < f.size - 1 and valid[i - 1] and valid[i + 1]) or not f[i] > 0:
+        return float("nan")
+    curve = f[i - 1] - 2 * f[i] + f[i + 1]
+    delta = 0.5 * (f[i - 1] - f[i + 1]) / curve if curve < 0 else 0.0
+    return float(profile.distance[i] + np.clip(delta, -0.5, 0.5) * profile.step)
 
 
 def _smoothing_px(profile, fwhm_px):
     """Savitzky-Golay window for the FWHM: ~1 px for a bright streak, wider at low S/N, up to
     0.45 FWHM (where the quadratic filter still biases the FWHM by < 0.2%)."""
-    peak = np.nanmax(profile.smoothed(1.0))
+    measured = profile.measured
     widest = max(1.0, 0.45 * fwhm_px)
+    if not measured.any():
+        return widest
+    peak = np.nanmax(profile.smoothed(1.0)[measured])
     if not peak > 0:
         return widest
     per_px = (STAT_NOISE[profile.statistic] * profile.noise
-              / np.sqrt(np.nanmedian(profile.count) / profile.step))
+              / np.sqrt(np.median(profile.count[profile.count > 0]) / profile.step))
     # Window where the smoothed peak is known to ~0.5%: noise / sqrt(window) <= 0.005 peak.
     return float(np.clip((per_px / (0.005 * peak)) ** 2, 1.0, widest))
 
@@ -458,12 +568,19 @@ def stack_samples(d, v, half_width, bin_width, noise, angle_deg, statistic=None)
     bins, nbins, distance = _distance_bins(d, half_width, bin_width)
     stack = BinnedStack(bins, v, nbins)
     value = stack_statistic(stack, statistic)
+    counts = stack.counts
+    # A bin with a few pixels only (a corner of the band, cut by an edge or a neighbour's
+    # midline) is noise, not profile: not measured.
+    sparse = counts < max(3.0, SPARSE_BIN * counts.max(initial=0))
+    if sparse.any():
+        counts = np.where(sparse, 0, counts)
+        value = np.where(sparse, np.nan, value)
     # The baseline comes from the same statistic as the profile: on skewed (Poisson) noise a
     # pixel median and an interquartile mean differ by a few percent of sigma, which is a few
     # percent of the peak of a faint streak.
     outer = (np.abs(distance) >= 0.75 * half_width) & np.isfinite(value)
-    baseline = float(np.average(value[outer], weights=stack.counts[outer])) if outer.any() else 0.0
-    profile = Profile(distance=distance, value=value - baseline, count=stack.counts, noise=noise,
+    baseline = float(np.average(value[outer], weights=counts[outer])) if outer.any() else 0.0
+    profile = Profile(distance=distance, value=value - baseline, count=counts, noise=noise,
                       baseline=baseline, angle_deg=angle_deg, statistic=statistic)
     return profile, stack
 
@@ -476,7 +593,8 @@ def stack_statistic(stack, statistic, weights=None, sorted_weights=None):
     return stack.trimmed_mean(weights, sorted_weights=sorted_weights)
 
 
-def stack_profile(prep, line, half_width, bin_width, trim=(0.0, 0.0), statistic=None):
+def stack_profile(prep, line, half_width, bin_width, trim=(0.0, 0.0), statistic=None,
+                  exclude=()):
     """Robust profile across ``line`` over ``[-half_width, half_width]``.
 
     Parameters
@@ -489,6 +607,8 @@ def stack_profile(prep, line, half_width, bin_width, trim=(0.0, 0.0), statistic=
         Along-track lengths left out at the start and end (end caps of a streak that ends
         inside the image).
     statistic : {"trimmed", "median"}, optional
+    exclude : sequence of Line
+        Other streaks (see :func:`samples`).
 
     Returns
     -------
@@ -498,7 +618,7 @@ def stack_profile(prep, line, half_width, bin_width, trim=(0.0, 0.0), statistic=
     t : ndarray
         Along-track position of each stacked pixel (in the order ``stack.order`` refers to).
     """
-    t, d, v = samples(prep, line, half_width)
+    t, d, v = samples(prep, line, half_width, exclude=exclude)
     half = 0.5 * line.length
     keep = (t >= -half + trim[0]) & (t <= half - trim[1])
     t, d, v = t[keep], d[keep], v[keep]
@@ -549,6 +669,30 @@ def _segment_shifts(profiles, weights, template, distance, max_shift):
     return shift, amplitude
 
 
+def _main_bump(template, smooth_px=1.0):
+    """Bins of a template profile that belong to its main streak: all of them, unless the
+    profile falls below :data:`DIP_LEVEL` of its peak and rises again above half of it (a
+    close parallel neighbour in the window), in which case the bins beyond the valley between
+    them are left out; bool."""
+    f = template.smoothed(smooth_px)
+    keep = np.ones(f.shape, dtype=bool)
+    i = int(np.argmax(f))
+    peak = f[i]
+    if not peak > 0:
+        return keep
+    for idx in (np.arange(i, -1, -1), np.arange(i, f.size)):
+        fs = f[idx]
+        low = np.flatnonzero(fs < DIP_LEVEL * peak)
+        if not low.size:
+            continue
+        again = np.flatnonzero(fs[low[0]:] > 0.5 * peak)
+        if again.size:
+            j = low[0] + again[0]
+            valley = low[0] + int(np.argmin(fs[low[0]:j]))
+            keep[idx[valley:]] = False
+    return keep
+
+
 def _robust_line_fit(t, s, w):
     """Offset and slope of ``s = a + b t``, weighted by ``w`` (~ 1 / error), with 3-sigma
     clipping of the weighted residuals (2 points: exact; 1: offset only)."""
@@ -573,7 +717,7 @@ def _robust_line_fit(t, s, w):
     return float(a), float(b)
 
 
-def refine_line(prep, line, width_px, iterations=3):
+def refine_line(prep, line, width_px, iterations=3, exclude=(), converged=None):
     """Correct a line's position and angle from the cross-track offsets of its segments.
 
     Parameters
@@ -585,6 +729,11 @@ def refine_line(prep, line, width_px, iterations=3):
         Estimate of the streak's FWHM (sets the first window).
     iterations : int
         At most; it stops when the line moves by less than 0.05 px.
+    exclude : sequence of Line
+        Streaks already found (see :func:`samples`).
+    converged : list, optional
+        If given, the last step's move is appended: ``(offset px, rotation deg)`` (both
+        small if it converged, else ``iterations`` ran out).
 
     Returns
     -------
@@ -599,12 +748,14 @@ def refine_line(prep, line, width_px, iterations=3):
     bw = 0.5
     max_shift = 0.5 * half_width
     snr, template = 0.0, None
+    moved = (float("inf"), float("inf"))
     for _ in range(iterations):
-        t, d, v = samples(prep, line, half_width)
+        t, d, v = samples(prep, line, half_width, exclude=exclude)
         if t.size == 0:
             break
         template, stack = stack_samples(d, v, half_width, bw, prep.sigma, line.angle_deg)
-        tpl = np.nan_to_num(template.value)
+        # A close neighbour in the window would pull the segments' shifts towards it.
+        tpl = np.where(_main_bump(template), np.nan_to_num(template.value), 0.0)
         length = max(line.length, 1.0)
         # S/N^2 of the stack, less what the noise of the bins themselves contributes.
         per_bin = length * bw / STAT_NOISE[template.statistic] ** 2
@@ -618,7 +769,8 @@ def refine_line(prep, line, width_px, iterations=3):
         per_segment = stack.split(seg, nseg)
         prof = (stack_statistic(per_segment, template.statistic)
                 - template.baseline).reshape(nseg, nb)
-        weights = (per_segment.counts.reshape(nseg, nb) > 0).astype(float)
+        weights = ((per_segment.counts.reshape(nseg, nb) > 0)
+                   & (template.count > 0)[None, :]).astype(float)
         shifts, amplitude = _segment_shifts(np.nan_to_num(prof), weights, tpl,
                                             template.distance, max_shift)
         centres = (np.arange(nseg) + 0.5) * seg_len - 0.5 * length
@@ -628,16 +780,22 @@ def refine_line(prep, line, width_px, iterations=3):
         if nseg < 3:
             b = 0.0 if nseg == 1 else b
         # Shifts are relative to the template, which sits where the line was: its own centre
-        # (half-maximum midpoint) gives the absolute offset.
-        fwhm, _, centre, _ = profile_fwhm(template)
+        # (half-maximum midpoint) gives the absolute offset; near an image edge or a hole,
+        # where one crossing is cut, the template's peak does.
+        fwhm, _, centre, _ = profile_fwhm(template, dip=DIP_LEVEL)
+        if not np.isfinite(centre):
+            centre = peak_offset(template)
         a += centre if np.isfinite(centre) and abs(centre) < 0.5 * half_width else 0.0
         line = line.shifted(a, b)
+        moved = (abs(a), float(np.degrees(np.arctan(abs(b)))))
         if abs(a) < 0.05 and abs(b) * 0.5 * length < 0.05:
             break
         # The first window allowed for a coarse line and a guessed width; now both are known.
         max_shift = min(max_shift, 3.0)
         if np.isfinite(fwhm):
             half_width = min(half_width, max(2.5 * fwhm, 8.0) + 3.0)
+    if converged is not None:
+        converged.append(moved)
     return line, template, snr
 
 
@@ -691,7 +849,7 @@ def _step_position(t, v, lo, hi, level, rising, bin_len):
     return lo + e * bin_len
 
 
-def find_extent(prep, chord, core_half_width, bin_len=EXTENT_BIN):
+def find_extent(prep, chord, core_half_width, bin_len=EXTENT_BIN, exclude=()):
     """Where along ``chord`` the streak is: most significant run of along-track bins, ends
     refined by step fits on 4x finer bins.
 
@@ -700,7 +858,7 @@ def find_extent(prep, chord, core_half_width, bin_len=EXTENT_BIN):
     Extent or None
         None when the run is shorter than :data:`MIN_LENGTH` or below :data:`MIN_TRACE_SNR`.
     """
-    t, _, v = samples(prep, chord, core_half_width)
+    t, _, v = samples(prep, chord, core_half_width, exclude=exclude)
     length = chord.length
     nk = max(1, int(np.ceil(length / bin_len)))
     k = np.clip(((t + 0.5 * length) / bin_len).astype(int), 0, nk - 1)
@@ -763,7 +921,7 @@ class Trace:
     fwhm_px: float
 
 
-def trace_streak(prep, coarse, width_px):
+def trace_streak(prep, coarse, width_px, exclude=()):
     """Locate a candidate streak: refine the line over the whole chord, find the extent,
     refine over the extent, find the extent again.
 
@@ -774,6 +932,8 @@ def trace_streak(prep, coarse, width_px):
         Chord of the candidate line across the image (from the Hough peak).
     width_px : float
         FWHM estimate (of the best matched filter).
+    exclude : sequence of Line
+        Streaks already found (see :func:`samples`).
 
     Returns
     -------
@@ -783,22 +943,28 @@ def trace_streak(prep, coarse, width_px):
     # A bright streak is a broad ridge in the clipped search image, so the Hough peak can be
     # a degree off: refine over the whole chord first (segments beyond the streak's ends
     # carry no weight), then find the extent, then refine over the extent alone.
-    line, template, snr = refine_line(prep, coarse, width_px)
+    converged = []
+    line, template, snr = refine_line(prep, coarse, width_px, exclude=exclude,
+                                      converged=converged)
     if template is None:  # no usable pixel along the line
         return None
+    # A coarse line a few tenths of a degree off can leave the first refinement still
+    # turning it by tenths of a degree (not the jitter of a faint streak, hundredths): then a
+    # second one, even for a streak crossing the image.
+    settled = converged[0][0] < SETTLED_PX and converged[0][1] < SETTLED_DEG
     for attempt in range(2):
-        fwhm, _, _, _ = profile_fwhm(template)
+        fwhm, _, _, _ = profile_fwhm(template, dip=DIP_LEVEL)
         fwhm = float(fwhm) if np.isfinite(fwhm) else width_px
         chord = Line.crossing(prep.shape, *line.centre, line.angle_deg)
         if chord is None:
             return None
-        extent = find_extent(prep, chord, max(0.5 * fwhm, 1.0))
+        extent = find_extent(prep, chord, max(0.5 * fwhm, 1.0), exclude=exclude)
         if extent is None:
             return None
         line = chord.trimmed(extent.t0, extent.t1)
-        if attempt == 1 or extent.at_edge == (True, True):
+        if attempt == 1 or (extent.at_edge == (True, True) and settled):
             break
-        line, template, snr = refine_line(prep, line, fwhm)
+        line, template, snr = refine_line(prep, line, fwhm, exclude=exclude)
     return Trace(line=line, at_edge=extent.at_edge, template=template, snr=snr, fwhm_px=fwhm)
 
 
@@ -861,7 +1027,10 @@ class Measurement:
         Matched-filter S/N of the streak.
     width_px : float
         ``fwhm_px``, or the detection's width estimate where the FWHM could not be measured
-        (a streak too faint for its half-maximum crossings): what mask floors use.
+        (a streak too faint for its half-maximum crossings, or cut by an image edge, a hole or
+        a neighbour): what mask floors use.
+    fwhm_measured : bool
+        Whether ``fwhm_px`` was measured (else it is NaN).
     """
 
     line: Line
@@ -876,9 +1045,11 @@ class Measurement:
     snr: float
     width_px: float
     bootstrap: np.ndarray = field(repr=False, default=None)
+    fwhm_measured: bool = True
 
 
-def measure_streak(prep, trace, wing_level=None, n_boot=50, seed=1, statistic=None):
+def measure_streak(prep, trace, wing_level=None, n_boot=50, seed=1, statistic=None,
+                   exclude=()):
     """Model-free FWHM of a traced streak, with a bootstrap error.
 
     Parameters
@@ -894,10 +1065,17 @@ def measure_streak(prep, trace, wing_level=None, n_boot=50, seed=1, statistic=No
     seed : int
     statistic : {"trimmed", "median"}, optional
         Per-bin statistic of the stack (default :data:`STATISTIC`, the interquartile mean).
+    exclude : sequence of Line
+        The other streaks of the image: pixels nearer to one of them are not stacked (see
+        :func:`samples`), so a close parallel neighbour cuts this profile at the midline
+        between them, as an image edge does.
 
     Returns
     -------
     Measurement
+        ``fwhm_px`` is NaN and ``fwhm_measured`` False when a half-maximum crossing is not
+        measured (the streak runs within about half a FWHM of an image edge, a hole or a
+        neighbour's midline).
     """
     line = trace.line
     fwhm0 = trace.fwhm_px
@@ -910,9 +1088,12 @@ def measure_streak(prep, trace, wing_level=None, n_boot=50, seed=1, statistic=No
     # ~60 pixels per bin at least: a median of fewer is too noisy to place a crossing.
     bin_width = float(np.clip(60.0 / usable, 0.1, 0.5))
     while True:
-        profile, stack, t = stack_profile(prep, line, half_width, bin_width, trim, statistic)
+        profile, stack, t = stack_profile(prep, line, half_width, bin_width, trim, statistic,
+                                          exclude)
+        # NaN: neither side measured (cut by edges, holes or neighbours); a wider window
+        # would not help.
         reach = wing_half_width(profile, level)
-        if (reach is not None and reach <= 0.6 * half_width) or half_width >= MAX_WINDOW:
+        if (reach is not None and not reach > 0.6 * half_width) or half_width >= MAX_WINDOW:
             break
         half_width = min(MAX_WINDOW, 2 * half_width if reach is None else reach / 0.5)
     smooth = _smoothing_px(profile, fwhm0)
@@ -926,7 +1107,8 @@ def measure_streak(prep, trace, wing_level=None, n_boot=50, seed=1, statistic=No
                        fwhm_pixelated_px=pixelated, peak=peak, profile=profile,
                        gaussian_sigma_px=fit_width(profile, "gaussian", guess),
                        moffat_alpha_px=fit_width(profile, "moffat", guess),
-                       snr=trace.snr, width_px=guess, bootstrap=replicates)
+                       snr=trace.snr, width_px=guess, bootstrap=replicates,
+                       fwhm_measured=bool(np.isfinite(fwhm)))
 
 
 def _bootstrap(profile, stack, t, smooth, length, fwhm, n_boot, seed):
@@ -996,26 +1178,78 @@ def _replicate_fwhms(profile, inner, first, smooth_px):
     return out
 
 
-def wing_half_width(profile, level, smooth_px=2.0):
+def wing_reach(profile, level, smooth_px=2.0, valley=None, near=None):
+    """How far each side of the profile stays above ``level``, walking out from the peak.
+
+    Parameters
+    ----------
+    profile : Profile
+    level : float
+    smooth_px : float
+    valley : float, optional
+        Also stop a side at a valley: a minimum beyond which the profile rises again by more
+        than ``valley`` times its bin noise (a neighbouring streak), at the minimum.
+    near : float, optional
+        Look for the peak within this distance of the line (px) only: a brighter neighbour
+        in the window is not this streak's peak. Default: anywhere.
+
+    Returns
+    -------
+    left, right : float or None
+        Distances (px, >= 0) from the line on the negative and positive side where the profile
+        drops below ``level`` (interpolated; or the valley's); None where the window ends
+        first (it is too small); NaN where the measured bins end first (the profile is cut by
+        an image edge, a hole or a neighbour's midline: that side is not measured). Both 0 if
+        the peak is below ``level``.
+    """
+    measured = profile.measured
+    if not measured.any():
+        return float("nan"), float("nan")
+    f = profile.smoothed(smooth_px)
+    d = profile.distance
+    allowed = measured if near is None else measured & (np.abs(d) <= max(near, profile.step))
+    if not allowed.any():
+        allowed = measured
+    i = int(np.argmax(np.where(allowed, f, -np.inf)))
+    if not f[i] > level:
+        return 0.0, 0.0
+    noise = profile.bin_noise
+
+    def side(idx):
+        fs, ms = f[idx], measured[idx]
+        below = np.flatnonzero(fs < level)
+        stop = below[0] if below.size else None
+        cut = np.flatnonzero(~ms)
+        cut = cut[0] if cut.size else None
+        if valley is not None:
+            low = np.minimum.accumulate(fs)
+            where_low = np.maximum.accumulate(np.where(fs <= low, np.arange(fs.size), 0))
+            # Only below DIP_LEVEL of the peak: a defocused streak's horns dip less.
+            rise = np.flatnonzero((fs - low > valley * noise[idx][where_low])
+                                  & (low < DIP_LEVEL * f[i]))
+            if rise.size and (stop is None or rise[0] < stop) and (cut is None
+                                                                    or rise[0] < cut):
+                return float(abs(d[idx[where_low[rise[0]]]]))
+        if cut is not None and (stop is None or cut <= stop):
+            return float("nan")
+        if stop is None:
+            return None
+        a, b = idx[stop - 1], idx[stop]  # a above, b below
+        return float(abs(d[a] + (f[a] - level) * (d[b] - d[a]) / (f[a] - f[b])))
+
+    return side(np.arange(i, -1, -1)), side(np.arange(i, f.size))
+
+
+def wing_half_width(profile, level, smooth_px=2.0, valley=None, near=None):
     """Half-width (px from the line) where the profile drops below ``level`` for good.
 
     Walks out from the peak on each side to the first point below ``level`` and returns the
-    larger distance; 0 if the peak is below ``level``; None if a side never drops below it
-    inside the window (the window is too small).
+    larger distance of the sides that are measured (:func:`wing_reach`); 0 if the peak is
+    below ``level``; None if a side never drops below it inside the window (the window is too
+    small); NaN if neither side is measured (both are cut by edges, holes or neighbours).
     """
-    f = profile.smoothed(smooth_px)
-    d = profile.distance
-    i = int(np.argmax(f))
-    if not f[i] > level:
-        return 0.0
-    below = f < level
-    right = np.flatnonzero(below[i:])
-    left = np.flatnonzero(below[:i + 1][::-1])
-    if right.size == 0 or left.size == 0:
+    sides = wing_reach(profile, level, smooth_px, valley, near)
+    if any(r is None for r in sides):
         return None
-    ir, il = i + right[0], i - left[0]
-
-    def crossing(a, b):  # between a (above) and b (below)
-        return d[a] + (f[a] - level) * (d[b] - d[a]) / (f[a] - f[b])
-
-    return float(max(abs(crossing(ir - 1, ir)), abs(crossing(il + 1, il))))
+    finite = [r for r in sides if np.isfinite(r)]
+    return float(max(finite)) if finite else float("nan")

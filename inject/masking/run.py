@@ -78,7 +78,7 @@ def _json_safe(value):
 def _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold=None, max_streaks=None):
     import numpy as np
 
-    from ..validate import finite, positive
+    from ..validate import positive
 
     if pixel_scale is not None:
         positive("--pixel-scale", pixel_scale, scalar=True)
@@ -87,14 +87,22 @@ def _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold=None, max
     positive("--sb-sigma", sb_sigma, scalar=True)
     positive("--fwhm-factor", fwhm_factor, scalar=True)
     if threshold is not None:
-        finite("--threshold", threshold, scalar=True)
+        # A significance <= 0 passes every line of the noise: refused, not searched.
+        positive("--threshold", threshold, scalar=True)
     if max_streaks is not None and not (isinstance(max_streaks, (int, np.integer))
                                         and max_streaks >= 1):
         raise InputError("--max-streaks", max_streaks, "must be an integer >= 1")
 
 
-def streak_record(measurement, detection, widths, rule, counts, pixel_scale, sky_sigma):
-    """The dict of one streak (CONTRACT keys first); ``rule`` is the mask-width rule applied.
+def streak_record(measurement, detection, widths, rule, counts, pixel_scale, sky_sigma,
+                  fallback=None):
+    """The dict of one streak (CONTRACT keys first); ``rule`` is the mask-width rule applied,
+    ``fallback`` the words of the bounded rule that replaced the measured ``sb`` width (or
+    None).
+
+    ``fwhm_measured`` is False (and the FWHMs NaN, null in JSON) when the profile is cut
+    before a half-maximum crossing (a streak within about half a FWHM of an image edge, a
+    hole or a close neighbour's midline).
 
     The direction of motion cannot be seen in an image: ``angle_deg`` is the line's orientation
     in ``(-90, 90]`` and ``(x0, y0) -> (x1, y1)`` runs that way.
@@ -121,6 +129,7 @@ def streak_record(measurement, detection, widths, rule, counts, pixel_scale, sky
         "peak": measurement.peak, "peak_snr": measurement.peak / sky_sigma,
         "snr": measurement.snr, "significance": detection.significance,
         "mask_rule": rule, "mask_widths_px": widths,
+        "fwhm_measured": measurement.fwhm_measured, "mask_fallback": fallback,
     }
 
 
@@ -159,7 +168,7 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
 
     from .detect import FALSE_ALARM_Z, MAX_STREAKS, detect_streaks, prepare
     from .geometry import span_indices
-    from .mask import lost_pixels, mask_spans, mask_widths
+    from .mask import lost_pixels, mask_spans, mask_widths, sb_width
     from .measure import measure_streak
 
     _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold, max_streaks)
@@ -171,14 +180,19 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
     pixels = []  # flat indices of each mask (their union is counted once)
     streaks = []
     for det in detections:
-        m = measure_streak(prep, det.trace, wing_level=sb_sigma * prep.sigma, n_boot=n_boot)
+        # Each streak is measured without the pixels nearer to another (a close neighbour).
+        others = [d.line for d in detections if d is not det]
+        m = measure_streak(prep, det.trace, wing_level=sb_sigma * prep.sigma, n_boot=n_boot,
+                           exclude=others)
         widths = mask_widths(m, prep.sigma, sb_sigma, fwhm_factor)
         # A Gaussian or Moffat fit can fail, or the FWHM be unmeasurable: then the sb rule.
         applied = rule if np.isfinite(widths[rule]) else DEFAULT_RULE
+        fallback = sb_width(m, prep.sigma, sb_sigma)[1] if applied == "sb" else None
         counts = lost_pixels(prep.shape, m.line, widths[applied], flagged)
         yy, xx = span_indices(*mask_spans(prep.shape, m.line, widths[applied]))
         pixels.append(yy * prep.shape[1] + xx)
-        streaks.append(streak_record(m, det, widths, applied, counts, pixel_scale, prep.sigma))
+        streaks.append(streak_record(m, det, widths, applied, counts, pixel_scale, prep.sigma,
+                                     fallback))
     # The masks' union from their pixel indices, not a full-size image (a few passes over a
     # 16 Mpx CCD would cost more than the masks themselves).
     union = np.unique(np.concatenate(pixels)) if len(pixels) > 1 else \
@@ -414,10 +428,17 @@ def _print_table(result):
         widths = (8, 8, 8, 8, 8, 7, 6, 7, 9, 7, 7)
         print(" ".join(name.rjust(w) for name, w in zip(names, widths)))
     for s in result.streaks:
+        # An unmeasured FWHM (a streak cut by an edge, a hole or a neighbour) reads n/a.
+        fwhm = (f"{s['fwhm_arcsec']:7.3f} {s['fwhm_err_arcsec']:6.3f}" if s["fwhm_measured"]
+                else f"{'n/a':>7s} {'':6s}")
         print(f"{s['angle_deg']:8.3f} {s['x0']:8.1f} {s['y0']:8.1f} {s['x1']:8.1f} "
-              f"{s['y1']:8.1f} {s['fwhm_arcsec']:7.3f} {s['fwhm_err_arcsec']:6.3f} "
+              f"{s['y1']:8.1f} {fwhm} "
               f"{s['mask_width_px']:7.1f} {s['masked_pixels']:9d} {s['masked_fraction']:7.4f} "
               f"{s['significance']:7.1f}")
+    for k, s in enumerate(result.streaks):
+        if s["mask_fallback"]:
+            print(f"streak {k + 1}: mask width {s['mask_width_px']:.1f} px by "
+                  f"{s['mask_fallback']}")
     npix = result.shape[0] * result.shape[1]
     print(f"masked {result.masked_pixels} px ({result.masked_pixels / npix:.4%}), "
           f"{result.lost_pixels} not already flagged")
