@@ -13,7 +13,7 @@ def add_focalplane_parser(sub):
                     "process pool or a Dask cluster, resumably; one FITS per CCD, "
                     "manifest.csv and mosaic.png in OUTDIR.")
     p.add_argument("scene", help="YAML focal-plane scene (see sample_fields/*focal*)")
-    p.add_argument("-o", "--output", metavar="OUTDIR", help="output directory (not needed "
+    p.add_argument("-o", "--output", "--out", metavar="OUTDIR", help="output directory (not needed "
                                                              "with --plan)")
     p.add_argument("--workers", type=int, metavar="N",
                    help="worker processes (default: the machine's cores)")

@@ -35,7 +35,7 @@ def test_profile_help_shows_defaults(capsys):
 
 @pytest.mark.parametrize("command,dest", [
     (["simulate", "s.yaml"], "output"), (["add-streak", "in.fits", "--height", "550"], "output"),
-    (["mask", "in.fits"], "out"), (["evaluate"], "out")])
+    (["mask", "in.fits"], "out"), (["evaluate"], "out"), (["focalplane", "s.yaml"], "output")])
 @pytest.mark.parametrize("spelling", ["-o", "--output", "--out"])
 def test_every_command_takes_every_output_spelling(command, dest, spelling):
     args = build_parser().parse_args([*command, spelling, "x"])
