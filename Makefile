@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install test slow demo figures bench clean
+.PHONY: install test slow demo focalplane figures bench clean
 
 $(BIN)/python:
 	@echo "==> creating the virtual environment $(VENV) with $(PYTHON)"
@@ -35,6 +35,12 @@ demo: $(STAMP)
 	@echo "outputs: out/default.fits (IMAGE MASK VARIANCE STREAK_MODEL TRUTH), out/default.exr,"
 	@echo "         out/default.png (quicklook), out/default_truth.csv"
 	@echo "to run inject yourself: .venv/bin/inject --help, or: source .venv/bin/activate; inject --help"
+
+focalplane: $(STAMP)
+	$(BIN)/inject focalplane sample_fields/focal_paper_550km.yaml -o out/focalplane \
+		--streak-ccds-only
+	@echo "outputs: out/focalplane/R*_S*.fits (the CCDs the streak reaches), manifest.csv,"
+	@echo "         mosaic.png (the whole focal plane; CCDs not rendered are outlined)"
 
 figures: $(STAMP)
 	$(BIN)/python scripts/paper_figures.py --out out/figures

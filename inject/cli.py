@@ -361,6 +361,9 @@ def build_parser():
 
     add_mask_parser(sub)
     add_evaluate_parser(sub)
+    from .cli_focalplane import add_focalplane_parser
+
+    add_focalplane_parser(sub)
     for command in sub.choices.values():
         # After the subcommand too; SUPPRESS: not given there, the top-level value stands.
         command.add_argument("--traceback", action="store_true", default=argparse.SUPPRESS,

@@ -175,6 +175,11 @@ def _truth_row(model, track, ends, charge, expected, budget):
     }
 
 
+#: Threads drawing the noise (None: the machine's cores); the focal-plane runner's workers set
+#: 1, as their parallelism is one CCD per process.
+NOISE_THREADS = None
+
+
 class AmplifierNoise:
     """Poisson and read noise drawn amplifier by amplifier, on a thread pool.
 
@@ -190,7 +195,7 @@ class AmplifierNoise:
                        for x in range(0, nx, detector.amp_nx)]
         root = np.random.SeedSequence(seed, spawn_key=(detector_index, STREAMS["noise"]))
         self.generators = [np.random.default_rng(s) for s in root.spawn(len(self.blocks))]
-        self.threads = threads or min(len(self.blocks), os.cpu_count() or 1)
+        self.threads = threads or NOISE_THREADS or min(len(self.blocks), os.cpu_count() or 1)
 
     def _each(self, work):
         with ThreadPoolExecutor(self.threads) as pool:
@@ -242,8 +247,13 @@ def sky_level(scene):
     return float(level)
 
 
-def simulate(scene, budget=Budget(), detector_index=0, wcs=None):
+def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
+             add_stars=None):
     """Simulate one CCD of a scene.
+
+    ``rendered`` (the ``(image, truth)`` of :func:`render_tracks`) and ``add_stars`` (a
+    function adding the stars' expected charge to an image in place) let a caller that places
+    streaks and stars itself, such as the focal plane, reuse the rest.
 
     The order follows the charge: streaks, sky, stars and dark current are expected charge;
     Poisson noise draws the collected charge; saturation bleeds it along columns; cosmic rays
@@ -263,10 +273,12 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None):
         raise SceneError(f"scene={type(scene).__name__}: pass a Scene "
                          f"(inject.config.parse_scene of the mapping)")
     det = scene.detector
-    streaks, truth = render_streaks(scene, budget)
+    streaks, truth = render_streaks(scene, budget) if rendered is None else rendered
     sky = sky_level(scene)
     expected = streaks + sky
-    if scene.stars:
+    if scene.stars and add_stars is not None:
+        add_stars(expected)
+    elif scene.stars:
         from .stars import add_star_field
 
         add_star_field(expected, scene, rng(scene.seed, "stars", detector_index), wcs=wcs)

@@ -1,0 +1,129 @@
+"""``inject focalplane``: a focal-plane scene rendered CCD by CCD (CONTRACT.md)."""
+import json
+import os
+import sys
+
+from .errors import InputError, OutputError
+
+
+def add_focalplane_parser(sub):
+    p = sub.add_parser(
+        "focalplane", help="simulate the LSSTCam focal plane (189 CCDs) from a scene file",
+        description="Simulate the CCDs of a focal-plane scene (tracks in focal-plane mm) on a "
+                    "process pool or a Dask cluster, resumably; one FITS per CCD, "
+                    "manifest.csv and mosaic.png in OUTDIR.")
+    p.add_argument("scene", help="YAML focal-plane scene (see sample_fields/*focal*)")
+    p.add_argument("-o", "--output", metavar="OUTDIR", help="output directory (not needed "
+                                                             "with --plan)")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="worker processes (default: the machine's cores)")
+    p.add_argument("--scheduler", metavar="ADDRESS|local",
+                   help="a Dask scheduler address, or 'local' for a Dask LocalCluster of "
+                        "--workers single-threaded processes (default: a process pool)")
+    p.add_argument("--memory-limit", default=None, metavar="SIZE",
+                   help="memory limit per LocalCluster worker (default 3GiB)")
+    p.add_argument("--detectors", metavar="LIST",
+                   help="comma-separated CCD names or ids (default: the scene's, or all 189)")
+    p.add_argument("--streak-ccds-only", action="store_true",
+                   help="render only the CCDs a streak reaches")
+    p.add_argument("--job", type=int, metavar="J", help="render the J-th (0-based) of "
+                                                         "--njobs interleaved slices")
+    p.add_argument("--njobs", type=int, metavar="N")
+    p.add_argument("--retries", type=int, default=2, help="resubmissions of a failed CCD (2)")
+    p.add_argument("--plan", action="store_true", help="print what would be rendered; render "
+                                                       "nothing")
+    p.add_argument("--json", action="store_true", help="with --plan: one JSON object")
+    p.add_argument("--no-mosaic", action="store_true", help="do not write mosaic.png")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace files of an earlier run of another scene")
+    p.add_argument("overrides", nargs="*", default=[], metavar="key.path=value",
+                   help="override scene keys, e.g. satellites.0.mag=6 cutout.nx=512")
+    p.set_defaults(func=run_focalplane)
+
+
+def _selected(fscene, args, margins):
+    from . import focalplane as fp
+    from .focalscene import ccd_streaks
+    from .parallel import slice_ccds
+
+    ccds = fscene.ccds
+    if args.detectors is not None:
+        wanted = set(fp.select(args.detectors))
+        outside = sorted(wanted - set(ccds), key=lambda c: c.id)
+        if outside:
+            raise InputError("--detectors", args.detectors,
+                             f"{outside[0].name} is not among the scene's detectors")
+        ccds = tuple(c for c in ccds if c in wanted)
+    if args.streak_ccds_only:
+        ccds = tuple(c for c in ccds if ccd_streaks(fscene, c, margins))
+    return slice_ccds(ccds, args.job, args.njobs)
+
+
+def run_focalplane(args):
+    from .config import apply_overrides, load_scene_file
+    from .focalscene import margins_px, parse_focal_scene, plan
+
+    if args.workers is not None and args.workers < 1:
+        raise InputError("--workers", args.workers, "must be >= 1")
+    if args.retries < 0:
+        raise InputError("--retries", args.retries, "must be >= 0")
+    if args.json and not args.plan:
+        raise InputError("--json", True, "only with --plan")
+    fscene = parse_focal_scene(apply_overrides(load_scene_file(args.scene), args.overrides))
+    margins = margins_px(fscene)
+    ccds = _selected(fscene, args, margins)
+    if args.plan:
+        result = plan(fscene, ccds, margins)
+        if args.json:
+            json.dump(result, sys.stdout)
+            sys.stdout.write("\n")
+        else:
+            for d in result["detectors"]:
+                ends = "; ".join(f"({s['x0']:.1f}, {s['y0']:.1f}) -> ({s['x1']:.1f}, "
+                                 f"{s['y1']:.1f})" for s in d["streaks"])
+                print(f"{d['name']:8s} {d['id']:3d} {d['vendor']:3s}  {ends}")
+            print(f"{len(result['detectors'])} of {len(ccds)} CCDs reached by a streak",
+                  file=sys.stderr)
+        return
+    if not args.output:
+        raise InputError("-o", None, "give an output directory (or --plan)")
+    if os.path.exists(args.output) and not os.path.isdir(args.output):
+        raise OutputError(f"{args.output}: exists and is not a directory")
+    if not ccds:
+        raise InputError("--detectors/--job", (args.detectors, args.job), "no CCD to render")
+    mosaic = os.path.join(args.output, "mosaic.png")
+    if not args.no_mosaic and os.path.exists(mosaic) and not args.overwrite:
+        from .parallel import read_manifest
+
+        rows = read_manifest(args.output).values()
+        if not any(r.get("scene_sha256") == fscene.digest for r in rows):
+            raise OutputError(f"{mosaic}: exists (not this scene's); pass --overwrite to "
+                              "replace it")
+    _render(fscene, ccds, margins, args)
+
+
+def _render(fscene, ccds, margins, args):
+    from .parallel import DASK_MEMORY_LIMIT, dask_executor, process_pool, run
+
+    if args.scheduler:
+        executor = dask_executor(args.scheduler, args.workers,
+                                 args.memory_limit or DASK_MEMORY_LIMIT, args.retries)
+    else:
+        if args.memory_limit:
+            raise InputError("--memory-limit", args.memory_limit, "only with --scheduler")
+        executor = process_pool(args.workers)  # shut down when the block ends
+    with executor as ex:
+        result = run(fscene, args.output, ex, ccds, overwrite=args.overwrite,
+                     retries=args.retries, margins=margins)
+    print(f"{args.output}: {len(result.rendered)} CCDs rendered, {len(result.skipped)} "
+          f"already done, {len(result.failed)} failed", file=sys.stderr)
+    if not args.no_mosaic:
+        from .io.mosaic import write_mosaic
+
+        path = os.path.join(args.output, "mosaic.png")
+        write_mosaic(path, fscene, args.output, margins=margins)
+        print(f"wrote {path}", file=sys.stderr)
+    if result.failed:
+        names = ", ".join(r["detector"] for r in result.failed[:10])
+        raise OutputError(f"{len(result.failed)} CCD(s) failed after retries: {names} (see "
+                          f"{os.path.join(args.output, 'manifest.csv')}; rerun to retry them)")

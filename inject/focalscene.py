@@ -1,0 +1,424 @@
+"""Focal-plane scenes: a CCD scene's keys with a pointing and tracks in focal-plane mm, planned
+and simulated one CCD at a time (CONTRACT.md, ``inject focalplane``).
+
+A track is a line across the whole focal plane (``{x0_mm, y0_mm, angle}``), a segment (with
+``length_mm``) or a polyline (``{vertices: [{x_mm, y_mm, height, zenith, phi, mag}, ...]}``,
+overrides as in CCD scenes). Each satellite reaches the CCDs whose pixel area, grown by its
+swept profile's footprint (support across the track plus end cap along it), the track
+crosses; on each, the track is clipped to that grown area and put in the CCD's pixels (the
+layout has no yaw, so lines stay lines), the polyline's vertex values are interpolated where
+the clipped track enters and leaves, and the charge per pixel of track uses the local plate
+scale along the track. Light that falls between CCDs is lost, as in the camera.
+
+Random streams are keyed on (scene seed, detector id, purpose) (:func:`inject.scene.rng`);
+stars on (scene seed, star tile, ``"stars"``): stars are drawn per fixed 10 mm tile of the
+focal plane, and each CCD draws the tiles its pixels and stamps reach, so a star is where the
+scene puts it whichever CCDs are rendered.
+"""
+import hashlib
+import json
+from dataclasses import dataclass, replace
+from functools import lru_cache
+
+import numpy as np
+
+from . import focalplane as fp
+from .config import Track, _check_keys, _number, _polyline_track, _TOP_KEYS, parse_scene
+from .errors import InjectError, SceneError
+from .instrument import LSST
+from .profile import Seeing
+from .render import AUTO_MIN_TOLERANCE, Budget, swept_profile
+from .scene import NOISE_FRACTION, pixel_noise, render_tracks, rng, simulate
+from .streak import StreakModel
+
+FOCAL_KEYS = (_TOP_KEYS - {"detector"}) | {"detectors", "cutout"}
+_TRACK_KEYS = {"x0_mm", "y0_mm", "angle", "length_mm"}
+#: Star tiles: squares of this side (mm) on a fixed grid over the focal plane.
+STAR_TILE_MM = 10.0
+_TILE_GRID = 80  # tiles per side, centred on the boresight (covers +-400 mm)
+#: Star tiles' random streams start here (detector ids are 0-188).
+STAR_TILE_KEY = 1000
+#: Vertex keys that vary the streak model along a polyline.
+VERTEX_MODEL_KEYS = ("height", "zenith", "phi", "mag")
+
+
+@dataclass(frozen=True)
+class FocalTrack:
+    """A satellite's track in focal-plane mm, as a polyline.
+
+    ``kind`` is ``"line"`` (crossing the focal plane: the vertices are far outside it),
+    ``"segment"`` or ``"polyline"``; ``values`` holds, per vertex, the model values
+    (``height, zenith, phi, mag``) in effect there.
+    """
+
+    kind: str
+    xs: tuple
+    ys: tuple
+    values: tuple
+    angle: float
+
+
+@dataclass(frozen=True)
+class FocalScene:
+    """A validated focal-plane scene.
+
+    Attributes
+    ----------
+    scene : inject.config.Scene
+        The CCD-scene part (its ``detector`` and satellites' pixel tracks are placeholders).
+    tracks : tuple of FocalTrack
+        One per satellite.
+    ccds : tuple of inject.focalplane.CCD
+        The CCDs of the exposure (``detectors:``, default the 189 science CCDs).
+    cutout : tuple or None
+        ``(ny, nx)``: simulate only pixels ``[0, ny) x [0, nx)`` of each CCD (tests, quick
+        looks); pixel coordinates and WCS stay those of the full CCD.
+    digest : str
+        SHA-256 of the scene mapping (canonical JSON): what the manifest records.
+    """
+
+    scene: object
+    tracks: tuple
+    ccds: tuple
+    cutout: tuple | None
+    digest: str
+    raw: dict
+
+    @property
+    def pointing(self):
+        return self.scene.pointing
+
+
+def scene_digest(raw):
+    """SHA-256 of a scene mapping, independent of key order."""
+    text = json.dumps(raw, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def parse_focal_scene(raw):
+    """Validate a focal-plane scene mapping.
+
+    Raises
+    ------
+    SceneError
+        A key of the CCD scene is wrong (as :func:`inject.config.parse_scene` reports it),
+        ``detector`` is given, ``pointing`` is missing, or a track, detector list or cut-out
+        is bad.
+    """
+    if isinstance(raw, dict) and "detector" in raw:
+        raise SceneError("detector: a focal-plane scene has no 'detector' key (use "
+                         "'detectors: [R22_S11, ...]' to choose CCDs, 'cutout: {nx, ny}' "
+                         "to shrink them)")
+    _check_keys("scene", raw, FOCAL_KEYS)
+    if raw.get("pointing") is None:
+        raise SceneError("pointing: required for a focal-plane scene ({ra, dec, rotation})")
+    satellites = raw.get("satellites", [])
+    if not isinstance(satellites, list):
+        raise SceneError(f"satellites={satellites!r}: must be a list")
+    placeholders = []
+    for i, sat in enumerate(satellites):
+        if not isinstance(sat, dict) or "track" not in sat:
+            _check_keys(f"satellites[{i}]", sat, {"track"}, {"track"})
+        placeholders.append({**sat, "track": {"x0": 0.0, "y0": 0.0, "angle": 0.0}})
+    ccd_part = {k: v for k, v in raw.items() if k not in ("detectors", "cutout")}
+    scene = parse_scene({**ccd_part, "satellites": placeholders, "detector": {"type": "itl"}})
+    try:
+        fp._check_pointing(scene.pointing)
+        ccds = fp.select(raw.get("detectors"))
+    except InjectError as err:
+        raise SceneError(str(err)) from None
+    tracks = tuple(_focal_track(f"satellites[{i}].track", sat["track"], spec, scene)
+                   for i, (sat, spec) in enumerate(zip(satellites, scene.satellites)))
+    return FocalScene(scene=scene, tracks=tracks, ccds=ccds,
+                      cutout=_cutout(raw.get("cutout")), digest=scene_digest(raw), raw=raw)
+
+
+def _cutout(spec):
+    if spec is None:
+        return None
+    _check_keys("cutout", spec, {"nx", "ny"}, {"nx", "ny"})
+    nx, ny = (_number(f"cutout.{k}", spec[k], int) for k in ("nx", "ny"))
+    if not (1 <= nx <= fp.ITL.nx and 1 <= ny <= fp.ITL.ny):
+        raise SceneError(f"cutout={spec!r}: nx must be in [1, {fp.ITL.nx}], ny in "
+                         f"[1, {fp.ITL.ny}] (the smaller sensor)")
+    return (ny, nx)
+
+
+def _focal_track(where, track, spec, scene):
+    base = {"height": spec.height, "zenith": scene.zenith, "phi": spec.phi, "mag": spec.mag}
+    if isinstance(track, dict) and "vertices" in track:
+        _check_keys(where, track, {"vertices"}, {"vertices"})
+        vertices = track["vertices"]
+        if not isinstance(vertices, list):
+            raise SceneError(f"{where}.vertices: needs a list of at least two vertices")
+        converted = []
+        for j, vertex in enumerate(vertices):
+            here = f"{where}.vertices[{j}]"
+            _check_keys(here, vertex, {"x_mm", "y_mm", *VERTEX_MODEL_KEYS}, {"x_mm", "y_mm"})
+            converted.append({("x" if k == "x_mm" else "y" if k == "y_mm" else k): v
+                              for k, v in vertex.items()})
+        checked = _polyline_track(where, {"vertices": converted})["vertices"]
+        xs = tuple(v["x"] for v in checked)
+        ys = tuple(v["y"] for v in checked)
+        if all(np.hypot(x1 - x0, y1 - y0) == 0
+               for x0, y0, x1, y1 in zip(xs[:-1], ys[:-1], xs[1:], ys[1:])):
+            raise SceneError(f"{where}.vertices: all vertices at one point")
+        values = tuple({k: v.get(k, base[k]) for k in VERTEX_MODEL_KEYS} for v in checked)
+        angle = float(np.degrees(np.arctan2(ys[1] - ys[0], xs[1] - xs[0])))
+        return FocalTrack("polyline", xs, ys, values, angle)
+    _check_keys(where, track, _TRACK_KEYS, {"x0_mm", "y0_mm", "angle"})
+    x0, y0, angle = (_number(f"{where}.{k}", track[k]) for k in ("x0_mm", "y0_mm", "angle"))
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    if track.get("length_mm") is None:
+        reach = 1000.0 + np.hypot(x0, y0)  # far beyond the focal plane on both sides
+        return FocalTrack("line", (x0 - reach * c, x0 + reach * c),
+                          (y0 - reach * s, y0 + reach * s), (base, base), angle)
+    length = _number(f"{where}.length_mm", track["length_mm"])
+    if not length > 0:
+        raise SceneError(f"{where}.length_mm={length}: must be > 0 (mm)")
+    return FocalTrack("segment", (x0, x0 + length * c), (y0, y0 + length * s), (base, base),
+                      angle)
+
+
+# -------------------------------------------------------------------------------------------
+# Models and margins
+
+def vertex_model(fscene, i, values, pixel_scale=None):
+    """The :class:`StreakModel` of satellite ``i`` with vertex ``values``, at a plate scale."""
+    scene, spec = fscene.scene, fscene.scene.satellites[i]
+    telescope = LSST if pixel_scale is None else LSST.with_pixel_scale(pixel_scale)
+    return StreakModel(height_km=values["height"], zenith_deg=values["zenith"],
+                       phi_deg=values["phi"], shape=spec.shape, mag=values["mag"],
+                       band_name=scene.band, seeing=Seeing(scene.seeing), telescope=telescope,
+                       ref_range_km=spec.ref_range)
+
+
+@lru_cache(maxsize=64)
+def _reach_px(model, angle, noise_sigma):
+    """Support across plus end cap along the track of the renderer's swept profile, px
+    (with the tolerance that :func:`inject.scene.render_tracks` would use at this noise)."""
+    budget = Budget()
+    if noise_sigma > 0:
+        tolerance = max(AUTO_MIN_TOLERANCE, NOISE_FRACTION * noise_sigma / model.peak_e_per_px)
+        if tolerance < budget.tolerance:
+            budget = replace(budget, tolerance=tolerance)
+    plan = swept_profile(model, angle, budget).plan
+    return float(plan.support_px + plan.cap_px)
+
+
+def margins_px(fscene):
+    """Each satellite's footprint margin (px): the largest reach over its vertices, at the
+    quieter sensor's noise (a tighter tolerance, so a wider footprint)."""
+    noise = min(pixel_noise(replace(fscene.scene, detector=det)) for det in fp.SENSORS.values())
+    out = []
+    for i, track in enumerate(fscene.tracks):
+        reach = 0.0
+        for k, values in enumerate(track.values):
+            j = min(k, len(track.xs) - 2)
+            angle = float(np.degrees(np.arctan2(track.ys[j + 1] - track.ys[j],
+                                                track.xs[j + 1] - track.xs[j])))
+            reach = max(reach, _reach_px(vertex_model(fscene, i, values), round(angle, 9),
+                                         noise))
+        out.append(reach + 2.0)  # a pixel's diagonal, so no pixel centre within reach is missed
+    return tuple(out)
+
+
+# -------------------------------------------------------------------------------------------
+# Per-CCD tracks
+
+@dataclass(frozen=True)
+class CCDStreak:
+    """One satellite's part of the track on one CCD (pixels of that CCD).
+
+    ``track`` is a :class:`~inject.config.Track` (a line, a segment or a polyline with the
+    interpolated vertex values); ``ends`` the clipped track's first and last points;
+    ``pixel_scale`` the plate scale along the track where it crosses the CCD.
+    """
+
+    satellite: int
+    track: Track
+    ends: tuple
+    values: tuple
+    pixel_scale: float
+
+
+def ccd_shape(fscene, ccd):
+    """``(ny, nx)`` simulated for a CCD (its cut-out, clipped to the sensor)."""
+    ny, nx = ccd.shape
+    if fscene.cutout is None:
+        return (ny, nx)
+    return (min(ny, fscene.cutout[0]), min(nx, fscene.cutout[1]))
+
+
+def ccd_streaks(fscene, ccd, margins=None):
+    """The parts of every satellite's track that reach a CCD (its area grown by the margin).
+
+    Returns
+    -------
+    list of CCDStreak
+        In satellite order; a polyline leaving and re-entering the CCD gives one per run.
+    """
+    margins = margins_px(fscene) if margins is None else margins
+    shape = ccd_shape(fscene, ccd)
+    out = []
+    for i, (track, margin) in enumerate(zip(fscene.tracks, margins)):
+        pieces = fp.clip_path(track.xs, track.ys, ccd.bounds_mm(margin, shape))
+        for run in _runs(pieces):
+            out.append(_ccd_streak(i, track, run, ccd))
+    return out
+
+
+def _runs(pieces):
+    """Split clipped pieces into runs that are continuous along the path."""
+    runs = []
+    for piece in pieces:
+        k, t0, _ = piece
+        if runs and runs[-1][-1][0] == k - 1 and runs[-1][-1][2] == 1.0 and t0 == 0.0:
+            runs[-1].append(piece)
+        else:
+            runs.append([piece])
+    return runs
+
+
+def _interpolate(track, k, t):
+    """Position (mm) and vertex values a fraction ``t`` along piece ``k``."""
+    x = track.xs[k] + t * (track.xs[k + 1] - track.xs[k])
+    y = track.ys[k] + t * (track.ys[k + 1] - track.ys[k])
+    a, b = track.values[k], track.values[k + 1]
+    return x, y, {key: a[key] + t * (b[key] - a[key]) for key in VERTEX_MODEL_KEYS}
+
+
+def _ccd_streak(i, track, run, ccd):
+    points = [_interpolate(track, run[0][0], run[0][1])]
+    for k, _, t1 in run:
+        points.append(_interpolate(track, k, t1))
+    # Path midpoint of the clipped part: where the CCD sits on the track.
+    xs_mm = np.array([p[0] for p in points])
+    ys_mm = np.array([p[1] for p in points])
+    steps = np.hypot(np.diff(xs_mm), np.diff(ys_mm))
+    half = steps.sum() / 2
+    j = int(np.searchsorted(np.cumsum(steps), half))
+    j = min(j, len(steps) - 1)
+    before = steps[:j].sum()
+    f = (half - before) / steps[j] if steps[j] > 0 else 0.0
+    xm = xs_mm[j] + f * (xs_mm[j + 1] - xs_mm[j])
+    ym = ys_mm[j] + f * (ys_mm[j + 1] - ys_mm[j])
+    angle_here = float(np.degrees(np.arctan2(ys_mm[j + 1] - ys_mm[j], xs_mm[j + 1] - xs_mm[j])))
+    scale = fp.pixel_scale_along(xm, ym, angle_here)
+    px, py = ccd.focal_to_pixel(xs_mm, ys_mm)
+    px, py = [float(v) for v in px], [float(v) for v in py]
+    ends = (px[0], py[0], px[-1], py[-1])
+    if track.kind == "line":
+        ct = Track(px[0], py[0], track.angle, None)
+        values = (points[0][2],)
+    elif track.kind == "segment":
+        x0, y0 = ccd.focal_to_pixel(track.xs[0], track.ys[0])
+        length = np.hypot(track.xs[1] - track.xs[0], track.ys[1] - track.ys[0]) / fp.PIXEL_MM
+        ct = Track(float(x0), float(y0), track.angle, float(length))
+        values = (points[0][2],)
+    else:
+        vertices = tuple({"x": x, "y": y, **p[2]} for x, y, p in zip(px, py, points))
+        angle0 = float(np.degrees(np.arctan2(py[1] - py[0], px[1] - px[0])))
+        ct = Track(px[0], py[0], angle0, None, vertices)
+        values = tuple(p[2] for p in points)
+    return CCDStreak(i, ct, ends, values, scale)
+
+
+def plan(fscene, ccds=None, margins=None):
+    """What would be rendered: every CCD (of ``ccds``, default the scene's) that a streak's
+    footprint reaches, with the streaks' end points in its pixels (``--plan --json``)."""
+    margins = margins_px(fscene) if margins is None else margins
+    out = []
+    for ccd in fscene.ccds if ccds is None else ccds:
+        streaks = ccd_streaks(fscene, ccd, margins)
+        if streaks:
+            out.append({"name": ccd.name, "id": ccd.id, "vendor": ccd.vendor,
+                        "streaks": [{"x0": s.ends[0], "y0": s.ends[1], "x1": s.ends[2],
+                                     "y1": s.ends[3], "satellite": s.satellite}
+                                    for s in streaks]})
+    return {"detectors": out}
+
+
+# -------------------------------------------------------------------------------------------
+# Simulating one CCD
+
+def ccd_scene(fscene, ccd, streaks=()):
+    """The CCD scene of one detector: its sensor (cut-out), the satellites that reach it with
+    their tracks in its pixels."""
+    ny, nx = ccd_shape(fscene, ccd)
+    det = ccd.detector if (ny, nx) == ccd.shape else ccd.detector.cutout(nx, ny)
+    sats = tuple(replace(fscene.scene.satellites[s.satellite], track=s.track) for s in streaks)
+    return replace(fscene.scene, detector=det, satellites=sats)
+
+
+def _star_tiles(box):
+    """Indices of the star tiles overlapping a box (mm)."""
+    lo = -_TILE_GRID / 2 * STAR_TILE_MM
+    ix = range(max(0, int(np.floor((box[0] - lo) / STAR_TILE_MM))),
+               min(_TILE_GRID, int(np.floor((box[1] - lo) / STAR_TILE_MM)) + 1))
+    iy = range(max(0, int(np.floor((box[2] - lo) / STAR_TILE_MM))),
+               min(_TILE_GRID, int(np.floor((box[3] - lo) / STAR_TILE_MM)) + 1))
+    return [(i, j) for j in iy for i in ix]
+
+
+def tile_stars(scene, spec, tile):
+    """The stars of one focal-plane tile: ``x_mm, y_mm, mag`` (its own random stream)."""
+    from .stars import sample_stars
+
+    i, j = tile
+    lo = -_TILE_GRID / 2 * STAR_TILE_MM
+    gen = rng(scene.seed, "stars", STAR_TILE_KEY + j * _TILE_GRID + i)
+    side_deg = STAR_TILE_MM * fp.PLATE_SCALE_ARCSEC_PER_MM / 3600.0
+    mag = sample_stars(spec, side_deg ** 2, scene.band, gen)
+    x = lo + STAR_TILE_MM * (i + gen.uniform(0.0, 1.0, mag.size))
+    y = lo + STAR_TILE_MM * (j + gen.uniform(0.0, 1.0, mag.size))
+    return x, y, mag
+
+
+def add_focal_stars(image, fscene, ccd, wcs=None):
+    """Add the scene's stars that light a CCD (in place): those of every tile its pixels, grown
+    by the bright-star stamp, overlap. A catalog in ra, dec goes through the CCD's WCS."""
+    from .photometry import electron_rate
+    from .stars import add_star_field, draw_stars, psf_stamps, spec_from_scene
+
+    scene = fscene.scene
+    spec = spec_from_scene(scene)
+    if spec.catalog is not None:
+        return add_star_field(image, scene, None, wcs=wcs)
+    if scene.seeing <= 0:
+        raise SceneError("stars: need seeing > 0 (stars share the atmospheric PSF)")
+    pixel_scale = LSST.pixel_scale_arcsec
+    stamps = psf_stamps(Seeing(scene.seeing).profile(), pixel_scale)
+    box = ccd.bounds_mm(stamps.bright_half + 1, image.shape)
+    parts = [tile_stars(scene, spec, tile) for tile in _star_tiles(box)]
+    if not parts:
+        return None
+    x_mm, y_mm, mag = (np.concatenate(v) for v in zip(*parts))
+    x, y = ccd.focal_to_pixel(x_mm, y_mm)
+    flux = electron_rate(mag, scene.band) * scene.exptime
+    return draw_stars(image, x, y, flux, stamps, pixel_scale)
+
+
+def simulate_ccd(fscene, ccd, margins=None, budget=Budget()):
+    """Simulate one CCD of a focal-plane scene.
+
+    Returns
+    -------
+    scene : inject.config.Scene
+        The CCD's scene (for the file's headers).
+    result : inject.scene.SceneResult
+    streaks : list of CCDStreak
+    wcs : astropy.wcs.WCS
+    """
+    streaks = ccd_streaks(fscene, ccd, margins)
+    scene = ccd_scene(fscene, ccd, streaks)
+    wcs = fp.ccd_wcs(ccd, fscene.pointing)
+    models = [vertex_model(fscene, s.satellite, s.values[0], s.pixel_scale) for s in streaks]
+    rendered = render_tracks(scene.detector.shape, models, [s.track for s in streaks], budget,
+                             pixel_noise(scene))
+    for row, s in zip(rendered[1], streaks):
+        row["satellite"] = s.satellite
+        row["pixel_scale_arcsec"] = s.pixel_scale
+    result = simulate(scene, budget, detector_index=ccd.id, wcs=wcs, rendered=rendered,
+                      add_stars=lambda image: add_focal_stars(image, fscene, ccd, wcs))
+    return scene, result, streaks, wcs

@@ -1,0 +1,117 @@
+"""``mosaic.png``: a whole focal-plane exposure as one picture, for a person to look at.
+
+Each CCD's IMAGE is block-averaged and drawn at its place in focal-plane millimetres, so the
+gaps between CCDs and rafts are to scale; one z-scale stretch for all CCDs; detector names on
+each; the true track of every satellite drawn over it (dashed, in focal-plane mm). CCDs of the
+exposure that have no file yet are filled grey; the gaps are dark blue.
+"""
+import os
+
+import numpy as np
+
+from .atomic import atomic_path
+from .quicklook import _zscale_limits, block_mean
+
+#: Default binning: a full focal plane (63 400 px across) about 1600 plotted pixels wide.
+DEFAULT_BIN = 40
+
+
+def binned_ccds(fscene, outdir, factor):
+    """``{CCD: binned IMAGE}`` for every CCD of the scene with a file in ``outdir``."""
+    from astropy.io import fits
+
+    out = {}
+    for ccd in fscene.ccds:
+        path = os.path.join(outdir, f"{ccd.name}.fits")
+        if not os.path.exists(path):
+            continue
+        with fits.open(path, memmap=True) as hdus:
+            image = np.asarray(hdus["IMAGE"].data, dtype=np.float32)  # native byte order
+        out[ccd] = block_mean(image, factor)
+    return out
+
+
+def track_paths(fscene):
+    """Each satellite's track in focal-plane mm, a line clipped to the focal plane."""
+    from ..focalplane import extent_mm
+    from .quicklook import _clip_to_box
+
+    xmin, xmax, ymin, ymax = extent_mm()
+    out = []
+    for track in fscene.tracks:
+        if track.kind == "line":
+            ends = _clip_to_box(track.xs[0], track.ys[0], track.xs[1], track.ys[1],
+                                xmin, xmax, ymin, ymax)
+            out.append(([], []) if ends is None else ((ends[0], ends[2]), (ends[1], ends[3])))
+        else:
+            out.append((track.xs, track.ys))
+    return out
+
+
+def write_mosaic(path, fscene, outdir, factor=DEFAULT_BIN, overwrite=True, margins=None,
+                 dpi=100, names=True, title=None):
+    """Write the mosaic of the CCD files in ``outdir`` to ``path`` (PNG), atomically.
+
+    Parameters
+    ----------
+    path : str
+    fscene : inject.focalscene.FocalScene
+    outdir : str
+        Where the CCD files are (``<detector>.fits``).
+    factor : int
+        Block size of the binning, pixels.
+    overwrite : bool
+        The mosaic is remade by every run into ``outdir``.
+    names : bool
+        Write each detector's name on it.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
+
+    from ..focalplane import PIXEL_MM, extent_mm
+    from ..focalscene import ccd_shape
+
+    binned = binned_ccds(fscene, outdir, factor)
+    sample = np.concatenate([b[np.isfinite(b)].ravel()[::7] for b in binned.values()]) \
+        if binned else np.zeros(1)
+    vmin, vmax = _zscale_limits(sample)
+    xmin, xmax, ymin, ymax = extent_mm()
+    side_px = (xmax - xmin) / (PIXEL_MM * factor)
+    inches = max(4.0, side_px / dpi)
+    fig = Figure(figsize=(inches, inches * (ymax - ymin) / (xmax - xmin) + 0.4))
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes([0.0, 0.0, 1.0, 0.97])
+    ax.set_facecolor("#20304a")  # the gaps: no silicon
+    for ccd in fscene.ccds:
+        x0, x1, y0, y1 = ccd.bounds_mm(0.0, ccd_shape(fscene, ccd))
+        if ccd in binned:
+            ax.imshow(binned[ccd], origin="lower", cmap="gray", vmin=vmin, vmax=vmax,
+                      extent=(x0, x1, y0, y1), interpolation="nearest")
+        else:  # not rendered (yet): grey, so it is not mistaken for a gap
+            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fc="#5a6270", lw=0.4,
+                                   ec="#8d99ae"))
+        if names:
+            fx0, fx1, fy0, fy1 = ccd.bounds_mm()
+            ax.text(0.5 * (fx0 + fx1), fy1 - 2.0, ccd.name, ha="center", va="top",
+                    fontsize=max(3.0, inches * 0.28), color="#ffd166")
+    for i, (xs, ys) in enumerate(track_paths(fscene)):
+        if len(xs):
+            ax.plot(xs, ys, ls=(0, (4, 4)), lw=0.5, alpha=0.7, color="#ef476f",
+                    label=f"satellite {i}")
+    ax.set_xlim(xmin - 2, xmax + 2)
+    ax.set_ylim(ymin - 2, ymax + 2)
+    ax.set_aspect("equal")
+    ax.set_xticks([])  # no axes drawn, but keep the axes' background: it shows the gaps
+    ax.set_yticks([])
+    for spine in ax.spines.values():
+        spine.set_visible(False)
+    pointing = fscene.pointing
+    fig.suptitle(title or (f"inject focal plane: {len(binned)} of {len(fscene.ccds)} CCDs, "
+                           f"binned {factor}x{factor}, z-scale [{vmin:.0f}, {vmax:.0f}]; "
+                           f"ra {pointing['ra']:g} dec {pointing['dec']:g} rotSkyPos "
+                           f"{pointing.get('rotation', 0.0):g}; dashed: true tracks"),
+                 fontsize=max(5.0, inches * 0.45), y=0.995)
+    with atomic_path(path, overwrite) as tmp:
+        fig.savefig(tmp, format="png", dpi=dpi, facecolor="white")
+    return len(binned)

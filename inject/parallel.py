@@ -1,0 +1,415 @@
+"""The focal-plane runner: one CCD per task on any ``concurrent.futures.Executor``.
+
+A process pool by default; a Dask cluster through ``client.get_executor()`` (see
+:func:`dask_executor`). Each task simulates one CCD, writes its FITS file atomically and
+returns a small manifest row, never pixels. A CCD's bytes depend only on the scene and the
+detector (every random stream is keyed on the scene seed, the detector id or star tile, and the
+purpose), so the worker count, the scheduler, the order and the other CCDs asked for do not
+change them.
+
+``manifest.csv`` in the output directory has one row per CCD (``detector, id, vendor, file,
+sha256, streaks, seconds, status``, plus the scene's digest and the software version), rewritten
+atomically under a lock after every CCD, so a run killed partway (or several ``--job`` slices
+sharing the directory) leaves a manifest that says what is done. A rerun skips the CCDs whose
+file matches its row, redoes missing or corrupt ones, and refuses to replace files of another
+scene (or of no recorded run) without ``overwrite``.
+"""
+import contextlib
+import csv
+import fcntl
+import hashlib
+import io
+import multiprocessing
+import os
+import resource
+import sys
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+
+from . import __version__
+from .errors import InputError, OutputError
+
+MANIFEST = "manifest.csv"
+FIELDS = ("detector", "id", "vendor", "file", "sha256", "streaks", "seconds", "status",
+          "scene_sha256", "inject_version", "error")
+
+#: Environment variables that cap the threads of BLAS/OpenMP libraries in workers.
+THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+              "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+_LIMITED = False
+
+
+def limit_threads():
+    """One thread for BLAS/OpenMP (threadpoolctl and the environment), OpenCV, OpenImageIO
+    and the noise draws in this process: the parallelism is one CCD per worker. Idempotent."""
+    global _LIMITED
+    if _LIMITED:
+        return
+    for name in THREAD_ENV:
+        os.environ[name] = "1"
+    with contextlib.suppress(ImportError):
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    with contextlib.suppress(ImportError):
+        import cv2
+
+        cv2.setNumThreads(1)
+    with contextlib.suppress(ImportError):
+        import OpenImageIO
+
+        OpenImageIO.attribute("threads", 1)
+    from . import scene
+
+    scene.NOISE_THREADS = 1  # the amplifiers' noise draws (bytes do not depend on it)
+    _LIMITED = True
+
+
+def sha256_file(path, chunk=1 << 22):
+    """SHA-256 of a file's bytes, hex."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as stream:
+        while block := stream.read(chunk):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+@dataclass(frozen=True)
+class Task:
+    """One CCD to render: the scene, the detector, where, and the margins of the plan."""
+
+    fscene: object
+    detector: str
+    outdir: str
+    margins: tuple
+    keep: bool = True  # False: write, hash and delete (benchmarks of whole exposures)
+
+
+def render_ccd(task):
+    """Simulate one CCD and write ``OUTDIR/<detector>.fits``; return its manifest row.
+
+    In a worker process threads are limited first (a thread pool in the caller's process is
+    left alone). The file is replaced if present (the runner decided beforehand that it may
+    be).
+    """
+    if multiprocessing.parent_process() is not None:
+        limit_threads()
+    from . import focalplane as fp
+    from .focalscene import simulate_ccd
+    from .io.fits import write_exposure
+
+    start = time.perf_counter()
+    ccd = fp.ccd(task.detector)
+    scene, result, streaks, wcs = simulate_ccd(task.fscene, ccd, task.margins)
+    simulated = time.perf_counter()
+    path = os.path.join(task.outdir, f"{ccd.name}.fits")
+    pointing = task.fscene.pointing
+    cards = {"DETNAME": (ccd.name, "detector name"),
+             "DETECTOR": (ccd.id, "detector id (obs_lsst, 0-188)"),
+             "VENDOR": (ccd.vendor.upper(), "sensor vendor"),
+             "RA": (pointing["ra"], "[deg] boresight right ascension"),
+             "DEC": (pointing["dec"], "[deg] boresight declination"),
+             "HIERARCH ROTSKYPOS": (pointing.get("rotation", 0.0),
+                           "[deg] PA of focal-plane +y, N through E"),
+             "FPSCENE": (task.fscene.digest[:16], "focal-plane scene digest (sha256)")}
+    write_exposure(path, scene, result, scene.detector.gain,
+                   wcs_header=wcs.to_header(relax=True), overwrite=True, primary_cards=cards)
+    digest = sha256_file(path)
+    if not task.keep:
+        os.remove(path)
+    end = time.perf_counter()
+    return {"detector": ccd.name, "id": ccd.id, "vendor": ccd.vendor,
+            "file": os.path.basename(path), "sha256": digest, "streaks": len(streaks),
+            "seconds": round(end - start, 3), "status": "done",
+            "scene_sha256": task.fscene.digest, "inject_version": __version__, "error": "",
+            # Not in the manifest: for benchmarks.
+            "simulate_s": simulated - start, "write_s": end - simulated,
+            "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "pid": os.getpid()}
+
+
+# -------------------------------------------------------------------------------------------
+# The manifest
+
+@contextlib.contextmanager
+def _manifest_lock(outdir):
+    """An exclusive lock on the directory's manifest (``--job`` slices share it)."""
+    with open(os.path.join(outdir, ".manifest.lock"), "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def read_manifest(outdir):
+    """The manifest's rows by detector name ({} when there is none)."""
+    path = os.path.join(outdir, MANIFEST)
+    if not os.path.exists(path):
+        return {}
+    with open(path, newline="") as stream:
+        return {row["detector"]: row for row in csv.DictReader(stream)}
+
+
+def _write_manifest(outdir, rows):
+    from .io.atomic import atomic_path
+
+    text = io.StringIO()
+    writer = csv.DictWriter(text, FIELDS, extrasaction="ignore")
+    writer.writeheader()
+    for row in sorted(rows.values(), key=lambda r: int(r["id"])):
+        writer.writerow(row)
+    with atomic_path(os.path.join(outdir, MANIFEST), overwrite=True) as tmp:
+        with open(tmp, "w", newline="") as stream:
+            stream.write(text.getvalue())
+
+
+def update_manifest(outdir, new_rows):
+    """Merge rows into the manifest, under the lock, atomically."""
+    with _manifest_lock(outdir):
+        rows = read_manifest(outdir)
+        for row in new_rows:
+            rows[row["detector"]] = {k: str(row.get(k, "")) for k in FIELDS}
+        _write_manifest(outdir, rows)
+
+
+def triage(fscene, ccds, outdir, overwrite=False):
+    """Split CCDs into those to render and those already done.
+
+    A file matching its manifest row (same scene, same SHA-256) is done. A missing file, or
+    one of this scene whose bytes do not match (corrupt, or written by a run killed before it
+    reached the manifest), is redone. A file of another scene, or with no manifest at all, is
+    replaced only with ``overwrite``.
+
+    Returns
+    -------
+    todo, done : list of CCD
+
+    Raises
+    ------
+    OutputError
+        A file would be replaced without ``overwrite``.
+    """
+    rows = read_manifest(outdir)
+    ours = any(r.get("scene_sha256") == fscene.digest for r in rows.values())
+    todo, done = [], []
+    for ccd in ccds:
+        path = os.path.join(outdir, f"{ccd.name}.fits")
+        row = rows.get(ccd.name)
+        if not os.path.exists(path):
+            todo.append(ccd)
+            continue
+        if row is not None and row.get("scene_sha256") == fscene.digest:
+            if row.get("status") == "done" and row.get("sha256") == sha256_file(path):
+                done.append(ccd)
+            else:
+                todo.append(ccd)  # this scene's file, broken: redo it
+            continue
+        if row is None and ours:
+            todo.append(ccd)  # written by this scene's run, killed before its manifest row
+            continue
+        if not overwrite:
+            why = "another scene's output" if row is not None else "not in any manifest"
+            raise OutputError(f"{path}: exists ({why}); pass --overwrite to replace it")
+        todo.append(ccd)
+    return todo, done
+
+
+# -------------------------------------------------------------------------------------------
+# Running
+
+def slice_ccds(ccds, job=None, njobs=None):
+    """The ``job``-th (0-based) of ``njobs`` interleaved slices of CCDs (batch arrays)."""
+    if job is None and njobs is None:
+        return tuple(ccds)
+    if job is None or njobs is None:
+        raise InputError("--job/--njobs", (job, njobs), "give both")
+    if not (isinstance(njobs, int) and njobs >= 1):
+        raise InputError("--njobs", njobs, "must be an integer >= 1")
+    if not (isinstance(job, int) and 0 <= job < njobs):
+        raise InputError("--job", job, f"must be in [0, {njobs - 1}] (0-based)")
+    return tuple(ccds)[job::njobs]
+
+
+class _Progress:
+    """tqdm on a terminal, one log line per CCD otherwise."""
+
+    def __init__(self, total, stream=None, bar=None):
+        self.stream = sys.stderr if stream is None else stream
+        self.total, self.count = total, 0
+        self.bar = None
+        use_bar = self.stream.isatty() if bar is None else bar
+        if use_bar:
+            with contextlib.suppress(ImportError):
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=total, unit="CCD", file=self.stream)
+
+    def update(self, row):
+        self.count += 1
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"{row['detector']} {row['status']}")
+            self.bar.update(1)
+        else:
+            extra = f" ({row['error']})" if row.get("error") else ""
+            print(f"[{self.count}/{self.total}] {row['detector']} {row['status']} "
+                  f"{row.get('seconds', '')} s{extra}", file=self.stream, flush=True)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+@dataclass
+class RunResult:
+    """What a run did: manifest rows of the CCDs rendered now, skipped and failed."""
+
+    rendered: list
+    skipped: list
+    failed: list
+
+
+def run(fscene, outdir, executor, ccds=None, overwrite=False, retries=2, progress=None,
+        keep=True, margins=None):
+    """Render CCDs of a focal-plane scene on ``executor``, resumably.
+
+    Parameters
+    ----------
+    fscene : inject.focalscene.FocalScene
+    outdir : str
+        Created if missing.
+    executor : concurrent.futures.Executor
+        Any: a process pool, Dask's ``client.get_executor()``, a thread pool.
+    ccds : sequence of CCD, optional
+        Default: the scene's.
+    overwrite : bool
+        Replace files of another scene (or of no recorded run).
+    retries : int
+        Times a failed CCD is resubmitted (on top of the executor's own retries) before it is
+        reported as failed; the other CCDs go on regardless.
+    progress : _Progress, optional
+    keep : bool
+        False deletes each file once hashed (benchmarks).
+
+    Returns
+    -------
+    RunResult
+    """
+    from .focalscene import margins_px
+
+    ccds = fscene.ccds if ccds is None else tuple(ccds)
+    os.makedirs(outdir, exist_ok=True)
+    if margins is None:
+        margins = margins_px(fscene)
+    with _manifest_lock(outdir):
+        todo, done = triage(fscene, ccds, outdir, overwrite)
+        rows = read_manifest(outdir)
+        # Pending rows first: a run killed before a CCD's row is written still marks its
+        # file as this scene's, to be checked and redone.
+        for c in todo:
+            rows[c.name] = {"detector": c.name, "id": c.id, "vendor": c.vendor,
+                            "file": f"{c.name}.fits", "status": "pending",
+                            "scene_sha256": fscene.digest, "inject_version": __version__}
+        _write_manifest(outdir, rows)
+    skipped = [rows[c.name] for c in done]
+    progress = progress or _Progress(len(todo))
+    attempts = {c.name: 0 for c in todo}
+    pending = {}
+    rendered, failed = [], []
+
+    def fail(ccd, err):
+        row = {"detector": ccd.name, "id": ccd.id, "vendor": ccd.vendor,
+               "file": f"{ccd.name}.fits", "sha256": "", "streaks": "", "seconds": "",
+               "status": "failed", "scene_sha256": fscene.digest,
+               "inject_version": __version__,
+               "error": " ".join(f"{type(err).__name__}: {err}".split())[:300]}
+        failed.append(row)
+        update_manifest(outdir, [row])
+        progress.update(row)
+
+    def submit(ccd):
+        try:
+            future = executor.submit(render_ccd, Task(fscene, ccd.name, outdir, margins, keep))
+        except Exception as err:  # a broken pool (a worker killed): report, go on
+            fail(ccd, err)
+        else:
+            pending[future] = ccd
+
+    try:
+        for ccd in todo:
+            submit(ccd)
+        while pending:
+            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in finished:
+                ccd = pending.pop(future)
+                try:
+                    row = future.result()
+                except Exception as err:  # a worker's failure must not lose the others
+                    attempts[ccd.name] += 1
+                    if attempts[ccd.name] <= retries:
+                        submit(ccd)
+                    else:
+                        fail(ccd, err)
+                    continue
+                rendered.append(row)
+                update_manifest(outdir, [row])
+                progress.update(row)
+    finally:
+        for future in pending:
+            future.cancel()
+        progress.close()
+    return RunResult(rendered, skipped, failed)
+
+
+def process_pool(workers=None):
+    """The default executor: a process pool of ``workers`` (default: the machine's cores),
+    each worker limited to one thread per library.
+
+    Workers start from a fork server, not by forking the caller: a caller with threads
+    (OpenImageIO's pool, BLAS, a thread pool) would hand its children locks held by threads
+    that do not exist there, and they can hang on their first call into that library.
+    """
+    return ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1,
+                               mp_context=multiprocessing.get_context("forkserver"),
+                               initializer=limit_threads)
+
+
+#: Memory limit per Dask LocalCluster worker. A full-size CCD (IMAGE, MASK, VARIANCE,
+#: STREAK_MODEL and the float64 planes they come from) peaks near 1.5 GB in a worker
+#: (scripts/bench_focalplane.py measures it); Dask spills at 60-70% of the limit, pauses at
+#: 80% and restarts the worker at 95%, so 3 GiB leaves room.
+DASK_MEMORY_LIMIT = "3GiB"
+
+
+@contextlib.contextmanager
+def dask_executor(scheduler, workers=None, memory_limit=DASK_MEMORY_LIMIT, retries=2):
+    """A ``concurrent.futures.Executor`` on Dask: ``scheduler="local"`` starts a LocalCluster
+    of ``workers`` processes with one thread each; any other value is the address of a running
+    scheduler (``tcp://host:8786``). Tasks are impure (``pure=False``) and retried
+    ``retries`` times by Dask."""
+    try:
+        from dask.distributed import Client, LocalCluster
+    except ImportError:
+        raise InputError("--scheduler", scheduler, "needs Dask: pip install "
+                         "'satstreak-inject[dask]'") from None
+    cluster = None
+    if scheduler == "local":
+        cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
+                               processes=True, memory_limit=memory_limit,
+                               dashboard_address=None)
+        client = Client(cluster)
+    else:
+        try:
+            client = Client(scheduler, timeout=30)
+        except (OSError, TimeoutError, ValueError) as err:
+            raise InputError("--scheduler", scheduler, f"cannot reach the Dask scheduler "
+                                                       f"({err})") from None
+    try:
+        client.run(limit_threads)
+        yield client.get_executor(retries=retries, pure=False)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()

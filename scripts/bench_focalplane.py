@@ -1,0 +1,152 @@
+"""Time the focal-plane runner, measured side by side in one run.
+
+* CCDs per second with 1 and 2 worker processes on the same full-size CCDs (half with the
+  streak, half without), and the parallel efficiency ``rate(2) / (2 rate(1))``; the same
+  CCDs through a Dask LocalCluster of 2 single-threaded workers; peak memory per worker.
+* The whole 189-CCD exposure (sky, Bahcall-Soneira stars, noise, cosmic rays, the paper's
+  satellite across the focal plane: ``sample_fields/focal_paper_550km.yaml``) end to end on 2
+  workers, against the baseline of the same workers drawing Poisson sky for the 189 CCDs and
+  writing each as IMAGE, MASK and VARIANCE (the CCD-scene benchmark's baseline); and with
+  ``--streak-ccds-only``.
+
+Files are written, hashed and deleted as they come (189 full CCDs would take ~49 GB), in a
+temporary directory beside ``--out``.
+
+Usage::
+
+    python scripts/bench_focalplane.py [--rate-ccds 8] [--skip-whole] [--out out/bench]
+"""
+import argparse
+import json
+import os
+import resource
+import shutil
+import tempfile
+import time
+
+import numpy as np
+
+from inject import focalplane as fp
+from inject import parallel
+from inject.config import load_scene_file
+from inject.focalscene import ccd_scene, ccd_streaks, margins_px, parse_focal_scene
+
+SCENE = os.path.join(os.path.dirname(__file__), "..", "sample_fields",
+                     "focal_paper_550km.yaml")
+
+
+def baseline_ccd(args):
+    """Poisson sky for one CCD written as IMAGE, MASK, VARIANCE (then deleted)."""
+    from astropy.io import fits
+
+    from inject.scene import sky_level
+
+    parallel.limit_threads()
+    scene, name, outdir = args
+    start = time.perf_counter()
+    rng = np.random.default_rng(np.random.SeedSequence(1, spawn_key=(fp.ccd(name).id,)))
+    sky = sky_level(scene)
+    image = rng.poisson(sky, size=scene.detector.shape).astype(np.float32)
+    path = os.path.join(outdir, f"{name}.fits")
+    fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(image, name="IMAGE"),
+                  fits.ImageHDU(np.zeros(image.shape, np.int32), name="MASK"),
+                  fits.ImageHDU(np.full(image.shape, sky, np.float32), name="VARIANCE")]
+                 ).writeto(path, overwrite=True)
+    os.remove(path)
+    return {"seconds": time.perf_counter() - start,
+            "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def timed_run(fscene, ccds, executor, outdir, margins):
+    shutil.rmtree(outdir, ignore_errors=True)
+    start = time.perf_counter()
+    result = parallel.run(fscene, outdir, executor, ccds=ccds, keep=False, margins=margins,
+                          progress=_Quiet())
+    seconds = time.perf_counter() - start
+    assert not result.failed, result.failed
+    return seconds, result.rendered
+
+
+class _Quiet:
+    def update(self, row):
+        pass
+
+    def close(self):
+        pass
+
+
+def summary(rows):
+    sim = np.array([r["simulate_s"] for r in rows])
+    write = np.array([r["write_s"] for r in rows])
+    streak = np.array([int(r["streaks"]) > 0 for r in rows])
+    return {"ccds": len(rows), "simulate_s_mean": float(sim.mean()),
+            "write_hash_s_mean": float(write.mean()),
+            "simulate_s_streak_ccd": float(sim[streak].mean()) if streak.any() else None,
+            "simulate_s_plain_ccd": float(sim[~streak].mean()) if (~streak).any() else None,
+            "peak_rss_mib_max": float(max(r["peak_rss_mib"] for r in rows))}
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--rate-ccds", type=int, default=8,
+                        help="full-size CCDs for the 1 vs 2 worker rates (half with a streak)")
+    parser.add_argument("--skip-whole", action="store_true", help="skip the 189-CCD runs")
+    parser.add_argument("--skip-dask", action="store_true")
+    parser.add_argument("--out", default="out/bench")
+    args = parser.parse_args(argv)
+    os.makedirs(args.out, exist_ok=True)
+    work = tempfile.mkdtemp(prefix="bench_focalplane_", dir=args.out)
+    fscene = parse_focal_scene(load_scene_file(SCENE))
+    margins = margins_px(fscene)
+    crossed = [c for c in fp.CCDS if ccd_streaks(fscene, c, margins)]
+    plain = [c for c in fp.CCDS if c not in crossed]
+    half = args.rate_ccds // 2
+    sample = tuple(sorted(crossed[:half] + plain[:args.rate_ccds - half], key=lambda c: c.id))
+    report = {"crossed": len(crossed)}
+    try:
+        rates = {}
+        for workers in (1, 2):
+            with parallel.process_pool(workers) as pool:
+                seconds, rows = timed_run(fscene, sample, pool, os.path.join(work, "r"),
+                                          margins)
+            rates[workers] = len(sample) / seconds
+            report[f"pool_{workers}"] = {"seconds": seconds, "ccds_per_s": rates[workers],
+                                         **summary(rows)}
+            print(json.dumps({f"pool_{workers}": report[f"pool_{workers}"]}), flush=True)
+        report["parallel_efficiency_2"] = rates[2] / (2 * rates[1])
+        if not args.skip_dask:
+            with parallel.dask_executor("local", workers=2) as executor:
+                seconds, rows = timed_run(fscene, sample, executor, os.path.join(work, "d"),
+                                          margins)
+            report["dask_local_2"] = {"seconds": seconds, "ccds_per_s": len(sample) / seconds,
+                                      **summary(rows)}
+            print(json.dumps({"dask_local_2": report["dask_local_2"]}), flush=True)
+        if not args.skip_whole:
+            base_dir = os.path.join(work, "b")
+            os.makedirs(base_dir, exist_ok=True)
+            with parallel.process_pool(2) as pool:
+                start = time.perf_counter()
+                base_rows = list(pool.map(baseline_ccd, [(ccd_scene(fscene, c), c.name,
+                                                          base_dir) for c in fp.CCDS]))
+                base = time.perf_counter() - start
+                whole, rows = timed_run(fscene, fp.CCDS, pool, os.path.join(work, "w"),
+                                        margins)
+                only, only_rows = timed_run(fscene, tuple(crossed), pool,
+                                            os.path.join(work, "s"), margins)
+            report["whole_189"] = {"seconds": whole, **summary(rows)}
+            report["baseline_poisson_sky_189"] = {
+                "seconds": base, "per_ccd_s": float(np.mean([r["seconds"] for r in base_rows])),
+                "peak_rss_mib_max": float(max(r["peak_rss_mib"] for r in base_rows))}
+            report["whole_over_baseline"] = whole / base
+            report["streak_ccds_only"] = {"seconds": only, "ccds": len(crossed),
+                                          "fraction_of_whole_time": only / whole,
+                                          "fraction_of_ccds": len(crossed) / 189}
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    print(json.dumps(report, indent=1))
+    with open(os.path.join(args.out, "bench_focalplane.json"), "w") as stream:
+        json.dump(report, stream, indent=1)
+
+
+if __name__ == "__main__":
+    main()
