@@ -36,7 +36,7 @@ def add_pass_parser(sub):
                    help="rotSkyPos: position angle of focal-plane +y, north through east (0)")
     p.add_argument("--site", metavar="LAT,LON,M",
                    help="geodetic latitude, longitude (deg) and height (m); default Rubin "
-                        "(-30.2446,-70.7494,2647)")
+                        "(--site=-30.2446,-70.7494,2647: with '=', as it starts with -)")
     p.add_argument("--json", action="store_true", help="one JSON object instead of a table")
     p.add_argument("--plot", metavar="OUT.png",
                    help="the track on the focal plane, and range, speed, FWHM and peak along it")

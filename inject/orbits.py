@@ -525,6 +525,10 @@ class FieldFrame:
         astropy's topocentric ITRS -> AltAz rotation at the site.
     sun_itrs : ndarray (n_times, 3)
         Geocentric Sun (astropy ``get_sun``) in ITRS, km.
+    to_icrs : ndarray (n_times, 2, 2)
+        Apparent (AltAz) gnomonic offsets from the boresight -> ICRS ones: the differential
+        aberration (a linear map to 1e-4 x the field angle, ~0.5" at the field's edge), so
+        that field angles are those of the ICRS star a CCD's WCS puts at the same pixel.
     """
 
     times: Time
@@ -538,6 +542,7 @@ class FieldFrame:
     teme_to_itrs: np.ndarray
     itrs_to_altaz: np.ndarray
     sun_itrs: np.ndarray
+    to_icrs: np.ndarray = None
 
     @cached_property
     def jd_utc(self):
@@ -568,6 +573,7 @@ class FieldFrame:
         aa = radec[:, None].transform_to(frame)
         vec = np.moveaxis(aa.cartesian.xyz.value, 0, -1)  # (3 points, n, 3)
         c, nn, e = (_unit(v) for v in vec)
+        n_off, e_off = nn, e  # the offset points' apparent directions
         nn = _unit(nn - _dot(nn, c)[:, None] * c)
         e_perp = _unit(np.cross(c, nn))
         # AltAz cartesian axes are left-handed on the sky: take East's sign from the offset point.
@@ -585,8 +591,14 @@ class FieldFrame:
         m_aa = topo.transform_to(AltAz(obstime=t0, location=loc)).cartesian.xyz.to_value(
             u.km) / 1e4  # columns: images of the ITRS axes
         sun = get_sun(times).transform_to(ITRS(obstime=times)).cartesian.xyz.to_value(u.km).T
+        # The offset points are at ICRS gnomonic (0, tan 1') and (tan 1', 0); their apparent
+        # gnomonic offsets give the linear map ICRS -> apparent, inverted here.
+        t1 = math.tan(math.radians(1 / 60))
+        cols = [np.stack([_dot(v, e) / _dot(v, c), _dot(v, nn) / _dot(v, c)], axis=-1) / t1
+                for v in (e_off, n_off)]
+        to_icrs = np.linalg.inv(np.stack(cols, axis=-1))  # (n, 2, 2)
         return cls(times, site, pointing, c, e, nn, aa[0].alt.to_value(u.deg),
-                   aa[0].az.to_value(u.deg), m_teme, m_aa, sun)
+                   aa[0].az.to_value(u.deg), m_teme, m_aa, sun, to_icrs)
 
     def to_altaz(self, r_itrs_km):
         """Topocentric unit vectors (AltAz axes), range (km), alt and az (deg) of ITRS points."""
@@ -610,6 +622,9 @@ class FieldFrame:
         safe = np.where(front, cz, 1.0)
         xi = np.where(front, np.degrees(_dot(unit, self.east) / safe), np.nan)
         eta = np.where(front, np.degrees(_dot(unit, self.north) / safe), np.nan)
+        if self.to_icrs is not None:  # apparent -> ICRS offsets (differential aberration)
+            m = self.to_icrs
+            xi, eta = m[..., 0, 0] * xi + m[..., 0, 1] * eta, m[..., 1, 0] * xi + m[..., 1, 1] * eta
         x, y = sky_to_focal(xi, eta, self.pointing.rotation_deg)
         return xi, eta, x, y, front
 

@@ -1,0 +1,204 @@
+"""``inject pass`` (CONTRACT.md) and orbit tracks on the focal plane (issue 13)."""
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from astropy import units as u
+from astropy.coordinates import ICRS, AltAz, SkyCoord
+
+from inject import focalplane as fp
+from inject.cli import main
+from inject.orbits import (RUBIN, TRACK_STEP_S, Exposure, Orbit, Pointing, compute_pass,
+                           track_runs)
+
+ROOT = Path(__file__).resolve().parents[1]
+TLE = ROOT / "sample_fields" / "example_starlink_like.tle"
+#: The example TLE is aimed (orbits.aimed_orbit) at alt 60, az 270 seen from Rubin at
+#: 2026-06-15T23:30:00, the middle of this exposure; (RA, Dec) is that direction in ICRS.
+START, EXPTIME, RA, DEC = "2026-06-15T23:29:45", 30.0, 151.95, -25.73
+SAMPLE_KEYS = {"t_s": float, "utc": str, "alt_deg": float, "az_deg": float, "range_km": float,
+               "nadir_angle_deg": float, "phi_deg": float, "angular_speed_rad_s": float,
+               "sunlit": bool}
+
+
+def run_json(capsys, *args):
+    status = main(["pass", *map(str, args), "--json"])
+    out, err = capsys.readouterr()
+    assert status == 0, err
+    return json.loads(out), err
+
+
+@pytest.fixture(scope="module")
+def example():
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(["pass", "--tle", str(TLE), "--time", START, "--exptime", str(EXPTIME),
+                     "--ra", str(RA), "--dec", str(DEC), "--json"]) == 0
+    return json.loads(buf.getvalue())
+
+
+def test_json_keys_and_types(example):
+    assert isinstance(example["in_field"], bool)
+    assert isinstance(example["message"], str)
+    assert isinstance(example["detectors"], list)
+    assert all(isinstance(d, str) for d in example["detectors"])
+    samples = example["samples"]
+    t = np.array([s["t_s"] for s in samples])
+    assert t[0] == 0 and t[-1] == EXPTIME and np.diff(t).max() <= 1.0
+    assert EXPTIME / 2 in t  # one at the middle
+    for s in samples:
+        for key, kind in SAMPLE_KEYS.items():
+            assert isinstance(s[key], kind), key
+        for key in ("x_mm", "y_mm"):
+            assert s[key] is None or isinstance(s[key], float)
+    assert any(s["x_mm"] is not None for s in samples)
+
+
+def test_aimed_example_crosses_the_centre(example):
+    assert example["in_field"] and example["message"] == "crosses the field, sunlit"
+    assert "R22_S11" in example["detectors"]
+    # At the middle the satellite is where the pointing is: the focal-plane centre (the TLE's
+    # rounding and the pointing's rounding to 0.01 deg leave it a few mm off at most).
+    mid = next(s for s in example["samples"] if s["t_s"] == EXPTIME / 2)
+    assert math.hypot(mid["x_mm"], mid["y_mm"]) < 3.0
+    # The crossed CCDs are those a straight line through the samples' positions reaches,
+    # independently clipped here against each CCD's box.
+    pts = [(s["x_mm"], s["y_mm"]) for s in example["samples"] if s["x_mm"] is not None]
+    (x0, y0), (x1, y1) = pts[0], pts[-1]
+    expected = set()
+    for c in fp.CCDS:
+        bx0, bx1, by0, by1 = c.bounds_mm()
+        tt = np.linspace(-0.5, 1.5, 20001)
+        xs, ys = x0 + tt * (x1 - x0), y0 + tt * (y1 - y0)
+        inside = (xs > bx0 + 0.05) & (xs < bx1 - 0.05) & (ys > by0 + 0.05) & (ys < by1 - 0.05)
+        if inside.any():
+            expected.add(c.name)
+    assert expected <= set(example["detectors"])
+    # The bend of the distortion (< 1 mm) adds at most CCDs touched at a corner.
+    assert len(set(example["detectors"]) - expected) <= 2
+
+
+def test_a_miss_gives_no_detectors(capsys):
+    report, _ = run_json(capsys, "--tle", TLE, "--time", START, "--exptime", EXPTIME,
+                         "--ra", (RA + 40) % 360, "--dec", DEC)
+    assert report["in_field"] is False
+    assert report["detectors"] == []
+    assert "misses the field" in report["message"]
+    assert all(s["x_mm"] is None for s in report["samples"])
+
+
+@pytest.mark.parametrize("rotation", [0.0, 35.0])
+def test_focal_positions_through_the_ccd_wcs(rotation):
+    """A sample's x_mm, y_mm through its CCD's WCS (astropy) is the satellite's apparent
+    direction, converted from AltAz to ICRS by astropy as a star seen there would be."""
+    orbit = Orbit.read_tle(TLE)
+    p = compute_pass(orbit, Exposure(START, EXPTIME), Pointing(RA, DEC, rotation), RUBIN)
+    x, y = p.focal_mm()
+    pointing = {"ra": RA, "dec": DEC, "rotation": rotation}
+    checked = 0
+    for i in np.flatnonzero(np.isfinite(x)):
+        hits = [c for c in fp.CCDS if fp.clip_path([x[i], x[i] + 1e-6], [y[i], y[i]],
+                                                   c.bounds_mm())]
+        if not hits:
+            continue  # in a gap between CCDs
+        ccd = hits[0]
+        px, py = ccd.focal_to_pixel(x[i], y[i])
+        sky = fp.ccd_wcs(ccd, pointing).pixel_to_world(px, py)
+        frame = AltAz(obstime=p.utc[i], location=RUBIN.location)
+        truth = SkyCoord(az=p.apparent_az_deg[i] * u.deg, alt=p.apparent_alt_deg[i] * u.deg,
+                         frame=frame).transform_to(ICRS())
+        assert sky.separation(truth).to_value(u.arcsec) < 0.1
+        checked += 1
+    assert checked >= 5
+
+
+def test_track_vertices_follow_the_path():
+    """The renderer's vertices (from the 0.1 s pass) against the pass sampled in between:
+    every off-grid position within 0.1 px of the polyline."""
+    orbit = Orbit.read_tle(TLE)
+    exposure, pointing = Exposure(START, EXPTIME), Pointing(RA, DEC, 20.0)
+    dense = compute_pass(orbit, exposure, pointing, step_s=TRACK_STEP_S)
+    xd, yd, runs = track_runs(dense)
+    assert len(runs) == 1
+    run = runs[0]
+    assert np.diff(dense.t_s[run]).max() <= 1.0 + 1e-9
+    probe = compute_pass(orbit, exposure, pointing, t_s=np.arange(0.037, EXPTIME, 0.29))
+    xp, yp = probe.focal_mm()
+    vx, vy = xd[run], yd[run]
+    worst = 0.0
+    for xq, yq, tq in zip(xp, yp, probe.t_s):
+        if not np.isfinite(xq) or not dense.t_s[run[0]] <= tq <= dense.t_s[run[-1]]:
+            continue
+        k = np.searchsorted(dense.t_s[run], tq) - 1
+        ax, ay, bx, by = vx[k], vy[k], vx[k + 1], vy[k + 1]
+        d = abs((xq - ax) * (by - ay) - (yq - ay) * (bx - ax)) / math.hypot(bx - ax, by - ay)
+        worst = max(worst, d / fp.PIXEL_MM)
+    assert 0 < worst < 0.1
+
+
+def test_orbit_option(capsys):
+    report, _ = run_json(capsys, "--orbit", "height=550,inclination=53,raan=10,mean_anomaly=40",
+                         "--time", START, "--exptime", 16, "--ra", 10, "--dec", -30)
+    assert report["orbit_kind"] == "circular" and report["tle"][1].startswith("2 99999  53.0")
+    assert [s["t_s"] for s in report["samples"]] == [float(k) for k in range(17)]
+    assert report["in_field"] is False and "below the horizon" in report["message"]
+
+
+def test_far_epoch_warns_in_one_line(capsys):
+    _, err = run_json(capsys, "--orbit", "height=550,inclination=53,raan=10,mean_anomaly=40,"
+                                         "epoch=2026-06-01T00:00:00",
+                      "--time", START, "--exptime", 2, "--ra", 10, "--dec", -30)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("inject pass: warning: ")
+    assert "days from the exposure" in lines[0]
+
+
+@pytest.mark.parametrize("edit, what", [
+    (lambda lines: [lines[0], lines[1][:-1] + str((int(lines[1][-1]) + 1) % 10), lines[2]],
+     "bad checksum"),
+    (lambda lines: lines[:2], "expected 2 TLE lines"),
+])
+def test_bad_tle_file(tmp_path, capsys, edit, what):
+    bad = tmp_path / "bad.tle"
+    bad.write_text("\n".join(edit(TLE.read_text().splitlines())) + "\n")
+    if what == "expected 2 TLE lines":
+        bad.write_text(TLE.read_text().splitlines()[1] + "\n")
+    status = main(["pass", "--tle", str(bad), "--time", START, "--exptime", "30", "--ra",
+                   str(RA), "--dec", str(DEC)])
+    out, err = capsys.readouterr()
+    assert status == 2 and out == ""
+    assert len(err.strip().splitlines()) == 1 and err.startswith("inject pass: error: ")
+    assert what in err
+
+
+@pytest.mark.parametrize("args, named", [
+    (["--orbit", "height=550,inclination=53,raan=10"], "mean_anomaly"),
+    (["--orbit", "height=550,inclination=53,raan=10,mean_anomaly=4,colour=red"], "colour"),
+    (["--tle", str(TLE), "--site", "30,70"], "30,70"),
+    (["--tle", str(TLE), "--exptime", "-1"], "-1"),
+])
+def test_bad_options_one_line(capsys, args, named):
+    base = {"--time": START, "--exptime": "30", "--ra": str(RA), "--dec": str(DEC)}
+    for k, v in zip(args[::2], args[1::2]):
+        base[k] = v
+    argv = ["pass"] + [item for kv in base.items() for item in kv]
+    status = main(argv)
+    _, err = capsys.readouterr()
+    assert status == 2 and len(err.strip().splitlines()) == 1 and named in err
+
+
+def test_plot_written_and_not_replaced(tmp_path, capsys):
+    out = tmp_path / "pass.png"
+    argv = ["pass", "--tle", str(TLE), "--time", START, "--exptime", "4", "--ra", str(RA),
+            "--dec", str(DEC), "--plot", str(out)]
+    assert main(argv) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    capsys.readouterr()
+    assert main(argv) == 2  # exists: not replaced without --overwrite
+    assert "exists" in capsys.readouterr().err
+    assert main(argv + ["--overwrite"]) == 0
