@@ -202,3 +202,109 @@ def test_plot_written_and_not_replaced(tmp_path, capsys):
     assert main(argv) == 2  # exists: not replaced without --overwrite
     assert "exists" in capsys.readouterr().err
     assert main(argv + ["--overwrite"]) == 0
+
+
+# --- orbit tracks in focal-plane scenes ------------------------------------------------------
+
+SCENE = ROOT / "sample_fields" / "pass_example.yaml"
+
+
+def _scene(**changes):
+    from inject.config import load_scene_file
+
+    return {**load_scene_file(str(SCENE)), **changes}
+
+
+def test_plan_of_the_orbit_scene_matches_inject_pass(capsys, monkeypatch):
+    """`inject focalplane --plan --json` of the example scene (a 4 s exposure about the
+    middle, to keep the test quick) reaches the CCDs `inject pass` says the track crosses, and
+    others only within a footprint's reach of the pass's own samples."""
+    start = "2026-06-15T23:29:58"
+    assert main(["focalplane", str(SCENE), "--plan", "--json", "exptime=4",
+                 f"time={start}"]) == 0
+    plan = json.loads(capsys.readouterr().out)
+    names = {d["name"] for d in plan["detectors"]}
+    report, _ = run_json(capsys, "--tle", TLE, "--time", start, "--exptime", 4, "--ra", RA,
+                         "--dec", DEC)
+    assert report["detectors"] and set(report["detectors"]) <= names
+    pts = np.array([(s["x_mm"], s["y_mm"]) for s in report["samples"]])
+    (x0, y0), (x1, y1) = pts[0], pts[-1]
+    for name in names - set(report["detectors"]):
+        bx0, bx1, by0, by1 = fp.BY_NAME[name].bounds_mm()
+        tt = np.linspace(0, 1, 4001)
+        dx = np.maximum(np.maximum(bx0 - (x0 + tt * (x1 - x0)), 0), (x0 + tt * (x1 - x0)) - bx1)
+        dy = np.maximum(np.maximum(by0 - (y0 + tt * (y1 - y0)), 0), (y0 + tt * (y1 - y0)) - by1)
+        assert np.hypot(dx, dy).min() < 3.0  # mm: 300 px, more than the footprint's reach
+    assert plan["satellites"] == [{"satellite": 0, "message": "crosses the field, sunlit"}]
+
+
+def test_orbit_track_vertices_carry_the_pass():
+    from inject.focalscene import parse_focal_scene
+    from inject.orbits import Pass
+
+    fscene = parse_focal_scene(_scene(exptime=4, time="2026-06-15T23:29:58"))
+    track = fscene.tracks[0]
+    assert track.kind == "polyline" and len(track.xs) >= 5
+    orbit = Orbit.read_tle(TLE)
+    dense = compute_pass(orbit, Exposure("2026-06-15T23:29:58", 4.0), Pointing(RA, DEC, 0.0),
+                         step_s=TRACK_STEP_S)
+    x, y = dense.focal_mm()
+    for xv, yv, values in zip(track.xs, track.ys, track.values):
+        i = int(np.nanargmin(np.hypot(x - xv, y - yv)))
+        assert math.hypot(x[i] - xv, y[i] - yv) < 1e-9  # a vertex is a sample of the pass
+        assert values["zenith"] == pytest.approx(90 - dense.alt_deg[i], abs=1e-9)
+        assert values["phi"] == pytest.approx(dense.phi_deg[i], abs=1e-9)
+        assert values["mag"] == pytest.approx(5.0)  # sunlit: the reference magnitude
+        # The streak model's own range from (height, zenith) on the paper's spherical Earth is
+        # the pass's range to 0.5% (the site's 2.6 km height and the geoid), so its brightness
+        # is Pass.magnitude to ~0.01 mag.
+        from inject.focalscene import vertex_model
+        model = vertex_model(fscene, 0, values)
+        assert model.geometry.range_km == pytest.approx(dense.range_km[i], rel=5e-3)
+        assert model.apparent_mag == pytest.approx(Pass.magnitude(dense, 5.0)[i], abs=0.02)
+
+
+@pytest.mark.parametrize("changes, why", [
+    ({"pointing": {"ra": (RA + 40) % 360, "dec": DEC}}, "misses the field"),
+    ("shadow", "Earth's shadow"),
+])
+def test_orbit_scene_without_a_streak_says_why(changes, why, capsys):
+    from inject.errors import OrbitWarning
+    from inject.focalscene import parse_focal_scene, plan
+    from inject.orbits import aimed_orbit
+
+    if changes == "shadow":  # the same shell, aimed east at the same time: in Earth's shadow
+        orbit = aimed_orbit("2026-06-15T23:30:00", 60.0, 90.0)
+        from astropy.time import Time
+        frame = AltAz(obstime=Time("2026-06-15T23:30:00"), location=RUBIN.location)
+        c = SkyCoord(az=90 * u.deg, alt=60 * u.deg, frame=frame).transform_to(ICRS())
+        raw = _scene(exptime=4, time="2026-06-15T23:29:58",
+                     pointing={"ra": float(c.ra.deg), "dec": float(c.dec.deg)})
+        raw["satellites"] = [{**raw["satellites"][0], "orbit": {"tle": list(orbit.tle_lines())}}]
+    else:
+        raw = _scene(exptime=4, time="2026-06-15T23:29:58", **changes)
+    with pytest.warns(OrbitWarning, match=why):
+        fscene = parse_focal_scene(raw)
+    assert fscene.tracks[0].xs == ()
+    result = plan(fscene)
+    assert result["detectors"] == []
+    assert why in result["satellites"][0]["message"]
+
+
+@pytest.mark.parametrize("change, named", [
+    ({"time": None}, "time: required"),
+    ({"satellites": [{"mag": 5, "shape": {"type": "box", "length": 7, "width": 2},
+                      "orbit": {"tle": ["1 bad", "2 bad"]}}]}, "TLE line 1"),
+    ({"satellites": [{"mag": 5, "height": 550, "shape": {"type": "box", "length": 7,
+                                                          "width": 2},
+                      "orbit": {"height": 550, "inclination": 53, "raan": 0,
+                                "mean_anomaly": 0}}]}, "comes from the orbit"),
+    ({"satellites": [{"mag": 5, "shape": {"type": "box", "length": 7, "width": 2},
+                      "orbit": {"height": 550, "inclination": 53}}]}, "raan"),
+])
+def test_bad_orbit_scene(change, named):
+    from inject.errors import SceneError
+    from inject.focalscene import parse_focal_scene
+
+    with pytest.raises(SceneError, match=named):
+        parse_focal_scene(_scene(**change))
