@@ -308,3 +308,39 @@ def test_bad_orbit_scene(change, named):
 
     with pytest.raises(SceneError, match=named):
         parse_focal_scene(_scene(**change))
+
+
+def test_shadow_entry_ends_the_streak_and_the_penumbra_fades_it():
+    """A pass through the penumbra into the umbra while in the field (the example shell aimed
+    east near the terminator): the track stops at the last sunlit sample of the 0.1 s pass, and
+    each vertex's mag is the reference dimmed by -2.5 log10 of the visible Sun."""
+    from astropy.time import Time
+
+    from inject.focalscene import parse_focal_scene
+    from inject.orbits import aimed_orbit
+
+    t_aim = Time("2026-06-15T23:27:00")
+    orbit = aimed_orbit(t_aim, 60.0, 90.0)
+    exposure = Exposure(t_aim + 5 * u.s, 10.0)
+    # Point at where the satellite appears at the middle of the exposure (ICRS as a star).
+    first = compute_pass(orbit, exposure, Pointing(0.0, 0.0), t_s=[5.0])
+    frame = AltAz(obstime=first.utc[0], location=RUBIN.location)
+    c = SkyCoord(az=first.apparent_az_deg[0] * u.deg, alt=first.apparent_alt_deg[0] * u.deg,
+                 frame=frame).transform_to(ICRS())
+    pointing = Pointing(float(c.ra.deg), float(c.dec.deg))
+    dense = compute_pass(orbit, exposure, pointing, step_s=TRACK_STEP_S)
+    lit = dense.sun_fraction > 0
+    assert lit[0] and not lit[-1] and (dense.sun_fraction[lit] < 1).all()  # penumbra -> umbra
+    raw = _scene(exptime=10.0, time=exposure.start.isot,
+                 pointing={"ra": pointing.ra_deg, "dec": pointing.dec_deg})
+    raw["satellites"] = [{**raw["satellites"][0], "orbit": {"tle": list(orbit.tle_lines())}}]
+    track = parse_focal_scene(raw).tracks[0]
+    assert "shadow" in track.message
+    x, y = dense.focal_mm()
+    idx = [int(np.nanargmin(np.hypot(x - xv, y - yv))) for xv, yv in zip(track.xs, track.ys)]
+    last = np.flatnonzero(lit)[-1]
+    assert idx[-1] == last and np.isfinite(x[last + 1])  # ends at umbra entry, in the field
+    mags = np.array([v["mag"] for v in track.values])
+    # (the scene time is the ISO string, rounded to 1 ms: 1e-6 mag where the Sun is a sliver)
+    np.testing.assert_allclose(mags, 5.0 - 2.5 * np.log10(dense.sun_fraction[idx]), atol=1e-4)
+    assert (np.diff(mags) > 0).all()  # fading
