@@ -614,7 +614,9 @@ class FieldFrame:
 
         Returns ``xi, eta, x, y, front``: standard coordinates (xi East, eta North) and the same
         rotated into the focal-plane axes by :func:`sky_to_focal`; tangent-plane coordinates in
-        radians (as afw's FIELD_ANGLE) expressed in degrees. ``front`` is False where the
+        radians (as afw's FIELD_ANGLE) expressed in degrees. They are ICRS offsets: those of the
+        star that appears where the direction points (:attr:`to_icrs`), so that a CCD's WCS
+        (TAN about the ICRS boresight) maps them to the same pixel as that star. ``front`` is False where the
         direction is 90 deg or more from the boresight (the projection is then undefined: NaN).
         """
         cz = _dot(unit, self.centre)
