@@ -616,8 +616,9 @@ class FieldFrame:
         rotated into the focal-plane axes by :func:`sky_to_focal`; tangent-plane coordinates in
         radians (as afw's FIELD_ANGLE) expressed in degrees. They are ICRS offsets: those of the
         star that appears where the direction points (:attr:`to_icrs`), so that a CCD's WCS
-        (TAN about the ICRS boresight) maps them to the same pixel as that star. ``front`` is False where the
-        direction is 90 deg or more from the boresight (the projection is then undefined: NaN).
+        (TAN about the ICRS boresight) maps them to the same pixel as that star. ``front`` is
+        False where the direction is 90 deg or more from the boresight (the projection is then
+        undefined: NaN).
         """
         cz = _dot(unit, self.centre)
         front = cz > 1e-6
@@ -626,7 +627,8 @@ class FieldFrame:
         eta = np.where(front, np.degrees(_dot(unit, self.north) / safe), np.nan)
         if self.to_icrs is not None:  # apparent -> ICRS offsets (differential aberration)
             m = self.to_icrs
-            xi, eta = m[..., 0, 0] * xi + m[..., 0, 1] * eta, m[..., 1, 0] * xi + m[..., 1, 1] * eta
+            xi, eta = (m[..., 0, 0] * xi + m[..., 0, 1] * eta,
+                       m[..., 1, 0] * xi + m[..., 1, 1] * eta)
         x, y = sky_to_focal(xi, eta, self.pointing.rotation_deg)
         return xi, eta, x, y, front
 
