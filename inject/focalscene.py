@@ -237,10 +237,19 @@ def _orbit_track(where, spec, sat, scene, raw):
     satellite's ``mag`` dimmed by the penumbra (the streak model scales it with range and
     nadir angle itself, as :meth:`inject.orbits.Pass.magnitude` does). A pass that never
     enters the field or is in shadow there has no vertices, and says why (OrbitWarning)."""
-    import warnings
+    dense = _orbit_pass(where, spec, raw, scene.exptime, scene.pointing)
+    run, values, message = _orbit_vertices(where, dense, sat.mag)
+    if run is None:
+        return FocalTrack("polyline", (), (), (), 0.0, message)
+    xd, yd = dense.focal_mm()
+    xs, ys = tuple(float(v) for v in xd[run]), tuple(float(v) for v in yd[run])
+    angle = float(np.degrees(np.arctan2(ys[1] - ys[0], xs[1] - xs[0])))
+    return FocalTrack("polyline", xs, ys, values, angle, message)
 
-    from .errors import OrbitWarning
-    from .orbits import TRACK_STEP_S, Exposure, Pointing, compute_pass, parse_time, track_runs
+
+def _orbit_pass(where, spec, raw, exptime, pointing):
+    """The pass (every 0.1 s) of a satellite's ``orbit:`` in a scene, errors as SceneError."""
+    from .orbits import TRACK_STEP_S, Exposure, Pointing, compute_pass, parse_time
 
     if raw.get("time") is None:
         raise SceneError(f"time: required with {where} (exposure start, ISO 8601 UTC)")
@@ -248,39 +257,95 @@ def _orbit_track(where, spec, sat, scene, raw):
         time = parse_time(raw["time"], "time")
         orbit = _orbit_of(where, spec, time)
         site = _site_of(raw.get("site"))
-        pointing = Pointing(scene.pointing["ra"], scene.pointing["dec"],
-                            scene.pointing.get("rotation", 0.0))
-        dense = compute_pass(orbit, Exposure(time, scene.exptime), pointing, site,
-                             step_s=TRACK_STEP_S)
+        point = Pointing(pointing["ra"], pointing["dec"], pointing.get("rotation", 0.0))
+        return compute_pass(orbit, Exposure(time, exptime), point, site, step_s=TRACK_STEP_S)
     except SceneError:
         raise
     except InjectError as err:
         raise SceneError(f"{where}: {err}") from None
+
+
+def _no_streak(where, dense):
+    """Why a pass renders no streak (the message, also warned as an OrbitWarning)."""
+    import warnings
+
+    from .errors import OrbitWarning
+
+    if not dense.in_field:
+        why = dense.message
+    elif dense.visible:
+        why = "crosses the field only outside the camera's reach"
+    else:
+        why = "crosses the field in Earth's shadow"
+    message = f"{where}: no streak: {why}"
+    warnings.warn(message, OrbitWarning, stacklevel=3)
+    return message
+
+
+def _orbit_vertices(where, dense, mag):
+    """The longest sunlit run of a pass's track: (sample indices, vertex values, message), or
+    (None, None, message) when there is none."""
+    import warnings
+
+    from .errors import OrbitWarning
+    from .orbits import track_runs
+
     xd, yd, runs = track_runs(dense, lit_only=True)
     if not runs:
-        if not dense.in_field:
-            why = dense.message
-        elif dense.visible:
-            why = "crosses the field only outside the camera's reach"
-        else:
-            why = "crosses the field in Earth's shadow"
-        message = f"{where}: no streak: {why}"
-        warnings.warn(message, OrbitWarning, stacklevel=2)
-        return FocalTrack("polyline", (), (), (), 0.0, message)
+        return None, None, _no_streak(where, dense)
     run = max(runs, key=lambda r: dense.t_s[r[-1]] - dense.t_s[r[0]])
     message = "crosses the field, sunlit" if dense.sun_fraction[run].min() >= 1 else \
         "crosses the field, partly in Earth's shadow (the streak ends or fades there)"
     if len(runs) > 1:
         message += f"; {len(runs)} sunlit parts, the longest rendered"
-        warnings.warn(f"{where}: {message}", OrbitWarning, stacklevel=2)
+        warnings.warn(f"{where}: {message}", OrbitWarning, stacklevel=3)
     dim = -2.5 * np.log10(dense.sun_fraction[run])
     phi = np.where(np.isfinite(dense.phi_deg[run]), dense.phi_deg[run], 90.0)  # at the zenith
     values = tuple({"height": float(h), "zenith": float(90.0 - a), "phi": float(f),
-                    "mag": float(sat.mag + d)}
+                    "mag": float(mag + d)}
                    for h, a, f, d in zip(dense.height_km[run], dense.alt_deg[run], phi, dim))
-    xs, ys = tuple(float(v) for v in xd[run]), tuple(float(v) for v in yd[run])
-    angle = float(np.degrees(np.arctan2(ys[1] - ys[0], xs[1] - xs[0])))
-    return FocalTrack("polyline", xs, ys, values, angle, message)
+    return run, values, message
+
+
+def ccd_orbit_satellites(raw, satellites, shape, pointing):
+    """A CCD scene's satellites with each ``orbit:`` replaced by its track in the CCD's pixels.
+
+    The CCD scene's WCS (:func:`inject.wcs.pointing_wcs`: TAN about the pointing at the image
+    centre, LSST's plate scale, no distortion) maps the pass's field angles (ICRS gnomonic
+    offsets, rotated as the WCS's CD matrix) linearly to pixels. A pass with no streak gets a
+    track far off the image (its TRUTH row is flagged off-image) and a warning saying why.
+    """
+    from .instrument import LSST
+
+    if pointing is None:
+        raise SceneError("pointing: required with an orbit ({ra, dec, rotation})")
+    exptime = _number("exptime", raw["exptime"])
+    ny, nx = shape
+    scale_deg = LSST.pixel_scale_arcsec / 3600.0
+    out = []
+    for i, sat in enumerate(satellites):
+        if not (isinstance(sat, dict) and "orbit" in sat):
+            out.append(sat)
+            continue
+        where = f"satellites[{i}].orbit"
+        for key in ("track", "height", "phi"):
+            if key in sat:
+                raise SceneError(f"satellites[{i}].{key}: comes from the orbit (remove it)")
+        dense = _orbit_pass(where, sat["orbit"], raw, exptime, pointing)
+        run, values, _ = _orbit_vertices(where, dense, _number(f"satellites[{i}].mag",
+                                                                sat.get("mag")))
+        rest = {k: v for k, v in sat.items() if k != "orbit"}
+        if run is None:
+            far = -9e5  # 50 deg off: nothing of it on the image
+            vertices = [{"x": far, "y": far}, {"x": far + 1.0, "y": far}]
+            out.append({**rest, "height": float(np.nanmean(dense.height_km)),
+                        "track": {"vertices": vertices}})
+            continue
+        x = (nx - 1) / 2 + dense.field_x_deg[run] / scale_deg
+        y = (ny - 1) / 2 + dense.field_y_deg[run] / scale_deg
+        vertices = [{"x": float(a), "y": float(b), **v} for a, b, v in zip(x, y, values)]
+        out.append({**rest, "height": values[0]["height"], "track": {"vertices": vertices}})
+    return out
 
 
 # -------------------------------------------------------------------------------------------

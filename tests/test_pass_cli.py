@@ -344,3 +344,63 @@ def test_shadow_entry_ends_the_streak_and_the_penumbra_fades_it():
     # (the scene time is the ISO string, rounded to 1 ms: 1e-6 mag where the Sun is a sliver)
     np.testing.assert_allclose(mags, 5.0 - 2.5 * np.log10(dense.sun_fraction[idx]), atol=1e-4)
     assert (np.diff(mags) > 0).all()  # fading
+
+
+def _ccd_scene_raw(start="2026-06-15T23:29:58", exptime=4.0, **changes):
+    raw = _scene(exptime=exptime, time=start, detector={"type": "itl", "nx": 2000, "ny": 2000},
+                 stars=False, noise=False, sky=False)
+    raw.pop("zenith")
+    return {**raw, **changes}
+
+
+def test_orbit_in_a_ccd_scene_lands_where_the_wcs_says():
+    """`inject simulate`'s scene: the orbit's vertices in the CCD's pixels, through the scene's
+    WCS (inject.wcs.pointing_wcs), are the satellite's apparent place (ICRS as a star) to
+    < 0.1"; the middle of the exposure is near the image centre."""
+    from inject.config import parse_scene
+    from inject.instrument import LSST
+    from inject.wcs import pointing_wcs
+
+    scene = parse_scene(_ccd_scene_raw(pointing={"ra": RA, "dec": DEC, "rotation": 25.0}))
+    vertices = scene.satellites[0].track.vertices
+    assert len(vertices) >= 5
+    wcs = pointing_wcs(scene.pointing, scene.detector.shape, LSST.pixel_scale_arcsec)
+    dense = compute_pass(Orbit.read_tle(TLE), Exposure("2026-06-15T23:29:58", 4.0),
+                         Pointing(RA, DEC, 25.0), step_s=TRACK_STEP_S)
+    for v in vertices:
+        sky = wcs.pixel_to_world(v["x"], v["y"])
+        i = int(np.argmin(np.abs(dense.alt_deg - (90 - v["zenith"]))))  # the vertex's sample
+        frame = AltAz(obstime=dense.utc[i], location=RUBIN.location)
+        truth = SkyCoord(az=dense.apparent_az_deg[i] * u.deg,
+                         alt=dense.apparent_alt_deg[i] * u.deg, frame=frame).transform_to(ICRS())
+        assert sky.separation(truth).to_value(u.arcsec) < 0.1
+    xs = np.array([v["x"] for v in vertices])
+    assert xs.min() < 0 < 1999 < xs.max()  # across the whole CCD
+
+
+def test_simulate_an_orbit_scene(tmp_path, capsys):
+    import yaml
+    from astropy.io import fits
+
+    path = tmp_path / "ccd_pass.yaml"
+    path.write_text(yaml.safe_dump(_ccd_scene_raw(start="2026-06-15T23:29:59.5", exptime=1.0)))
+    out = tmp_path / "ccd.fits"
+    assert main(["simulate", str(path), "-o", str(out), "detector.nx=256",
+                 "detector.ny=256"]) == 0, capsys.readouterr().err
+    with fits.open(out) as hdul:
+        image = hdul[1].data
+        assert image.max() > 100  # the streak's charge, no sky or noise
+        from inject.maskplanes import FLAG_OFF_IMAGE
+        assert not hdul["TRUTH"].data["flags"][0] & FLAG_OFF_IMAGE
+
+
+def test_ccd_scene_orbit_that_misses_says_why():
+    from inject.config import parse_scene
+    from inject.errors import OrbitWarning, SceneError
+
+    raw = _ccd_scene_raw(pointing={"ra": (RA + 40) % 360, "dec": DEC})
+    with pytest.warns(OrbitWarning, match="no streak: misses the field"):
+        scene = parse_scene(raw)
+    assert all(v["x"] < -1e5 for v in scene.satellites[0].track.vertices)  # off the image
+    with pytest.raises(SceneError, match="pointing: required with an orbit"):
+        parse_scene({k: v for k, v in raw.items() if k != "pointing"})
