@@ -16,7 +16,7 @@ import sys
 import warnings
 
 from . import __version__
-from .errors import InjectError, InputError, InputWarning
+from .errors import InjectError, InputError, InputWarning, OrbitWarning
 from .validate import check
 
 
@@ -364,6 +364,9 @@ def build_parser():
     from .cli_focalplane import add_focalplane_parser
 
     add_focalplane_parser(sub)
+    from .cli_pass import add_pass_parser
+
+    add_pass_parser(sub)
     for command in sub.choices.values():
         # After the subcommand too; SUPPRESS: not given there, the top-level value stands.
         command.add_argument("--traceback", action="store_true", default=argparse.SUPPRESS,
@@ -374,7 +377,7 @@ def build_parser():
 def _show_warning(message, category, filename, lineno, file=None, line=None,
                   command="inject"):
     """Input warnings as one line, ``inject CMD: warning: ...`` (others as Python shows them)."""
-    if issubclass(category, InputWarning):
+    if issubclass(category, (InputWarning, OrbitWarning)):
         print(f"{command}: warning: {_one_line(message)}", file=sys.stderr)
     else:
         _python_showwarning(message, category, filename, lineno, file, line)

@@ -32,7 +32,7 @@ DEFAULT_SCENE = {
 SIMULATE_BYTES_PER_PIXEL = 64
 
 _TOP_KEYS = {"seed", "band", "exptime", "seeing", "zenith", "detector", "sky", "stars", "noise",
-             "satellites", "pointing", "dark_current", "cosmic_rays", "units"}
+             "satellites", "pointing", "dark_current", "cosmic_rays", "units", "time", "site"}
 _SATELLITE_KEYS = {"height", "phi", "shape", "mag", "ref_range", "track"}
 _TRACK_KEYS = {"x0", "y0", "angle", "length"}
 _VERTEX_KEYS = {"x", "y", "height", "zenith", "phi", "mag"}
@@ -353,6 +353,10 @@ def parse_scene(raw):
     satellites = merged.get("satellites", [])
     if not isinstance(satellites, list):
         raise SceneError(f"satellites={satellites!r}: must be a list")
+    if any(isinstance(sat, dict) and "orbit" in sat for sat in satellites):
+        from .focalscene import ccd_orbit_satellites  # orbit: -> a polyline in this CCD's pixels
+
+        satellites = ccd_orbit_satellites(merged, satellites, detector.shape, pointing)
     _check_sky_and_stars(merged["sky"], merged["stars"])
     seed = _ranged("seed", "seed", merged["seed"], int)
     exptime, seeing, zenith = (_ranged(k, k, merged[k]) for k in ("exptime", "seeing", "zenith"))

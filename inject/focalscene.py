@@ -31,7 +31,9 @@ from .render import AUTO_MIN_TOLERANCE, Budget, swept_profile
 from .scene import NOISE_FRACTION, pixel_noise, render_tracks, rng, simulate
 from .streak import StreakModel
 
-FOCAL_KEYS = (_TOP_KEYS - {"detector"}) | {"detectors", "cutout"}
+FOCAL_KEYS = (_TOP_KEYS - {"detector"}) | {"detectors", "cutout", "time", "site"}
+#: Keys of a satellite's ``orbit:`` (a TLE, or circular-orbit elements).
+ORBIT_KEYS = {"tle", "height", "inclination", "raan", "mean_anomaly", "epoch"}
 _TRACK_KEYS = {"x0_mm", "y0_mm", "angle", "length_mm"}
 #: Star tiles: squares of this side (mm) on a fixed grid over the focal plane.
 STAR_TILE_MM = 10.0
@@ -48,7 +50,8 @@ class FocalTrack:
 
     ``kind`` is ``"line"`` (crossing the focal plane: the vertices are far outside it),
     ``"segment"`` or ``"polyline"``; ``values`` holds, per vertex, the model values
-    (``height, zenith, phi, mag``) in effect there.
+    (``height, zenith, phi, mag``) in effect there. A track from an ``orbit:`` is a polyline
+    (or has no vertices when the pass renders no streak); ``message`` says how it went.
     """
 
     kind: str
@@ -56,6 +59,7 @@ class FocalTrack:
     ys: tuple
     values: tuple
     angle: float
+    message: str = ""
 
 
 @dataclass(frozen=True)
@@ -117,18 +121,28 @@ def parse_focal_scene(raw):
         raise SceneError(f"satellites={satellites!r}: must be a list")
     placeholders = []
     for i, sat in enumerate(satellites):
-        if not isinstance(sat, dict) or "track" not in sat:
+        if isinstance(sat, dict) and "orbit" in sat:
+            if "track" in sat:
+                raise SceneError(f"satellites[{i}]: give 'track' or 'orbit', not both")
+            for key in ("height", "phi"):
+                if key in sat:
+                    raise SceneError(f"satellites[{i}].{key}: comes from the orbit (remove it)")
+            # Placeholders: every vertex of the orbit's track carries its own height and phi.
+            sat = {k: v for k, v in sat.items() if k != "orbit"} | {"height": 550.0}
+        elif not isinstance(sat, dict) or "track" not in sat:
             _check_keys(f"satellites[{i}]", sat, {"track"}, {"track"})
         placeholders.append({**sat, "track": {"x0": 0.0, "y0": 0.0, "angle": 0.0}})
-    ccd_part = {k: v for k, v in raw.items() if k not in ("detectors", "cutout")}
+    ccd_part = {k: v for k, v in raw.items() if k not in ("detectors", "cutout", "time", "site")}
     scene = parse_scene({**ccd_part, "satellites": placeholders, "detector": {"type": "itl"}})
     try:
         fp._check_pointing(scene.pointing)
         ccds = fp.select(raw.get("detectors"))
     except InjectError as err:
         raise SceneError(str(err)) from None
-    tracks = tuple(_focal_track(f"satellites[{i}].track", sat["track"], spec, scene)
-                   for i, (sat, spec) in enumerate(zip(satellites, scene.satellites)))
+    tracks = tuple(
+        _orbit_track(f"satellites[{i}].orbit", sat["orbit"], spec, scene, raw)
+        if "orbit" in sat else _focal_track(f"satellites[{i}].track", sat["track"], spec, scene)
+        for i, (sat, spec) in enumerate(zip(satellites, scene.satellites)))
     return FocalScene(scene=scene, tracks=tracks, ccds=ccds,
                       cutout=_cutout(raw.get("cutout")), digest=scene_digest(raw), raw=raw)
 
@@ -178,6 +192,160 @@ def _focal_track(where, track, spec, scene):
         raise SceneError(f"{where}.length_mm={length}: must be > 0 (mm)")
     return FocalTrack("segment", (x0, x0 + length * c), (y0, y0 + length * s), (base, base),
                       angle)
+
+
+def _orbit_of(where, spec, time):
+    """The :class:`~inject.orbits.Orbit` of a satellite's ``orbit:`` mapping."""
+    from .orbits import Orbit
+
+    _check_keys(where, spec, ORBIT_KEYS)
+    if "tle" in spec:
+        if set(spec) != {"tle"}:
+            raise SceneError(f"{where}: 'tle' takes no other key (got {sorted(spec)})")
+        tle = spec["tle"]
+        if isinstance(tle, str):
+            return Orbit.read_tle(tle)
+        if isinstance(tle, list) and len(tle) == 2:
+            return Orbit.from_tle(*tle)
+        raise SceneError(f"{where}.tle={tle!r}: a TLE file name or [line1, line2]")
+    missing = sorted({"height", "inclination", "raan", "mean_anomaly"} - set(spec))
+    if missing:
+        raise SceneError(f"{where}: needs {', '.join(missing)} (or tle)")
+    numbers = [_number(f"{where}.{k}", spec[k])
+               for k in ("height", "inclination", "raan", "mean_anomaly")]
+    return Orbit.circular(*numbers, spec.get("epoch", time), name="orbit")
+
+
+def _site_of(spec):
+    from .orbits import RUBIN, Site
+
+    if spec is None:
+        return RUBIN
+    if isinstance(spec, dict):
+        _check_keys("site", spec, {"lat", "lon", "height"}, {"lat", "lon", "height"})
+        spec = [spec["lat"], spec["lon"], spec["height"]]
+    if not isinstance(spec, list) or len(spec) != 3:
+        raise SceneError(f"site={spec!r}: needs {{lat, lon, height}} (deg, deg, m)")
+    return Site(*(_number("site", v) for v in spec))
+
+
+def _orbit_track(where, spec, sat, scene, raw):
+    """A satellite's track from its orbit during the exposure: the apparent, sunlit part of the
+    pass inside the field as a polyline in mm (:func:`inject.orbits.track_runs` on a pass
+    sampled every 0.1 s: a vertex at least every second and wherever the path bends by more
+    than 0.05 px), each vertex with the orbit's height, zenith (90 - alt), phi and the
+    satellite's ``mag`` dimmed by the penumbra (the streak model scales it with range and
+    nadir angle itself, as :meth:`inject.orbits.Pass.magnitude` does). A pass that never
+    enters the field or is in shadow there has no vertices, and says why (OrbitWarning)."""
+    dense = _orbit_pass(where, spec, raw, scene.exptime, scene.pointing)
+    run, values, message = _orbit_vertices(where, dense, sat.mag)
+    if run is None:
+        return FocalTrack("polyline", (), (), (), 0.0, message)
+    xd, yd = dense.focal_mm()
+    xs, ys = tuple(float(v) for v in xd[run]), tuple(float(v) for v in yd[run])
+    angle = float(np.degrees(np.arctan2(ys[1] - ys[0], xs[1] - xs[0])))
+    return FocalTrack("polyline", xs, ys, values, angle, message)
+
+
+def _orbit_pass(where, spec, raw, exptime, pointing):
+    """The pass (every 0.1 s) of a satellite's ``orbit:`` in a scene, errors as SceneError."""
+    from .orbits import TRACK_STEP_S, Exposure, Pointing, compute_pass, parse_time
+
+    if raw.get("time") is None:
+        raise SceneError(f"time: required with {where} (exposure start, ISO 8601 UTC)")
+    try:
+        time = parse_time(raw["time"], "time")
+        orbit = _orbit_of(where, spec, time)
+        site = _site_of(raw.get("site"))
+        point = Pointing(pointing["ra"], pointing["dec"], pointing.get("rotation", 0.0))
+        return compute_pass(orbit, Exposure(time, exptime), point, site, step_s=TRACK_STEP_S)
+    except SceneError:
+        raise
+    except InjectError as err:
+        raise SceneError(f"{where}: {err}") from None
+
+
+def _no_streak(where, dense):
+    """Why a pass renders no streak (the message, also warned as an OrbitWarning)."""
+    import warnings
+
+    from .errors import OrbitWarning
+
+    if not dense.in_field:
+        why = dense.message
+    elif dense.visible:
+        why = "crosses the field only outside the camera's reach"
+    else:
+        why = "crosses the field in Earth's shadow"
+    message = f"{where}: no streak: {why}"
+    warnings.warn(message, OrbitWarning, stacklevel=3)
+    return message
+
+
+def _orbit_vertices(where, dense, mag):
+    """The longest sunlit run of a pass's track: (sample indices, vertex values, message), or
+    (None, None, message) when there is none."""
+    import warnings
+
+    from .errors import OrbitWarning
+    from .orbits import track_runs
+
+    xd, yd, runs = track_runs(dense, lit_only=True)
+    if not runs:
+        return None, None, _no_streak(where, dense)
+    run = max(runs, key=lambda r: dense.t_s[r[-1]] - dense.t_s[r[0]])
+    message = "crosses the field, sunlit" if dense.sun_fraction[run].min() >= 1 else \
+        "crosses the field, partly in Earth's shadow (the streak ends or fades there)"
+    if len(runs) > 1:
+        message += f"; {len(runs)} sunlit parts, the longest rendered"
+        warnings.warn(f"{where}: {message}", OrbitWarning, stacklevel=3)
+    dim = -2.5 * np.log10(dense.sun_fraction[run])
+    phi = np.where(np.isfinite(dense.phi_deg[run]), dense.phi_deg[run], 90.0)  # at the zenith
+    values = tuple({"height": float(h), "zenith": float(90.0 - a), "phi": float(f),
+                    "mag": float(mag + d)}
+                   for h, a, f, d in zip(dense.height_km[run], dense.alt_deg[run], phi, dim))
+    return run, values, message
+
+
+def ccd_orbit_satellites(raw, satellites, shape, pointing):
+    """A CCD scene's satellites with each ``orbit:`` replaced by its track in the CCD's pixels.
+
+    The CCD scene's WCS (:func:`inject.wcs.pointing_wcs`: TAN about the pointing at the image
+    centre, LSST's plate scale, no distortion) maps the pass's field angles (ICRS gnomonic
+    offsets, rotated as the WCS's CD matrix) linearly to pixels. A pass with no streak gets a
+    track far off the image (its TRUTH row is flagged off-image) and a warning saying why.
+    """
+    from .instrument import LSST
+
+    if pointing is None:
+        raise SceneError("pointing: required with an orbit ({ra, dec, rotation})")
+    exptime = _number("exptime", raw["exptime"])
+    ny, nx = shape
+    scale_deg = LSST.pixel_scale_arcsec / 3600.0
+    out = []
+    for i, sat in enumerate(satellites):
+        if not (isinstance(sat, dict) and "orbit" in sat):
+            out.append(sat)
+            continue
+        where = f"satellites[{i}].orbit"
+        for key in ("track", "height", "phi"):
+            if key in sat:
+                raise SceneError(f"satellites[{i}].{key}: comes from the orbit (remove it)")
+        dense = _orbit_pass(where, sat["orbit"], raw, exptime, pointing)
+        run, values, _ = _orbit_vertices(where, dense, _number(f"satellites[{i}].mag",
+                                                                sat.get("mag")))
+        rest = {k: v for k, v in sat.items() if k != "orbit"}
+        if run is None:
+            far = -9e5  # 50 deg off: nothing of it on the image
+            vertices = [{"x": far, "y": far}, {"x": far + 1.0, "y": far}]
+            out.append({**rest, "height": float(np.nanmean(dense.height_km)),
+                        "track": {"vertices": vertices}})
+            continue
+        x = (nx - 1) / 2 + dense.field_x_deg[run] / scale_deg
+        y = (ny - 1) / 2 + dense.field_y_deg[run] / scale_deg
+        vertices = [{"x": float(a), "y": float(b), **v} for a, b, v in zip(x, y, values)]
+        out.append({**rest, "height": values[0]["height"], "track": {"vertices": vertices}})
+    return out
 
 
 # -------------------------------------------------------------------------------------------
@@ -336,7 +504,9 @@ def plan(fscene, ccds=None, margins=None):
                         "streaks": [{"x0": s.ends[0], "y0": s.ends[1], "x1": s.ends[2],
                                      "y1": s.ends[3], "satellite": s.satellite}
                                     for s in streaks]})
-    return {"detectors": out}
+    return {"detectors": out,
+            "satellites": [{"satellite": i, "message": t.message}
+                           for i, t in enumerate(fscene.tracks) if t.message]}
 
 
 # -------------------------------------------------------------------------------------------

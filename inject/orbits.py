@@ -42,6 +42,7 @@ from sgp4.exporter import export_tle
 from sgp4.io import compute_checksum
 
 from .errors import InputError, OrbitError, OrbitWarning
+from .focalplane import focal_of_field_angle, rotation_matrix
 from .geometry import R_EARTH_KM
 from .photometry import apparent_magnitude
 from .validate import finite, in_range, positive
@@ -145,9 +146,9 @@ class Pointing:
     """Telescope boresight (ICRS, deg) and rotator angle ``rotation_deg`` (LSST's rotSkyPos).
 
     ``rotation_deg`` is the position angle of the focal plane's +y axis on the sky, measured from
-    North through East (the ``orientation`` of afw's ``makeSkyWcs``); at 0, +y points North and
-    +x East. A camera whose pixel axes are mirrored with respect to this (``flipX``) flips x after
-    this rotation, in the focal-plane module.
+    North through East (the ``orientation`` of afw's ``makeSkyWcs`` with ``flipX=False``, as
+    LSSTCam's raw WCS); at 0, +y points North and +x West: the convention of
+    :mod:`inject.focalplane`, whose CCD WCSs therefore agree with the field angles here.
     """
 
     ra_deg: float
@@ -167,16 +168,18 @@ class Pointing:
 def sky_to_focal(xi, eta, rotation_deg):
     """Rotate standard coordinates (xi East, eta North) into the focal-plane axes (x, y).
 
-    Inverse of :func:`focal_to_sky`; see :class:`Pointing` for the convention.
+    The inverse of :func:`inject.focalplane.rotation_matrix` (a reflection, its own inverse):
+    +y at position angle ``rotation_deg``, +x at ``rotation_deg - 90`` (West at 0). Inverse of
+    :func:`focal_to_sky`; see :class:`Pointing`.
     """
-    r = np.radians(rotation_deg)
-    return xi * np.cos(r) - eta * np.sin(r), xi * np.sin(r) + eta * np.cos(r)
+    (a, b), (c, d) = rotation_matrix(rotation_deg)
+    return a * xi + b * eta, c * xi + d * eta
 
 
 def focal_to_sky(x, y, rotation_deg):
     """Standard coordinates (xi East, eta North) of focal-plane field angles (x, y)."""
-    r = np.radians(rotation_deg)
-    return x * np.cos(r) + y * np.sin(r), -x * np.sin(r) + y * np.cos(r)
+    (a, b), (c, d) = rotation_matrix(rotation_deg)
+    return a * x + b * y, c * x + d * y
 
 
 # --- orbits --------------------------------------------------------------------------------------
@@ -522,6 +525,10 @@ class FieldFrame:
         astropy's topocentric ITRS -> AltAz rotation at the site.
     sun_itrs : ndarray (n_times, 3)
         Geocentric Sun (astropy ``get_sun``) in ITRS, km.
+    to_icrs : ndarray (n_times, 2, 2)
+        Apparent (AltAz) gnomonic offsets from the boresight -> ICRS ones: the differential
+        aberration (a linear map to 1e-4 x the field angle, ~0.5" at the field's edge), so
+        that field angles are those of the ICRS star a CCD's WCS puts at the same pixel.
     """
 
     times: Time
@@ -535,6 +542,7 @@ class FieldFrame:
     teme_to_itrs: np.ndarray
     itrs_to_altaz: np.ndarray
     sun_itrs: np.ndarray
+    to_icrs: np.ndarray = None
 
     @cached_property
     def jd_utc(self):
@@ -565,6 +573,7 @@ class FieldFrame:
         aa = radec[:, None].transform_to(frame)
         vec = np.moveaxis(aa.cartesian.xyz.value, 0, -1)  # (3 points, n, 3)
         c, nn, e = (_unit(v) for v in vec)
+        n_off, e_off = nn, e  # the offset points' apparent directions
         nn = _unit(nn - _dot(nn, c)[:, None] * c)
         e_perp = _unit(np.cross(c, nn))
         # AltAz cartesian axes are left-handed on the sky: take East's sign from the offset point.
@@ -582,8 +591,14 @@ class FieldFrame:
         m_aa = topo.transform_to(AltAz(obstime=t0, location=loc)).cartesian.xyz.to_value(
             u.km) / 1e4  # columns: images of the ITRS axes
         sun = get_sun(times).transform_to(ITRS(obstime=times)).cartesian.xyz.to_value(u.km).T
+        # The offset points are at ICRS gnomonic (0, tan 1') and (tan 1', 0); their apparent
+        # gnomonic offsets give the linear map ICRS -> apparent, inverted here.
+        t1 = math.tan(math.radians(1 / 60))
+        cols = [np.stack([_dot(v, e) / _dot(v, c), _dot(v, nn) / _dot(v, c)], axis=-1) / t1
+                for v in (e_off, n_off)]
+        to_icrs = np.linalg.inv(np.stack(cols, axis=-1))  # (n, 2, 2)
         return cls(times, site, pointing, c, e, nn, aa[0].alt.to_value(u.deg),
-                   aa[0].az.to_value(u.deg), m_teme, m_aa, sun)
+                   aa[0].az.to_value(u.deg), m_teme, m_aa, sun, to_icrs)
 
     def to_altaz(self, r_itrs_km):
         """Topocentric unit vectors (AltAz axes), range (km), alt and az (deg) of ITRS points."""
@@ -599,14 +614,21 @@ class FieldFrame:
 
         Returns ``xi, eta, x, y, front``: standard coordinates (xi East, eta North) and the same
         rotated into the focal-plane axes by :func:`sky_to_focal`; tangent-plane coordinates in
-        radians (as afw's FIELD_ANGLE) expressed in degrees. ``front`` is False where the
-        direction is 90 deg or more from the boresight (the projection is then undefined: NaN).
+        radians (as afw's FIELD_ANGLE) expressed in degrees. They are ICRS offsets: those of the
+        star that appears where the direction points (:attr:`to_icrs`), so that a CCD's WCS
+        (TAN about the ICRS boresight) maps them to the same pixel as that star. ``front`` is
+        False where the direction is 90 deg or more from the boresight (the projection is then
+        undefined: NaN).
         """
         cz = _dot(unit, self.centre)
         front = cz > 1e-6
         safe = np.where(front, cz, 1.0)
         xi = np.where(front, np.degrees(_dot(unit, self.east) / safe), np.nan)
         eta = np.where(front, np.degrees(_dot(unit, self.north) / safe), np.nan)
+        if self.to_icrs is not None:  # apparent -> ICRS offsets (differential aberration)
+            m = self.to_icrs
+            xi, eta = (m[..., 0, 0] * xi + m[..., 0, 1] * eta,
+                       m[..., 1, 0] * xi + m[..., 1, 1] * eta)
         x, y = sky_to_focal(xi, eta, self.pointing.rotation_deg)
         return xi, eta, x, y, front
 
@@ -719,6 +741,9 @@ class Pass:
     visible: bool = False
     message: str = ""
     inside: np.ndarray = field(default=None, repr=False)
+    #: Height above :data:`~inject.geometry.R_EARTH_KM` (the geocentric distance less the
+    #: paper's spherical Earth), km: what the streak model's ``height`` means.
+    height_km: np.ndarray = field(default=None, repr=False)
 
     @property
     def sunlit(self):
@@ -735,6 +760,18 @@ class Pass:
         lit = self.sun_fraction > 0
         dim = -2.5 * np.log10(np.where(lit, self.sun_fraction, 1.0))
         return np.where(lit, m + dim, np.inf)
+
+    def focal_mm(self):
+        """Focal-plane position (mm) where the satellite appears, per sample: the field angles
+        through :func:`inject.focalplane.focal_of_field_angle` (the distortion), the mapping
+        every CCD's WCS uses. NaN where the field angle is undefined (behind the boresight) or
+        beyond :data:`TRACK_RADIUS_DEG` (outside the camera, where the distortion polynomial
+        does not apply)."""
+        ax, ay = np.radians(self.field_x_deg), np.radians(self.field_y_deg)
+        ok = np.isfinite(ax) & np.isfinite(ay)
+        ok[ok] = np.hypot(self.field_x_deg[ok], self.field_y_deg[ok]) <= TRACK_RADIUS_DEG
+        x, y = focal_of_field_angle(np.where(ok, ax, 0.0), np.where(ok, ay, 0.0))
+        return np.where(ok, x, np.nan), np.where(ok, y, np.nan)
 
     def samples(self):
         """The samples as a list of JSON-ready dicts (the keys of CONTRACT.md's ``inject pass``
@@ -876,7 +913,8 @@ def compute_pass(orbit, exposure, pointing, site=RUBIN, step_s=1.0, t_s=None,
         msg = "crosses the field, sunlit"
     return Pass(orbit, exposure, pointing, site, ts, times, alt, az, rng, nadir, phi, ang_speed,
                 frac, state, tau, app_alt, app_az, xi, eta, fx, fy, float(field_radius_deg),
-                in_field, visible, msg, inside_pts)
+                in_field, visible, msg, inside_pts,
+                np.linalg.norm(r_itrs, axis=-1) - R_EARTH_KM)
 
 
 # --- many satellites -----------------------------------------------------------------------------
@@ -928,3 +966,72 @@ def find_passes(orbits, exposure, pointing, site=RUBIN, step_s=1.0, **prefilter)
         if p.in_field:
             out.append(p)
     return out
+
+
+# --- the track on the focal plane ----------------------------------------------------------------
+
+#: Field-angle radius (deg) beyond which no focal-plane position is given: past the science
+#: CCDs (2.06 deg) with room for a footprint, well inside the distortion polynomial's range.
+TRACK_RADIUS_DEG = 3.0
+#: Sample step (s) of the pass a focal-plane track is built from. Between two samples 0.1 s
+#: apart the track is straight in field angle to far better than a pixel, and the
+#: distortion bends the chord (<= 9 mm at LEO rates) by less than 0.02 px.
+TRACK_STEP_S = 0.1
+
+
+def track_runs(p, tol_px=0.05, max_gap_s=1.0, lit_only=False,
+               radius_deg=TRACK_RADIUS_DEG):
+    """The apparent track of a (densely sampled) pass as focal-plane polylines.
+
+    Keeps the samples above the horizon, within ``radius_deg`` of the boresight (and sunlit, if
+    ``lit_only``), split into runs of consecutive samples, and in each run the fewest samples
+    such that consecutive vertices are at most ``max_gap_s`` apart and every dropped sample lies
+    within ``tol_px`` pixels of the chord between its neighbours (so the distortion's bend and
+    the changes of width and brightness along the track are followed).
+
+    Parameters
+    ----------
+    p : Pass
+        Typically computed with ``step_s=TRACK_STEP_S``.
+
+    Returns
+    -------
+    x_mm, y_mm : ndarray
+        Focal-plane position of every sample (NaN where not kept).
+    runs : list of ndarray
+        Sample indices of each run's vertices, in time order.
+    """
+    from .focalplane import PIXEL_MM
+
+    x, y = p.focal_mm()
+    keep = np.isfinite(x) & (p.apparent_alt_deg > 0.0) & (
+        np.hypot(p.field_x_deg, p.field_y_deg) <= radius_deg)
+    if lit_only:
+        keep &= p.sun_fraction > 0.0
+    x, y = np.where(keep, x, np.nan), np.where(keep, y, np.nan)
+    tol = tol_px * PIXEL_MM
+    runs = []
+    idx = np.flatnonzero(keep)
+    for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+        if len(run) < 2:
+            continue
+        chosen = [run[0]]
+        a = 0
+        while a < len(run) - 1:
+            b = a + 1
+            while b + 1 < len(run) and p.t_s[run[b + 1]] - p.t_s[run[a]] <= max_gap_s + 1e-9 \
+                    and _chord_deviation(x[run[a:b + 2]], y[run[a:b + 2]]) <= tol:
+                b += 1
+            chosen.append(run[b])
+            a = b
+        runs.append(np.array(chosen))
+    return x, y, runs
+
+
+def _chord_deviation(x, y):
+    """Largest distance of the inner points from the chord between the first and last."""
+    dx, dy = x[-1] - x[0], y[-1] - y[0]
+    length = math.hypot(dx, dy)
+    if length == 0:
+        return float(np.max(np.hypot(x - x[0], y - y[0])))
+    return float(np.max(np.abs((x[1:-1] - x[0]) * dy - (y[1:-1] - y[0]) * dx)) / length)

@@ -288,12 +288,12 @@ def test_astrometric_radec_pointing_would_be_20_arcsec_off(centred, sat, ts, top
 
 
 def test_rotation_convention():
-    # +y at position angle rot (North through East); +x at rot + 90.
+    # +y at position angle rot (North through East); +x at rot - 90 (West at 0, afw flipX=False).
     for rot in (0.0, 30.0, 135.0, -70.0):
         xi, eta = focal_to_sky(0.0, 1.0, rot)
         assert math.degrees(math.atan2(xi, eta)) == pytest.approx((rot + 180) % 360 - 180)
         xi, eta = focal_to_sky(1.0, 0.0, rot)
-        assert math.degrees(math.atan2(xi, eta)) == pytest.approx((rot + 270) % 360 - 180)
+        assert math.degrees(math.atan2(xi, eta)) == pytest.approx((rot + 90) % 360 - 180)
         x, y = sky_to_focal(*focal_to_sky(0.3, -0.7, rot), rot)
         assert (x, y) == pytest.approx((0.3, -0.7))
 

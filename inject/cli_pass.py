@@ -1,0 +1,237 @@
+"""``inject pass``: a satellite (TLE or circular orbit) seen from the site during one exposure,
+and the CCDs its apparent track crosses (CONTRACT.md)."""
+import json
+import math
+import sys
+
+import numpy as np
+
+from .errors import InputError
+
+#: ``--orbit`` keys: the circular-orbit elements of :meth:`inject.orbits.Orbit.circular`.
+ORBIT_KEYS = ("height", "inclination", "raan", "mean_anomaly", "epoch")
+
+
+def add_pass_parser(sub):
+    p = sub.add_parser(
+        "pass", help="where a satellite (TLE or orbit) crosses the focal plane in an exposure",
+        description="A satellite seen from the site (Rubin by default) during the exposure "
+                    "that starts at --time, the telescope tracking (ra, dec) sidereally: "
+                    "geometric alt/az and range, nadir angle and phi, angular speed across "
+                    "the star field, sunlit or in Earth's shadow, and its apparent position "
+                    "on the focal plane (mm), at least every second; the science CCDs the "
+                    "track crosses.")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--tle", metavar="FILE", help="two TLE lines, optionally after a name line")
+    src.add_argument("--orbit", metavar="KEY=VALUE,...",
+                     help="a circular orbit: height (km), inclination, raan, mean_anomaly "
+                          "(deg, argument of latitude at epoch), epoch (UTC; default --time), "
+                          "e.g. height=550,inclination=53,raan=10,mean_anomaly=40")
+    p.add_argument("--time", required=True, metavar="UTC",
+                   help="exposure start, ISO 8601 UTC (e.g. 2026-06-15T23:30:00)")
+    p.add_argument("--exptime", required=True, type=float, metavar="S", help="exposure, s")
+    p.add_argument("--ra", required=True, type=float, metavar="DEG", help="boresight RA, ICRS")
+    p.add_argument("--dec", required=True, type=float, metavar="DEG", help="boresight Dec, ICRS")
+    p.add_argument("--rotation", type=float, default=0.0, metavar="DEG",
+                   help="rotSkyPos: position angle of focal-plane +y, north through east (0)")
+    p.add_argument("--site", metavar="LAT,LON,M",
+                   help="geodetic latitude, longitude (deg) and height (m); default Rubin "
+                        "(--site=-30.2446,-70.7494,2647: with '=', as it starts with -)")
+    p.add_argument("--json", action="store_true", help="one JSON object instead of a table")
+    p.add_argument("--plot", metavar="OUT.png",
+                   help="the track on the focal plane, and range, speed, FWHM and peak along it")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --plot file")
+    p.set_defaults(func=run_pass)
+
+
+def parse_orbit_option(text, time):
+    """An :class:`~inject.orbits.Orbit` from ``--orbit`` text ``key=value,...``."""
+    from .orbits import Orbit
+
+    values = {}
+    for item in text.split(","):
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or key not in ORBIT_KEYS:
+            raise InputError("--orbit", item, f"each item must be KEY=VALUE with KEY one of "
+                                              f"{', '.join(ORBIT_KEYS)}")
+        if key in values:
+            raise InputError("--orbit", text, f"{key} given twice")
+        values[key] = value.strip()
+    missing = [k for k in ORBIT_KEYS[:4] if k not in values]
+    if missing:
+        raise InputError("--orbit", text, f"needs {', '.join(missing)}")
+    numbers = {}
+    for k in ORBIT_KEYS[:4]:
+        try:
+            numbers[k] = float(values[k])
+        except ValueError:
+            raise InputError(f"--orbit {k}", values[k], "must be a number") from None
+    return Orbit.circular(numbers["height"], numbers["inclination"], numbers["raan"],
+                          numbers["mean_anomaly"], values.get("epoch", time), name="orbit")
+
+
+def parse_site(text):
+    """A :class:`~inject.orbits.Site` from ``LAT,LON,M``."""
+    from .orbits import Site
+
+    parts = text.split(",")
+    try:
+        if len(parts) != 3:
+            raise ValueError
+        lat, lon, height = (float(v) for v in parts)
+    except ValueError:
+        raise InputError("--site", text, "must be LAT,LON,M (deg, deg, m)") from None
+    return Site(lat, lon, height)
+
+
+def pass_report(orbit, exposure, pointing, site):
+    """The ``inject pass`` result.
+
+    Returns
+    -------
+    report : dict
+        CONTRACT.md's keys (``in_field``, ``message``, ``detectors``, ``samples``) and more.
+    p : inject.orbits.Pass
+        The pass at the report's samples (1 s apart, with the middle).
+    track : tuple
+        ``(dense, x_mm, y_mm, runs)``: the pass every :data:`~inject.orbits.TRACK_STEP_S` and
+        its focal-plane polylines (:func:`inject.orbits.track_runs`), what ``detectors`` is
+        computed from.
+    """
+    from . import focalplane as fp
+    from .orbits import TRACK_STEP_S, compute_pass, track_runs
+
+    p = compute_pass(orbit, exposure, pointing, site)
+    dense = compute_pass(orbit, exposure, pointing, site, step_s=TRACK_STEP_S,
+                         check_epoch=False)
+    xd, yd, runs = track_runs(dense)
+    crossed = set()
+    for run in runs:
+        crossed.update(fp.ccds_reached(xd[run], yd[run]))
+    detectors = [c.name for c in sorted(crossed, key=lambda c: c.id)]
+    in_field = bool(detectors)
+    message = p.message
+    if p.in_field and not in_field:
+        message = "enters the field but crosses no science CCD (a gap or outside the CCDs)"
+    elif in_field and not p.in_field:  # the disc test on 1 s chords missed a corner cut
+        message = "crosses the field"
+    report = p.to_dict()
+    x, y = p.focal_mm()
+    samples = report["samples"]
+    for row, xi, yi in zip(samples, x, y):
+        row["x_mm"] = float(xi) if math.isfinite(xi) else None
+        row["y_mm"] = float(yi) if math.isfinite(yi) else None
+    report.update(in_field=in_field, message=message, detectors=detectors, samples=samples)
+    return report, p, (dense, xd, yd, runs)
+
+
+def run_pass(args):
+    from .orbits import Exposure, Orbit, Pointing, RUBIN, parse_time
+
+    time = parse_time(args.time, "--time")
+    orbit = (Orbit.read_tle(args.tle) if args.tle is not None
+             else parse_orbit_option(args.orbit, time))
+    site = RUBIN if args.site is None else parse_site(args.site)
+    exposure = Exposure(time, args.exptime)
+    if not 0 <= args.ra < 360:
+        raise InputError("--ra", args.ra, "must be in [0, 360)")
+    pointing = Pointing(args.ra, args.dec, args.rotation)
+    if args.plot:
+        from .io.atomic import check_writable
+
+        check_writable(args.plot, args.overwrite)  # fail before the work
+    report, p, track = pass_report(orbit, exposure, pointing, site)
+    if args.plot:
+        write_plot(args.plot, report, p, track, args.overwrite)
+    if args.json:
+        json.dump(report, sys.stdout)
+        sys.stdout.write("\n")
+        return
+    print(f"{report['satellite']}: {report['message']}")
+    print(f"detectors: {', '.join(report['detectors']) or 'none'}")
+    print(f"{'t_s':>5} {'utc':23} {'alt':>6} {'az':>7} {'range_km':>9} {'nadir':>6} "
+          f"{'phi':>7} {'rad/s':>8} {'sunlit':>6} {'x_mm':>8} {'y_mm':>8}")
+    for s in report["samples"]:
+        def num(v, fmt):
+            return format(v, fmt) if v is not None else "-".rjust(len(format(0.0, fmt)))
+        print(f"{s['t_s']:5.1f} {s['utc']:23} {s['alt_deg']:6.2f} {s['az_deg']:7.2f} "
+              f"{s['range_km']:9.1f} {num(s['nadir_angle_deg'], '6.2f')} "
+              f"{num(s['phi_deg'], '7.2f')} {s['angular_speed_rad_s']:8.5f} "
+              f"{'yes' if s['sunlit'] else 'no':>6} {num(s['x_mm'], '8.2f')} "
+              f"{num(s['y_mm'], '8.2f')}")
+
+
+def streak_along(p, idx, mag_ref=5.0):
+    """FWHM (arcsec) and peak surface brightness (e-/px) of the paper's satellite
+    (:class:`~inject.streak.StreakModel` defaults: 7.25 m x 2.65 m box, ``mag_ref`` g at 550 km)
+    at samples ``idx`` of a pass: each sample's height, zenith (90 - alt) and phi."""
+    from .streak import StreakModel
+
+    fwhm, peak = [], []
+    for i in idx:
+        if not (p.alt_deg[i] > 0 and np.isfinite(p.phi_deg[i])):
+            fwhm.append(np.nan)
+            peak.append(np.nan)
+            continue
+        m = StreakModel(height_km=float(p.height_km[i]), zenith_deg=float(90 - p.alt_deg[i]),
+                        phi_deg=float(p.phi_deg[i]), mag=mag_ref)
+        fwhm.append(m.fwhm_arcsec)
+        peak.append(m.peak_e_per_px * p.sun_fraction[i])  # the penumbra dims it
+    return np.array(fwhm), np.array(peak)
+
+
+def write_plot(path, report, p, track, overwrite=False):
+    """The track on the focal-plane outline (crossed CCDs shaded) and panels of range, angular
+    speed, FWHM and peak surface brightness along the exposure."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
+
+    from . import focalplane as fp
+    from .io.atomic import atomic_path
+
+    dense, xd, yd, runs = track
+    fig = Figure(figsize=(11, 6))
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes([0.05, 0.08, 0.45, 0.84])
+    crossed = set(report["detectors"])
+    for c in fp.CCDS:
+        x0, x1, y0, y1 = c.bounds_mm()
+        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, lw=0.4, ec="#4a5568",
+                               fc="#f6ad55" if c.name in crossed else "none"))
+    lit = dense.sun_fraction > 0
+    for run in runs:
+        xs, ys = xd[run[0]:run[-1] + 1], yd[run[0]:run[-1] + 1]
+        ax.plot(xs, ys, color="#2b6cb0", lw=1.2)
+        dark = ~lit[run[0]:run[-1] + 1]
+        if dark.any():
+            ax.plot(np.where(dark, xs, np.nan), np.where(dark, ys, np.nan), color="#718096",
+                    lw=1.2, ls=":")
+    x, y = p.focal_mm()
+    ax.plot(x, y, "o", ms=2.5, color="#2b6cb0")
+    ok = np.isfinite(x)
+    if ok.any():
+        i0 = np.flatnonzero(ok)[0]
+        ax.annotate(f"t = {p.t_s[i0]:.0f} s", (x[i0], y[i0]), fontsize=7)
+    xmin, xmax, ymin, ymax = fp.extent_mm()
+    ax.set_xlim(xmin - 20, xmax + 20)
+    ax.set_ylim(ymin - 20, ymax + 20)
+    ax.set_aspect("equal")
+    ax.set_xlabel("focal-plane x (mm)")
+    ax.set_ylabel("focal-plane y (mm)")
+    ax.set_title(f"{report['satellite']}: {report['message']}", fontsize=8)
+    fwhm, peak = streak_along(p, range(len(p.t_s)))
+    panels = ((p.range_km, "range (km)"), (np.degrees(p.angular_speed_rad_s), "speed (deg/s)"),
+              (fwhm, "FWHM (arcsec)"), (peak, "peak (e-/px), paper's sat."))
+    for k, (values, label) in enumerate(panels):
+        pax = fig.add_axes([0.60, 0.08 + 0.22 * (3 - k), 0.37, 0.18])
+        pax.plot(p.t_s, values, color="#2b6cb0", lw=1.0)
+        pax.plot(np.where(p.sunlit, np.nan, p.t_s), values, color="#718096", lw=1.0, ls=":")
+        pax.set_ylabel(label, fontsize=7)
+        pax.tick_params(labelsize=6)
+        if k < 3:
+            pax.set_xticklabels([])
+    pax.set_xlabel("t from exposure start (s); dotted: in Earth's shadow", fontsize=7)
+    with atomic_path(path, overwrite) as tmp:
+        fig.savefig(tmp, format="png", dpi=80)
