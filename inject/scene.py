@@ -211,7 +211,9 @@ def _render_polyline_track(image, model, track, budget, cache=PROFILE_CACHE):
     expected = sum(0.5 * (a + b) * seg.length
                    for a, b, seg in zip(fluxes[:-1], fluxes[1:], pieces))
     ends = (poly.xs[0], poly.ys[0], poly.xs[-1], poly.ys[-1], sum(s.length for s in pieces))
-    row = _truth_row(model, track, ends, charge, expected, budget)
+    # The row's geometry and photometry are the first vertex's (its values override the
+    # satellite's), as in a focal-plane scene; the charge is the whole track's.
+    row = _truth_row(vertex_models[0], track, ends, charge, expected, budget)
     row["n_vertices"] = len(poly.xs)
     return row
 

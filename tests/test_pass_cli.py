@@ -391,7 +391,17 @@ def test_simulate_an_orbit_scene(tmp_path, capsys):
         image = hdul[1].data
         assert image.max() > 100  # the streak's charge, no sky or noise
         from inject.maskplanes import FLAG_OFF_IMAGE
-        assert not hdul["TRUTH"].data["flags"][0] & FLAG_OFF_IMAGE
+        truth = hdul["TRUTH"].data[0]
+        assert not truth["flags"] & FLAG_OFF_IMAGE
+    # TRUTH describes the streak drawn (its first vertex), not the scene's zenith and phi.
+    from inject.config import apply_overrides, parse_scene
+
+    first = parse_scene(apply_overrides(
+        yaml.safe_load(path.read_text()), ["detector.nx=256", "detector.ny=256"])
+    ).satellites[0].track.vertices[0]
+    assert truth["zenith_deg"] == pytest.approx(first["zenith"], abs=1e-9)
+    assert truth["phi_deg"] == pytest.approx(first["phi"], abs=1e-9)
+    assert truth["height_km"] == pytest.approx(first["height"], abs=1e-9)
 
 
 def test_ccd_scene_orbit_that_misses_says_why():
