@@ -144,7 +144,10 @@ def parse_focal_scene(raw):
         if "orbit" in sat else _focal_track(f"satellites[{i}].track", sat["track"], spec, scene)
         for i, (sat, spec) in enumerate(zip(satellites, scene.satellites)))
     return FocalScene(scene=scene, tracks=tracks, ccds=ccds,
-                      cutout=_cutout(raw.get("cutout")), digest=scene_digest(raw), raw=raw)
+                      cutout=_cutout(raw.get("cutout")),
+                      # The resolved tracks too: an orbit's TLE file may change under its name.
+                      digest=scene_digest({"scene": raw, "tracks": [
+                          (t.kind, t.xs, t.ys, t.values) for t in tracks]}), raw=raw)
 
 
 def _cutout(spec):
