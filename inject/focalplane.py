@@ -29,7 +29,6 @@ rotation 90 deg, +y points east. :mod:`inject.wcs` uses the same convention for 
 import math
 import re
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 

@@ -105,14 +105,9 @@ def render_ccd(task):
     scene, result, streaks, wcs = simulate_ccd(task.fscene, ccd, task.margins)
     simulated = time.perf_counter()
     path = os.path.join(task.outdir, f"{ccd.name}.fits")
-    pointing = task.fscene.pointing
     cards = {"DETNAME": (ccd.name, "detector name"),
              "DETECTOR": (ccd.id, "detector id (obs_lsst, 0-188)"),
              "VENDOR": (ccd.vendor.upper(), "sensor vendor"),
-             "RA": (pointing["ra"], "[deg] boresight right ascension"),
-             "DEC": (pointing["dec"], "[deg] boresight declination"),
-             "HIERARCH ROTSKYPOS": (pointing.get("rotation", 0.0),
-                           "[deg] PA of focal-plane +y, N through E"),
              "FPSCENE": (task.fscene.digest[:16], "focal-plane scene digest (sha256)")}
     write_exposure(path, scene, result, scene.detector.gain,
                    wcs_header=wcs.to_header(relax=True), overwrite=True, primary_cards=cards)

@@ -1,8 +1,8 @@
 """Celestial WCS of a CCD from a pointing (TAN projection)."""
-import numpy as np
 from astropy.wcs import WCS
 
 from .errors import SceneError
+from .focalplane import rotation_matrix
 
 
 def pointing_wcs(pointing, shape, pixel_scale_arcsec, crpix=None):
@@ -37,8 +37,7 @@ def pointing_wcs(pointing, shape, pixel_scale_arcsec, crpix=None):
     wcs.wcs.crval = [ra, dec]
     wcs.wcs.crpix = [crpix[0] + 1, crpix[1] + 1]  # FITS pixels are 1-based
     scale = pixel_scale_arcsec / 3600.0
-    c, s = np.cos(np.radians(rotation)), np.sin(np.radians(rotation))
-    # East to the left (-x) and north up (+y) at rotation 0.
-    wcs.wcs.cd = scale * np.array([[-c, s], [s, c]])
+    # East to the left (-x) and north up (+y) at rotation 0: the focal plane's convention.
+    wcs.wcs.cd = scale * rotation_matrix(rotation)
     wcs.wcs.cunit = ["deg", "deg"]
     return wcs
