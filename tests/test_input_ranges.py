@@ -368,3 +368,13 @@ def test_masker_returning_a_wrong_shape_is_one_line(capsys, tmp_path):
     status, err = run(capsys, "evaluate", "--out", tmp_path / "c", "--masker",
                       "numpy:ravel", *EVALUATE)
     assert status == 2 and "masker numpy:ravel" in err and "returned a mask of shape" in err
+
+
+def test_evaluate_seeds_stay_clear_of_the_streak_free_seeds(capsys, tmp_path):
+    """The streak-free images use seeds 1001 on: a campaign of more seeds would reuse them."""
+    from inject.masking.cli_evaluate import STREAK_FREE_SEED0
+
+    out = tmp_path / "campaign"
+    status, err = run(capsys, "evaluate", "-o", out, "--seeds", STREAK_FREE_SEED0 + 1,
+                      "--mags", "11", "--heights", "550", "--detector", "64")
+    assert status == 2 and "--seeds" in err and not out.exists()

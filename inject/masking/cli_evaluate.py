@@ -318,6 +318,9 @@ def _check(args):
 
     if args.seeds < 1:
         raise InputError("--seeds", args.seeds, "must be >= 1")
+    if args.seeds > STREAK_FREE_SEED0:
+        raise InputError("--seeds", args.seeds, f"must be <= {STREAK_FREE_SEED0} (the "
+                         "streak-free images use the seeds after it: they must stay held out)")
     if args.streak_free < 0:
         raise InputError("--streak-free", args.streak_free, "must be >= 0")
     if args.detector < 64:
