@@ -8,9 +8,6 @@ import numpy as np
 
 from .errors import InputError
 
-#: ``--orbit`` keys: the circular-orbit elements of :meth:`inject.orbits.Orbit.circular`.
-ORBIT_KEYS = ("height", "inclination", "raan", "mean_anomaly", "epoch")
-
 
 def add_pass_parser(sub):
     p = sub.add_parser(
@@ -46,7 +43,7 @@ def add_pass_parser(sub):
 
 def parse_orbit_option(text, time):
     """An :class:`~inject.orbits.Orbit` from ``--orbit`` text ``key=value,...``."""
-    from .orbits import Orbit
+    from .orbits import CIRCULAR_ORBIT_KEYS as ORBIT_KEYS, Orbit
 
     values = {}
     for item in text.split(","):

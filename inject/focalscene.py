@@ -31,9 +31,8 @@ from .render import AUTO_MIN_TOLERANCE, Budget, swept_profile
 from .scene import NOISE_FRACTION, pixel_noise, render_tracks, rng, simulate
 from .streak import StreakModel
 
-FOCAL_KEYS = (_TOP_KEYS - {"detector"}) | {"detectors", "cutout", "time", "site"}
+FOCAL_KEYS = (_TOP_KEYS - {"detector"}) | {"detectors", "cutout"}
 #: Keys of a satellite's ``orbit:`` (a TLE, or circular-orbit elements).
-ORBIT_KEYS = {"tle", "height", "inclination", "raan", "mean_anomaly", "epoch"}
 _TRACK_KEYS = {"x0_mm", "y0_mm", "angle", "length_mm"}
 #: Star tiles: squares of this side (mm) on a fixed grid over the focal plane.
 STAR_TILE_MM = 10.0
@@ -199,9 +198,9 @@ def _focal_track(where, track, spec, scene):
 
 def _orbit_of(where, spec, time):
     """The :class:`~inject.orbits.Orbit` of a satellite's ``orbit:`` mapping."""
-    from .orbits import Orbit
+    from .orbits import CIRCULAR_ORBIT_KEYS, Orbit
 
-    _check_keys(where, spec, ORBIT_KEYS)
+    _check_keys(where, spec, {"tle", *CIRCULAR_ORBIT_KEYS})
     if "tle" in spec:
         if set(spec) != {"tle"}:
             raise SceneError(f"{where}: 'tle' takes no other key (got {sorted(spec)})")

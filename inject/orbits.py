@@ -176,13 +176,16 @@ def sky_to_focal(xi, eta, rotation_deg):
     return a * xi + b * eta, c * xi + d * eta
 
 
-def focal_to_sky(x, y, rotation_deg):
-    """Standard coordinates (xi East, eta North) of focal-plane field angles (x, y)."""
-    (a, b), (c, d) = rotation_matrix(rotation_deg)
-    return a * x + b * y, c * x + d * y
+#: Standard coordinates (xi East, eta North) of focal-plane field angles (x, y): the same
+#: reflection as :func:`sky_to_focal`, which is its own inverse.
+focal_to_sky = sky_to_focal
 
 
 # --- orbits --------------------------------------------------------------------------------------
+
+#: Keys of a circular orbit (:meth:`Orbit.circular`'s elements; ``epoch`` optional), as the
+#: ``orbit:`` scene key and ``inject pass --orbit`` take them.
+CIRCULAR_ORBIT_KEYS = ("height", "inclination", "raan", "mean_anomaly", "epoch")
 
 def _tle_checksum_ok(line):
     return len(line) >= 69 and line[68].isdigit() and int(line[68]) == compute_checksum(line)
