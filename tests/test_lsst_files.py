@@ -441,3 +441,65 @@ def test_date_avg_when_the_scene_has_a_start():
     assert header["DATE-AVG"] == "2025-03-01T04:00:44.500"  # + 7.5 s + 37 s
     assert header["TIMESYS"] == "TAI"
     assert "DATE-AVG" not in primary_header(scene)
+
+
+def _painted(shape, streak):
+    """The STREAK plane ``inject mask --out`` should write for one streak, from the masking
+    module's own span painter (its geometry is tested in test_masking_geometry)."""
+    from inject.masking.geometry import Line
+    from inject.masking.mask import mask_spans, paint
+
+    plane = np.zeros(shape, dtype=bool)
+    ends = [streak[key] for key in ("x0", "y0", "x1", "y1")]
+    paint(plane, mask_spans(shape, Line(*ends), streak["mask_width_px"]))
+    return plane
+
+
+def test_mask_out_keeps_the_files_storage(afw_exposure, tmp_path):
+    """`inject mask --out` on an afw file: the uint16 mask stays int16 + BZERO, STREAK goes on
+    the lowest free bit, every other plane and every other HDU is unchanged."""
+    from inject.masking import write_masked
+
+    streak = {"x0": 10.0, "y0": 20.0, "x1": 180.0, "y1": 90.0, "mask_width_px": 9.0}
+    out = tmp_path / "masked.fits"
+    count = write_masked(afw_exposure, out, [streak])
+    before, after = _hdu_bytes(afw_exposure), _hdu_bytes(out)
+    assert len(before) == len(after)
+    assert [i for i, (a, b) in enumerate(zip(before, after)) if a != b] == [2]  # the MASK
+    with fits.open(afw_exposure, do_not_scale_image_data=True) as old, \
+            fits.open(out, do_not_scale_image_data=True) as new:
+        assert new[2].header["BITPIX"] == 16 and new[2].header["BZERO"] == 32768
+        assert new[2].data.dtype.kind == "i" and new[2].data.dtype.itemsize == 2
+    with fits.open(afw_exposure) as old, fits.open(out) as new:
+        planes = header_planes(new[2].header)
+        bit = planes["STREAK"]
+        assert bit == min(set(range(16)) - set(header_planes(old[2].header).values()))
+        expected = _painted(SHAPE, streak)
+        assert count == expected.sum() > 0
+        got = (new[2].data.astype(np.int64) >> bit) & 1
+        np.testing.assert_array_equal(got.astype(bool), expected)
+        others = ~np.int64(1 << bit)
+        np.testing.assert_array_equal(new[2].data.astype(np.int64) & others,
+                                      old[2].data.astype(np.int64))
+
+
+def test_mask_out_replaces_an_existing_plane_on_bit_31(tmp_path):
+    """A STREAK plane on the sign bit of an int32 mask: replaced, not overflowed; the old
+    STREAK pixels cleared, the other bits kept."""
+    from inject.masking import write_masked
+    from inject.maskplanes import mask_header
+
+    shape = (120, 200)
+    mask = np.zeros(shape, np.int32)
+    mask[:, :5] = np.int32(-2 ** 31) | 1  # STREAK (bit 31) and BAD on the left columns
+    header = mask_header(fits.Header(), {"BAD": 0, "STREAK": 31})
+    path = tmp_path / "in.fits"
+    fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(np.zeros(shape, np.float32), name="IMAGE"),
+                  fits.ImageHDU(mask, header=header, name="MASK")]).writeto(path)
+    streak = {"x0": 20.0, "y0": 60.0, "x1": 180.0, "y1": 60.0, "mask_width_px": 6.0}
+    write_masked(path, tmp_path / "out.fits", [streak])
+    with fits.open(tmp_path / "out.fits") as hdus:
+        data = hdus["MASK"].data
+        assert data.dtype == np.dtype(">i4")
+        np.testing.assert_array_equal(data < 0, _painted(shape, streak))
+        np.testing.assert_array_equal(data & 1, mask & 1)

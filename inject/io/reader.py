@@ -181,24 +181,29 @@ class InputExposure:
         hdu.data = memory
         return saturated
 
-    def set_bits(self, index, bit, where):
-        """Set mask bit ``bit`` of HDU ``index`` (an integer image) where ``where`` is True."""
+    def set_bits(self, index, bit, where, replace=False):
+        """Set mask bit ``bit`` of HDU ``index`` (an integer image) where ``where`` is True;
+        with ``replace``, clear it everywhere else (the plane becomes ``where``)."""
         hdu = self.hdus[index]
+        one = np.int64(1) << bit
+
+        def changed(values):
+            if replace:
+                values &= ~one
+            values[where] |= one
+            return values
         if self._is_plain(index):
             stored, bscale, bzero, _ = self._stored_array(index)
             if bscale != 1.0:
                 raise FileFormatError(f"HDU {index}: a mask with BSCALE = {bscale} is not bits")
             offset = int(bzero)  # uint16 masks are int16 + BZERO 32768
-            values = stored.astype(np.int64) + offset
-            values[where] |= np.int64(1) << bit
+            values = changed(stored.astype(np.int64) + offset)
             # Back to the stored type; bit 31 of an int32 mask wraps to the sign, as in afw.
             self._stored[index] = (values - offset).astype(stored.dtype)
         else:
             self._changed.add(index)
         memory = np.array(hdu.data)
-        values = memory.astype(np.int64)
-        values[where] |= np.int64(1) << bit
-        hdu.data = values.astype(memory.dtype)
+        hdu.data = changed(memory.astype(np.int64)).astype(memory.dtype)
 
     def set_card(self, index, key, value, after=None):
         """Set card ``key`` of HDU ``index`` (in the file's header and in memory)."""
@@ -207,7 +212,7 @@ class InputExposure:
             if key in header:
                 header[key] = value
             else:
-                header.set(key, value, after=after if after in header else None)
+                header.set(key, value, after=after if after is not None and after in header else None)
         if not self._is_plain(index):
             self._changed.add(index)
 

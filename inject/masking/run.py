@@ -205,17 +205,13 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
 
 
 def _mask_bits(exposure):
-    """Bit of every mask plane of an exposure's MASK header (``MP_<PLANE>``), or the defaults."""
-    from ..maskplanes import MASK_PLANES
+    """``{plane: bit}`` of an exposure's MASK header (``MSKN`` and ``MP_`` cards); afw's
+    default bits if it names none."""
+    from ..maskplanes import MASK_PLANES, header_planes
 
-    bits = dict(MASK_PLANES)
-    if exposure.mask_index is not None:
-        header = exposure.hdus[exposure.mask_index].header
-        for key, value in header.items():
-            name = key.split()[-1]
-            if name.startswith("MP_") and isinstance(value, int):
-                bits[name[3:]] = value
-    return bits
+    if exposure.mask_index is None:
+        return dict(MASK_PLANES)
+    return header_planes(exposure.file_header(exposure.mask_index)) or dict(MASK_PLANES)
 
 
 def _exposure_arrays(exposure):
@@ -285,29 +281,24 @@ def _analyse_source(source, mask=None, pixel_scale=None, **options):
 def _set_streak_plane(exposure, streaks):
     """Replace the STREAK plane of ``exposure`` (in memory) with the masks of ``streaks``.
 
-    A MASK HDU (int32, with ``MP_<PLANE>`` cards) is added if the file has none. Returns the
-    number of pixels set.
+    The mask keeps the file's own pixel type and plane bits (:meth:`InputExposure.set_bits`:
+    a uint16 mask stays int16 + BZERO); STREAK goes on the lowest free bit if the file has no
+    such plane. A MASK HDU (int32, afw's planes named) is added if the file has none.
+    Returns the number of pixels set.
     """
     import numpy as np
     from astropy.io import fits
 
-    from ..maskplanes import mask_header, plane_bit
+    from ..maskplanes import mask_header
     from .geometry import Line
     from .mask import mask_spans, paint
 
     shape = exposure.image_hdu.data.shape
     if exposure.mask_index is None:
-        header = mask_header(fits.Header())
-        exposure.hdus.append(fits.ImageHDU(np.zeros(shape, dtype=np.int32), header=header,
-                                           name="MASK"))
+        exposure.hdus.append(fits.ImageHDU(np.zeros(shape, dtype=np.int32),
+                                           header=mask_header(fits.Header()), name="MASK"))
         exposure.mask_index = len(exposure.hdus) - 1
-    hdu = exposure.hdus[exposure.mask_index]
-    bit = plane_bit(hdu.header, "STREAK")  # on the first free bit if the file has none
-    mask = np.asarray(hdu.data).astype(np.int32)  # native byte order, a copy
-    if mask.shape != shape:
-        raise MaskingError(f"MASK HDU is {mask.shape[1]} x {mask.shape[0]}, the image "
-                           f"{shape[1]} x {shape[0]}")
-    mask &= ~np.int32(1 << bit)
+    index = exposure.mask_index
     plane = np.zeros(shape, dtype=bool)
     for i, s in enumerate(streaks):
         try:
@@ -316,9 +307,8 @@ def _set_streak_plane(exposure, streaks):
             raise InputError(f"streaks[{i}]", s, "needs numbers x0, y0, x1, y1 and "
                              "mask_width_px (as mask_image returns)") from None
         paint(plane, mask_spans(shape, Line(*ends[:4]), ends[4]))
-    mask[plane] |= np.int32(1 << bit)
-    hdu.data = mask
-    hdu.header["NSTREAK"] = (len(streaks), "streaks masked by inject mask")
+    exposure.set_bits(index, exposure.name_plane(index, "STREAK"), plane, replace=True)
+    exposure.set_card(index, "NSTREAK", len(streaks))
     return int(plane.sum())
 
 
@@ -354,11 +344,8 @@ def _check_distinct(in_path, out_path):
 
 
 def _write_exposure(exposure, out_path, streaks, overwrite):
-    from ..io.atomic import atomic_path
-
     count = _set_streak_plane(exposure, streaks)
-    with atomic_path(out_path, overwrite) as tmp:
-        exposure.hdus.writeto(tmp, overwrite=True)
+    exposure.write(out_path, overwrite)  # atomic; HDUs other than MASK copied byte for byte
     return count
 
 
