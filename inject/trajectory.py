@@ -87,16 +87,30 @@ def _image_shape(shape):
 def _clip_line(x0, y0, angle_deg, xlim, ylim):
     """Parameter interval ``(t0, t1)`` of the infinite line inside a rectangle (Liang-Barsky)."""
     a = np.radians(angle_deg)
-    direction = (np.cos(a), np.sin(a))
+    return _chord((x0, y0), (np.cos(a), np.sin(a)), xlim, ylim)
+
+
+def _chord(origin, direction, xlim, ylim):
+    """``(t0, t1)`` of the line ``origin + t direction`` inside a rectangle, or None."""
     lo, hi = -np.inf, np.inf
-    for origin, d, (vmin, vmax) in zip((x0, y0), direction, (xlim, ylim)):
+    for start, d, (vmin, vmax) in zip(origin, direction, (xlim, ylim)):
         if abs(d) < 1e-15:
-            if not vmin <= origin <= vmax:
+            if not vmin <= start <= vmax:
                 return None
             continue
-        ta, tb = sorted(((vmin - origin) / d, (vmax - origin) / d))
+        ta, tb = sorted(((vmin - start) / d, (vmax - start) / d))
         lo, hi = max(lo, ta), min(hi, tb)
     return (lo, hi) if hi > lo else None
+
+
+def clip_segment(x0, y0, x1, y1, xlim, ylim):
+    """The part ``(x0, y0, x1, y1)`` of a segment inside a rectangle, or None if it misses."""
+    dx, dy = x1 - x0, y1 - y0
+    chord = _chord((x0, y0), (dx, dy), xlim, ylim)  # t in units of the segment: 0 to 1
+    if chord is None or chord[1] < 0 or chord[0] > 1:
+        return None
+    lo, hi = max(chord[0], 0.0), min(chord[1], 1.0)
+    return x0 + lo * dx, y0 + lo * dy, x0 + hi * dx, y0 + hi * dy
 
 
 @dataclass(frozen=True)

@@ -34,14 +34,14 @@ def binned_ccds(fscene, outdir, factor):
 def track_paths(fscene):
     """Each satellite's track in focal-plane mm, a line clipped to the focal plane."""
     from ..focalplane import extent_mm
-    from .quicklook import _clip_to_box
+    from ..trajectory import clip_segment
 
     xmin, xmax, ymin, ymax = extent_mm()
     out = []
     for track in fscene.tracks:
         if track.kind == "line":
-            ends = _clip_to_box(track.xs[0], track.ys[0], track.xs[1], track.ys[1],
-                                xmin, xmax, ymin, ymax)
+            ends = clip_segment(track.xs[0], track.ys[0], track.xs[1], track.ys[1],
+                                (xmin, xmax), (ymin, ymax))
             out.append(([], []) if ends is None else ((ends[0], ends[2]), (ends[1], ends[3])))
         else:
             out.append((track.xs, track.ys))

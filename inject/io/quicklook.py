@@ -6,6 +6,7 @@ import os
 import numpy as np
 
 from ..errors import OutputError
+from ..trajectory import clip_segment
 from .atomic import atomic_path
 
 #: Longest side, in plotted (binned) pixels, of the quicklook image.
@@ -74,25 +75,6 @@ def block_mean(image, factor):
     out = np.full(sums.shape, np.nan)
     np.divide(sums, counts, out=out, where=counts > 0)
     return out
-
-
-def _clip_to_box(x0, y0, x1, y1, xmin, xmax, ymin, ymax):
-    """Liang-Barsky: the part of a segment inside a box, or None."""
-    dx, dy = x1 - x0, y1 - y0
-    lo, hi = 0.0, 1.0
-    for p, q in ((-dx, x0 - xmin), (dx, xmax - x0), (-dy, y0 - ymin), (dy, ymax - y0)):
-        if p == 0:
-            if q < 0:
-                return None
-            continue
-        t = q / p
-        if p < 0:
-            lo = max(lo, t)
-        else:
-            hi = min(hi, t)
-    if lo > hi:
-        return None
-    return x0 + lo * dx, y0 + lo * dy, x0 + hi * dx, y0 + hi * dy
 
 
 def _zscale_limits(binned):
@@ -199,7 +181,7 @@ def quicklook_figure(result, truth=True, title=None):
             ax.plot([x0, x1], [y0, y1], linestyle=(0, (4, 3)), linewidth=1.0,
                     color=TRUTH_COLOUR, transform=shifted, solid_capstyle="butt",
                     path_effects=[patheffects.withStroke(linewidth=2.4, foreground="black")])
-        inside = _clip_to_box(x0, y0, x1, y1, -0.5, nx - 0.5, -0.5, ny - 0.5)
+        inside = clip_segment(x0, y0, x1, y1, (-0.5, nx - 0.5), (-0.5, ny - 0.5))
         if inside is None:
             missed.append(str(index))
             continue
