@@ -196,3 +196,22 @@ def test_segment_outside_the_orientation_bin_is_refused():
         render_segment(image, swept, Segment(30, 30, angle, 5.0), 1.0)
     with pytest.raises(InputError, match="segment.angle_deg"):
         render_segment(image, swept, Segment(30, 30, swept.angle_deg + half + 0.01, 5.0), 1.0)
+
+
+@pytest.mark.parametrize("model", [PAPER_550, NARROW], ids=["lsst", "narrow"])
+def test_along_peak_floor_keeps_short_track_budgets_exact(model):
+    """Tracks long enough by the orientation-free bound keep the budget at every angle, as the
+    per-angle check (:func:`short_track_budget`) would; shorter ones still get that check."""
+    from inject.render import along_peak_floor, short_track_budget
+
+    p = model.pixel_scale
+    floor = along_peak_floor(model.profile, p)
+    long_enough = 1.0 / (p * floor)
+    for angle in np.random.default_rng(5).uniform(0, 360, 6):
+        assert short_track_budget(Budget(), model.profile, p, angle, long_enough) == Budget()
+        # The bound is close: 5% shorter, the per-angle check tightens the budget.
+        short = short_track_budget(Budget(), model.profile, p, angle, 0.95 * long_enough)
+        assert short.tolerance < TOL
+        cache = ProfileCache()
+        swept = swept_profile(model, angle, Budget(), 0.95 * long_enough, cache)
+        assert swept.budget == short
