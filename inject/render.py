@@ -709,8 +709,10 @@ class ProfileCache:
 
     Every key holds exactly what determines the value: the model's
     :attr:`~inject.streak.StreakModel.profile_key` (geometry, shape, seeing, telescope; not
-    the magnitude or band, which only scale the charge), the track angle, the budget and, for
-    short-track budgets, the length. A hit therefore returns what a fresh build would.
+    the magnitude or band, which only scale the charge), the pixel orientation the tables are
+    built at (the track angle snapped by :func:`swept_profile`; short-track budgets keep the
+    exact angle), the budget and, for short-track budgets, the length. A hit therefore
+    returns what a fresh build would.
 
     Parameters
     ----------
