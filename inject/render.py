@@ -530,7 +530,7 @@ def orientation_slope(profile, pixel_scale, samples=ORIENTATION_SAMPLES):
         coeffs = fft.fftshift(fft.ifft(fft.ifftshift(spectrum * square, axes=0), axis=0), axes=0)
         coeffs *= n * dk / (2 * np.pi)
         tables.append(SweptProfile._antiderivative(coeffs, 1, t))
-    peak = max(np.abs(tables[0]).max(), lsf.lsf.max())
+    peak = lsf.lsf.max()  # the renderer's reference (the grid's own is folded, higher)
     change = 0.0
     for a, b in zip(tables, tables[1:] + tables[:1]):  # the last neighbours the first (+90)
         delta = b - a
