@@ -15,6 +15,15 @@ table misses of 0 and ``LSF(d)`` at its ends (tails beyond it) is taken off over
 so ``C`` meets its limits exactly and every track, however short, keeps its flux. Nothing is
 drawn on pixels the streak cannot reach: the support across and along the track follows from an
 accuracy budget.
+
+The profile is given in the track frame, so the track angle enters the tables only through the
+orientation of the square pixel there, which repeats every 90 deg; and as the square's second
+moments are isotropic, tables change with that orientation only at fourth order (~cos 4a).
+:func:`swept_profile` therefore builds tables on a grid of orientations whose step is measured
+per profile and budget (:func:`orientation_slope`, :func:`orientation_step`) so that snapping
+adds at most :data:`ORIENTATION_FRACTION` of the tolerance: streaks at all-different angles
+share a few tables. The pixel coordinates along and across the track always use the track's
+own angle.
 """
 import threading
 from collections import OrderedDict
@@ -54,6 +63,20 @@ MAX_TABLE_SIZE = 4096
 #: builds 5 tables between AUTO_MIN_TOLERANCE and the default (19 at quarter octaves, whose
 #: tightest few cost as much as all of these), each at most twice as tight as needed.
 TOLERANCE_STEPS_PER_OCTAVE = 1
+
+#: Largest error that snapping a track's pixel orientation to a grid may add, as a fraction of
+#: the budget's tolerance (see :func:`orientation_step`).
+ORIENTATION_FRACTION = 0.25
+
+#: Margin on the measured orientation slope (:func:`orientation_slope`): for the secant
+#: slopes between its samples against the steepest tangent, and its coarse periodic grid.
+ORIENTATION_SAFETY = 2.0
+
+#: Pixel orientations (over 90 deg) at which :func:`orientation_slope` measures the tables.
+ORIENTATION_SAMPLES = 24
+
+#: Most orientation steps over 90 deg; a profile that needs finer ones uses exact angles.
+MAX_ORIENTATION_STEPS = 3600
 
 
 def snap_tolerance(tolerance):
@@ -164,9 +187,10 @@ def _extent(cross_section, threshold, flux_fraction):
 
 
 class SweptProfile:
-    """The interior LSF and the end-cap table of one profile at one track angle.
+    """The interior LSF and the end-cap table of one profile at one pixel orientation.
 
-    Build once, render any number of segments at that angle (e.g. all CCDs a track crosses).
+    Build once, render any number of segments at that angle (e.g. all CCDs a track crosses),
+    or within ``angle_tolerance_deg`` of it (modulo 90 deg).
 
     Parameters
     ----------
@@ -175,13 +199,25 @@ class SweptProfile:
     pixel_scale : float
         Arcsec per pixel.
     angle_deg : float
-        Track angle on the pixel grid (the pixel's orientation relative to the track matters).
+        Track angle on the pixel grid. Only the square pixel's orientation in the track frame
+        depends on it, and the square is the same every 90 deg: the tables are built at
+        ``angle_deg % 90`` (kept as :attr:`angle_deg`), so angles 90 deg apart give identical
+        tables.
     budget : Budget
+    angle_tolerance_deg : float
+        Segments whose angle is this close to ``angle_deg`` (modulo 90 deg) may be rendered
+        with these tables (see :func:`orientation_step`); 0 (the default) asks for the same
+        orientation.
+    angle_error : float
+        Largest pixel error that rendering such a segment may add, relative to the peak;
+        goes into the plan's ``predicted_error`` as ``"orientation"``.
     """
 
-    def __init__(self, profile, pixel_scale, angle_deg, budget=Budget()):
+    def __init__(self, profile, pixel_scale, angle_deg, budget=Budget(), angle_tolerance_deg=0.0,
+                 angle_error=0.0):
         self.profile, self.pixel_scale, self.budget = profile, float(pixel_scale), budget
-        self.angle_deg = float(angle_deg)
+        self.angle_deg = float(angle_deg) % 90.0  # the pixel orientation: period 90 deg
+        self.angle_tolerance_deg = float(angle_tolerance_deg)
         tol, p = budget.tolerance, self.pixel_scale
         # Interior: the LSF with the pixel's projection across the track; sampled so linear
         # interpolation errs by < tol/8 of the peak (error ~ step^2 |f''| / 8).
@@ -218,6 +254,8 @@ class SweptProfile:
             lsf_step_px=lsf_step / p,
             predicted_error={"support": tol / 2, "lsf_interpolation": tol / 8,
                              "cap_tails": tol / 2, "cap_table": mismatch})
+        if self.angle_tolerance_deg > 0:
+            self.plan.predicted_error["orientation"] = float(angle_error)
 
     def _separable_model(self, along):
         """The separable end-cap model ``LSF(d) Phi(t)``, ``Phi`` the along-track marginal's
@@ -447,6 +485,96 @@ class SweptProfile:
         return values
 
 
+def orientation_slope(profile, pixel_scale, samples=ORIENTATION_SAMPLES):
+    """How fast a swept profile changes with the pixel's orientation: the largest change of a
+    pixel value per degree, relative to the streak's peak.
+
+    The square pixel convolved with the profile is drawn in the track frame at ``samples``
+    orientations over 90 deg (its period) on a grid around the core (4 FWHM of the LSF and
+    2 px on each side; the change is a fourth derivative of the profile and lives there), and
+    its exact spectral antiderivative along the track, ``C(t, d)``, taken as for the end-cap
+    tables. A track of any length, at any ``t``, sees ``C(t) - C(t - L)``: the change between
+    neighbouring orientations is bounded by the range of ``Delta C`` along the track at each
+    ``d`` (and a track whose brightness varies linearly by the same at its larger end, by the
+    second mean-value theorem). The largest such range over neighbours, per degree of their
+    separation, is returned (a secant slope: :data:`ORIENTATION_SAFETY` covers the tangent).
+
+    Parameters
+    ----------
+    profile : galsim.GSObject
+        Unit-flux stationary profile in the track frame.
+    pixel_scale : float
+        Arcsec per pixel.
+    samples : int
+        Orientations sampled over 90 deg.
+
+    Returns
+    -------
+    float
+        Per degree, relative to the peak of the LSF.
+    """
+    p = float(pixel_scale)
+    lsf = line_spread(profile, p)
+    step = min(p / 4, max(np.pi / profile.maxk, p / 16), lsf.fwhm() / 24)  # as the tables
+    n = fft.next_fast_len(int(2 * (4 * lsf.fwhm() + 2 * p) / step) + 16)
+    dk = 2 * np.pi / (n * step)
+    bounds = galsim.BoundsI(0, n // 2, -(n // 2), n - n // 2 - 1)  # kt >= 0: h is real
+    spectrum = profile.drawKImage(image=galsim.ImageCD(bounds), scale=dk, recenter=False).array
+    pixel = galsim.Pixel(p, gsparams=profile.gsparams)
+    t = (np.arange(n) - n // 2) * step
+    tables = []
+    for angle in np.arange(samples) * (90.0 / samples):
+        # The unit square pixel in the track frame, as in SweptProfile._build_cap_table.
+        square = pixel.rotate(-angle * galsim.degrees).drawKImage(
+            image=galsim.ImageCD(bounds), scale=dk, recenter=False).array
+        coeffs = fft.fftshift(fft.ifft(fft.ifftshift(spectrum * square, axes=0), axis=0), axes=0)
+        coeffs *= n * dk / (2 * np.pi)
+        tables.append(SweptProfile._antiderivative(coeffs, 1, t))
+    peak = lsf.lsf.max()  # the renderer's reference (the grid's own is folded, higher)
+    change = 0.0
+    for a, b in zip(tables, tables[1:] + tables[:1]):  # the last neighbours the first (+90)
+        delta = b - a
+        change = max(change, float((delta.max(axis=1) - delta.min(axis=1)).max()))
+    return change / peak / (90.0 / samples)
+
+
+def orientation_step(slope, tolerance):
+    """The grid of pixel orientations for a profile of measured ``slope`` (per degree, from
+    :func:`orientation_slope`) at ``tolerance``.
+
+    The step is ``90 / N`` deg, ``N`` the fewest steps for which snapping an angle to the
+    nearest grid orientation (at most half a step away) errs by at most
+    :data:`ORIENTATION_FRACTION` of the tolerance, with :data:`ORIENTATION_SAFETY` on the
+    slope. A narrow profile (FWHM ~2 px) or a tight budget gets a fine grid; beyond
+    :data:`MAX_ORIENTATION_STEPS` the angles stay exact.
+
+    Returns
+    -------
+    step_deg : float
+        0 for exact angles.
+    error : float
+        Largest pixel error the snapping adds, relative to the peak.
+    """
+    per_degree = ORIENTATION_SAFETY * float(slope)
+    if not per_degree > 0:
+        return 90.0, 0.0
+    steps = int(np.ceil(45.0 * per_degree / (ORIENTATION_FRACTION * tolerance)))
+    if steps > MAX_ORIENTATION_STEPS:
+        return 0.0, 0.0
+    steps = max(steps, 1)
+    return 90.0 / steps, per_degree * 45.0 / steps
+
+
+def snap_orientation(angle_deg, step_deg):
+    """The grid orientation in ``[0, 90)`` nearest to ``angle_deg`` modulo 90 (the angle
+    itself, reduced, if ``step_deg`` is 0)."""
+    angle = float(angle_deg) % 90.0
+    if step_deg <= 0:
+        return angle
+    steps = int(round(90.0 / step_deg))
+    return float((int(np.floor(angle / step_deg + 0.5)) % steps) * step_deg)
+
+
 def footprint(shape, segment, support_px, cap_px):
     """Pixels within ``support_px`` of a segment and ``cap_px`` beyond its ends.
 
@@ -508,7 +636,9 @@ def render_segment(image, swept, segment, flux_per_px, flux_end=None):
     image : ndarray
         2-D float array, indexed ``[y, x]``; accumulated in float64 and added once.
     swept : SweptProfile
-        Profile and angle; ``segment.angle_deg`` must equal ``swept.angle_deg``.
+        Profile and pixel orientation; ``segment.angle_deg`` must equal ``swept.angle_deg``
+        modulo 90 deg, within ``swept.angle_tolerance_deg``. The footprint and the pixels'
+        track-frame coordinates follow the segment's own angle.
     segment : Segment
     flux_per_px : float
         Charge per pixel of track length at the start, e-.
@@ -519,9 +649,11 @@ def render_segment(image, swept, segment, flux_per_px, flux_end=None):
     -------
     RenderResult
     """
-    if not np.isclose(segment.angle_deg, swept.angle_deg, rtol=0, atol=1e-9):
+    offset = (segment.angle_deg - swept.angle_deg + 45.0) % 90.0 - 45.0
+    if abs(offset) > swept.angle_tolerance_deg + 1e-9:
         raise InputError("segment.angle_deg", segment.angle_deg,
-                         f"differs from the SweptProfile's angle ({swept.angle_deg:g} deg)")
+                         f"differs from the SweptProfile's angle ({swept.angle_deg:g} deg "
+                         f"modulo 90, within {swept.angle_tolerance_deg:g} deg)")
     plan = swept.plan
     y, x, t, d = footprint(image.shape, segment, plan.support_px, plan.cap_px)
     values = swept.pixel_values(t, d, segment.length, flux_per_px, flux_end)
@@ -554,14 +686,33 @@ def short_track_budget(budget, profile, pixel_scale, angle_deg, length_px):
                                          snap_tolerance(budget.tolerance * ratio)))
 
 
+def along_peak_floor(profile, pixel_scale, samples=6):
+    """A lower bound, over all pixel orientations, of the peak of the pixel-convolved marginal
+    along the track (``max phi`` of :func:`short_track_budget`), per arcsec.
+
+    The pixel's projection along the track is the same at ``a``, ``-a`` and ``90 - a``: the
+    peak is sampled over 0-45 deg, and its smallest value lowered by 1% or ten times its
+    spread over the samples (it changes only at fourth order, ~1e-3 for a 2 px FWHM). A track
+    at least ``1 / (p floor)`` long therefore keeps the budget at any angle, without a
+    line-spread function per angle.
+    """
+    peaks = np.array([line_spread(profile.rotate(90 * galsim.degrees), pixel_scale,
+                                  pixel_angle_deg=a + 90).lsf.max()
+                      for a in np.linspace(0.0, 45.0, samples)])
+    spread = (peaks.max() - peaks.min()) / peaks.max()
+    return float(peaks.min() * (1 - max(0.01, 10 * spread)))
+
+
 class ProfileCache:
     """What streaks share, built once: swept profiles (LSF and end-cap tables), the profile
     chosen for a budget, short-track budgets. A bounded LRU, thread-safe.
 
     Every key holds exactly what determines the value: the model's
     :attr:`~inject.streak.StreakModel.profile_key` (geometry, shape, seeing, telescope; not
-    the magnitude or band, which only scale the charge), the track angle, the budget and, for
-    short-track budgets, the length. A hit therefore returns what a fresh build would.
+    the magnitude or band, which only scale the charge), the pixel orientation the tables are
+    built at (the track angle snapped by :func:`swept_profile`; short-track budgets keep the
+    exact angle), the budget and, for short-track budgets, the length. A hit therefore
+    returns what a fresh build would.
 
     Parameters
     ----------
@@ -625,23 +776,36 @@ def swept_profile(model, angle_deg, budget=Budget(), length_px=np.inf, cache=PRO
     that cannot matter at this budget dropped, and that decision in its plan.
 
     ``length_px``, if given, tightens the tolerance of a track too short to reach the
-    long streak's peak (:func:`short_track_budget`). ``cache`` (a :class:`ProfileCache`, or
-    None to build afresh) shares the result between streaks with the same profile, angle and
-    budget.
+    long streak's peak (:func:`short_track_budget`). The tables are built at the pixel
+    orientation nearest to ``angle_deg`` on the profile's grid (:func:`orientation_step`),
+    whose snapping error is in the plan as ``"orientation"``; render the segment at its own
+    angle. ``cache`` (a :class:`ProfileCache`, or None to build afresh) shares the result
+    between streaks with the same profile, grid orientation and budget.
     """
     if cache is None:
         cache = ProfileCache()  # a throwaway one: nothing shared with other calls
     key = model.profile_key
     angle_deg = float(angle_deg)
     if length_px < SHORT_TRACK_CHECK_PX:
-        budget = cache.get(("budget", key, angle_deg, float(length_px), budget),
-                           lambda: short_track_budget(budget, model.profile, model.pixel_scale,
-                                                      angle_deg, length_px))
+        # Most short tracks are still longer than the profile at any pixel orientation: one
+        # bound per profile, not a line-spread function per angle.
+        floor = cache.get(("along_peak", key),
+                          lambda: along_peak_floor(model.profile, model.pixel_scale))
+        if length_px * model.pixel_scale * floor < 1.0:
+            budget = cache.get(("budget", key, angle_deg, float(length_px), budget),
+                               lambda: short_track_budget(budget, model.profile,
+                                                          model.pixel_scale, angle_deg,
+                                                          length_px))
+    profile, dropped, error = cache.get(("profile", key, budget.tolerance),
+                                        lambda: model.render_profile(budget.tolerance))
+    slope = cache.get(("orientation", key, dropped),
+                      lambda: orientation_slope(profile, model.pixel_scale))
+    step, snap_error = orientation_step(slope, budget.tolerance)
+    angle_deg = snap_orientation(angle_deg, step)
 
     def build():
-        profile, dropped, error = cache.get(("profile", key, budget.tolerance),
-                                            lambda: model.render_profile(budget.tolerance))
-        swept = SweptProfile(profile, model.pixel_scale, angle_deg, budget)
+        swept = SweptProfile(profile, model.pixel_scale, angle_deg, budget,
+                             angle_tolerance_deg=step / 2, angle_error=snap_error)
         if dropped:
             swept.plan = replace(swept.plan, dropped=dropped,
                                  predicted_error=swept.plan.predicted_error | {"dropped": error})
