@@ -162,7 +162,8 @@ def run_pass(args):
 def streak_along(p, idx, mag_ref=5.0):
     """FWHM (arcsec) and peak surface brightness (e-/px) of the paper's satellite
     (:class:`~inject.streak.StreakModel` defaults: 7.25 m x 2.65 m box, ``mag_ref`` g at 550 km)
-    at samples ``idx`` of a pass: each sample's height, zenith (90 - alt) and phi."""
+    at samples ``idx`` of a pass: each sample's height, zenith (90 - alt) and phi, with the
+    pass's exact range and angular speed."""
     from .streak import StreakModel
 
     fwhm, peak = [], []
@@ -172,7 +173,9 @@ def streak_along(p, idx, mag_ref=5.0):
             peak.append(np.nan)
             continue
         m = StreakModel(height_km=float(p.height_km[i]), zenith_deg=float(90 - p.alt_deg[i]),
-                        phi_deg=float(p.phi_deg[i]), mag=mag_ref)
+                        phi_deg=float(p.phi_deg[i]), mag=mag_ref,
+                        range_km=float(p.range_km[i]),
+                        angular_speed_rad_s=float(p.angular_speed_rad_s[i]))
         fwhm.append(m.fwhm_arcsec)
         peak.append(m.peak_e_per_px * p.sun_fraction[i])  # the penumbra dims it
     return np.array(fwhm), np.array(peak)

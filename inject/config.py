@@ -35,7 +35,7 @@ _TOP_KEYS = {"seed", "band", "exptime", "seeing", "zenith", "detector", "sky", "
              "satellites", "pointing", "dark_current", "cosmic_rays", "units", "time", "site"}
 _SATELLITE_KEYS = {"height", "phi", "shape", "mag", "ref_range", "track"}
 _TRACK_KEYS = {"x0", "y0", "angle", "length"}
-_VERTEX_KEYS = {"x", "y", "height", "zenith", "phi", "mag"}
+_VERTEX_KEYS = {"x", "y", "height", "zenith", "phi", "mag", "range", "angular_speed"}
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,9 @@ class Track:
 
     ``vertices`` makes it a polyline: a tuple of mappings with ``x``, ``y`` (pixels) and
     optionally ``height``, ``zenith``, ``phi``, ``mag`` overriding the satellite's values at
-    that vertex (so width, speed and brightness can change along the track).
+    that vertex (so width, speed and brightness can change along the track), and ``range``
+    (km), ``angular_speed`` (rad/s) replacing the spherical-Earth range and angular speed of
+    (height, zenith, phi) there (an orbit's vertices carry the pass's exact values).
     """
 
     x0: float
@@ -397,7 +399,9 @@ def _check_charge(scene):
         for vertex in sat.track.vertices or ({},):
             model = StreakModel(vertex.get("height", sat.height), vertex.get("zenith", scene.zenith),
                                 vertex.get("phi", sat.phi), sat.shape, vertex.get("mag", sat.mag),
-                                scene.band, ref_range_km=sat.ref_range)
+                                scene.band, ref_range_km=sat.ref_range,
+                                range_km=vertex.get("range"),
+                                angular_speed_rad_s=vertex.get("angular_speed"))
             if base + model.flux_per_px > worst:
                 worst, where = base + model.flux_per_px, f"satellites[{i}]"
     try:

@@ -41,6 +41,9 @@ _TILE_GRID = 80  # tiles per side, centred on the boresight (covers +-400 mm)
 STAR_TILE_KEY = 1000
 #: Vertex keys that vary the streak model along a polyline.
 VERTEX_MODEL_KEYS = ("height", "zenith", "phi", "mag")
+#: Vertex keys of an orbit's track only: the pass's exact range (km) and angular speed across
+#: the star field (rad/s), in place of the spherical-Earth ones of (height, zenith, phi).
+PASS_KEYS = ("range", "angular_speed")
 
 
 @dataclass(frozen=True)
@@ -237,7 +240,9 @@ def _orbit_track(where, spec, sat, scene, raw):
     sampled every 0.1 s: a vertex at least every second and wherever the path bends by more
     than 0.05 px), each vertex with the orbit's height, zenith (90 - alt), phi and the
     satellite's ``mag`` dimmed by the penumbra (the streak model scales it with range and
-    nadir angle itself, as :meth:`inject.orbits.Pass.magnitude` does). A pass that never
+    nadir angle itself, as :meth:`inject.orbits.Pass.magnitude` does), and the pass's exact
+    ``range`` and ``angular_speed`` (so t_eff, the charge per pixel and the defocus are the
+    pass's, not those of the paper's spherical Earth at that height and zenith). A pass that never
     enters the field or is in shadow there has no vertices, and says why (OrbitWarning)."""
     dense = _orbit_pass(where, spec, raw, scene.exptime, scene.pointing)
     run, values, message = _orbit_vertices(where, dense, sat.mag)
@@ -304,8 +309,10 @@ def _orbit_vertices(where, dense, mag):
     dim = -2.5 * np.log10(dense.sun_fraction[run])
     phi = np.where(np.isfinite(dense.phi_deg[run]), dense.phi_deg[run], 90.0)  # at the zenith
     values = tuple({"height": float(h), "zenith": float(90.0 - a), "phi": float(f),
-                    "mag": float(mag + d)}
-                   for h, a, f, d in zip(dense.height_km[run], dense.alt_deg[run], phi, dim))
+                    "mag": float(mag + d), "range": float(r), "angular_speed": float(w)}
+                   for h, a, f, d, r, w in zip(dense.height_km[run], dense.alt_deg[run], phi, dim,
+                                               dense.range_km[run],
+                                               dense.angular_speed_rad_s[run]))
     return run, values, message
 
 
@@ -360,7 +367,8 @@ def vertex_model(fscene, i, values, pixel_scale=None):
     return StreakModel(height_km=values["height"], zenith_deg=values["zenith"],
                        phi_deg=values["phi"], shape=spec.shape, mag=values["mag"],
                        band_name=scene.band, seeing=Seeing(scene.seeing), telescope=telescope,
-                       ref_range_km=spec.ref_range)
+                       ref_range_km=spec.ref_range, range_km=values.get("range"),
+                       angular_speed_rad_s=values.get("angular_speed"))
 
 
 @lru_cache(maxsize=64)
@@ -455,7 +463,7 @@ def _interpolate(track, k, t):
     x = track.xs[k] + t * (track.xs[k + 1] - track.xs[k])
     y = track.ys[k] + t * (track.ys[k + 1] - track.ys[k])
     a, b = track.values[k], track.values[k + 1]
-    return x, y, {key: a[key] + t * (b[key] - a[key]) for key in VERTEX_MODEL_KEYS}
+    return x, y, {key: a[key] + t * (b[key] - a[key]) for key in a}
 
 
 def _ccd_streak(i, track, run, ccd):

@@ -227,6 +227,10 @@ RANGES = {r.name: r for r in (
     Range("mag", "AB mag", -30, 100, "-30 is brighter than the Sun, at -26.7", warn_lo=-10,
           warn_why="brighter than any satellite seen (Iridium flares reached -9.5)", options="--mag, evaluate --mags"),
     Range("phi", "deg", -_INF, _INF, "any angle (the velocity's direction)", options="--phi"),
+    Range("range", "km", 0, 1e6, "a polyline vertex's exact range (an orbit's vertices carry "
+          "it), in place of the spherical-Earth one", lo_open=True),
+    Range("angular_speed", "rad/s", 0, 1, "a polyline vertex's exact angular speed across the "
+          "star field (an orbit's vertices carry it); LEO at zenith is ~0.014", lo_open=True),
     Range("ref_range", "km", 1, 1e6, "magnitudes are quoted at 550 or 1000 km", options="--ref-range"),
     Range("size", "m", 0, 200, "the shape's largest extent, box diagonal, disk diameter or "
           "composite span; the ISS, the largest satellite, is 109 m", lo_open=True, options="--length, --width, --radius"),

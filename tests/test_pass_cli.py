@@ -255,13 +255,15 @@ def test_orbit_track_vertices_carry_the_pass():
         assert values["zenith"] == pytest.approx(90 - dense.alt_deg[i], abs=1e-9)
         assert values["phi"] == pytest.approx(dense.phi_deg[i], abs=1e-9)
         assert values["mag"] == pytest.approx(5.0)  # sunlit: the reference magnitude
-        # The streak model's own range from (height, zenith) on the paper's spherical Earth is
-        # the pass's range to 0.5% (the site's 2.6 km height and the geoid), so its brightness
-        # is Pass.magnitude to ~0.01 mag.
+        # The vertex carries the pass's exact range and angular speed (the spherical Earth's
+        # would be 0.5% and 3.5% off), so the model's brightness is Pass.magnitude's (the
+        # nadir angle is still the spherical Earth's: < 0.01 mag).
         from inject.focalscene import vertex_model
         model = vertex_model(fscene, 0, values)
-        assert model.geometry.range_km == pytest.approx(dense.range_km[i], rel=5e-3)
-        assert model.apparent_mag == pytest.approx(Pass.magnitude(dense, 5.0)[i], abs=0.02)
+        assert model.geometry.range_km == pytest.approx(dense.range_km[i], rel=1e-12)
+        assert model.geometry.angular_speed_rad_s == pytest.approx(
+            dense.angular_speed_rad_s[i], rel=1e-12)
+        assert model.apparent_mag == pytest.approx(Pass.magnitude(dense, 5.0)[i], abs=0.01)
 
 
 @pytest.mark.parametrize("changes, why", [
