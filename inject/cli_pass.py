@@ -88,7 +88,9 @@ def pass_report(orbit, exposure, pointing, site):
     Returns
     -------
     report : dict
-        CONTRACT.md's keys (``in_field``, ``message``, ``detectors``, ``samples``) and more.
+        CONTRACT.md's keys (``in_field``, ``message``, ``detectors``: the CCDs the track
+        crosses while sunlit, those with a streak, ``samples``) and more
+        (``detectors_in_shadow``: CCDs crossed only in Earth's shadow).
     p : inject.orbits.Pass
         The pass at the report's samples (1 s apart, with the middle).
     track : tuple
@@ -103,23 +105,34 @@ def pass_report(orbit, exposure, pointing, site):
     dense = compute_pass(orbit, exposure, pointing, site, step_s=TRACK_STEP_S,
                          check_epoch=False)
     xd, yd, runs = track_runs(dense)
-    crossed = set()
-    for run in runs:
-        crossed.update(fp.ccds_reached(xd[run], yd[run]))
-    detectors = [c.name for c in sorted(crossed, key=lambda c: c.id)]
-    in_field = bool(detectors)
+
+    def crossed(parts):
+        reached = set()
+        for run in parts:
+            reached.update(fp.ccds_reached(xd[run], yd[run]))
+        return reached
+
+    # Only sunlit parts leave a streak (as inject focalplane renders them); CCDs crossed only
+    # in Earth's shadow are listed apart.
+    lit = crossed(track_runs(dense, lit_only=True)[2])
+    detectors = [c.name for c in sorted(lit, key=lambda c: c.id)]
+    dark = [c.name for c in sorted(crossed(runs) - lit, key=lambda c: c.id)]
+    in_field = bool(detectors or dark)
     message = p.message
     if p.in_field and not in_field:
         message = "enters the field but crosses no science CCD (a gap or outside the CCDs)"
     elif in_field and not p.in_field:  # the disc test on 1 s chords missed a corner cut
         message = "crosses the field"
+    if dark and not detectors:
+        message = "crosses the CCDs in Earth's shadow: no streak"
     report = p.to_dict()
     x, y = p.focal_mm()
     samples = report["samples"]
     for row, xi, yi in zip(samples, x, y):
         row["x_mm"] = float(xi) if math.isfinite(xi) else None
         row["y_mm"] = float(yi) if math.isfinite(yi) else None
-    report.update(in_field=in_field, message=message, detectors=detectors, samples=samples)
+    report.update(in_field=in_field, message=message, detectors=detectors,
+                  detectors_in_shadow=dark, samples=samples)
     return report, p, (dense, xd, yd, runs)
 
 
@@ -147,6 +160,9 @@ def run_pass(args):
         return
     print(f"{report['satellite']}: {report['message']}")
     print(f"detectors: {', '.join(report['detectors']) or 'none'}")
+    if report["detectors_in_shadow"]:
+        print(f"crossed in Earth's shadow only (no streak): "
+              f"{', '.join(report['detectors_in_shadow'])}")
     print(f"{'t_s':>5} {'utc':23} {'alt':>6} {'az':>7} {'range_km':>9} {'nadir':>6} "
           f"{'phi':>7} {'rad/s':>8} {'sunlit':>6} {'x_mm':>8} {'y_mm':>8}")
     for s in report["samples"]:
@@ -195,11 +211,12 @@ def write_plot(path, report, p, track, overwrite=False):
     fig = Figure(figsize=(11, 6))
     FigureCanvasAgg(fig)
     ax = fig.add_axes([0.05, 0.08, 0.45, 0.84])
-    crossed = set(report["detectors"])
+    crossed, dark = set(report["detectors"]), set(report["detectors_in_shadow"])
     for c in fp.CCDS:
         x0, x1, y0, y1 = c.bounds_mm()
         ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, lw=0.4, ec="#4a5568",
-                               fc="#f6ad55" if c.name in crossed else "none"))
+                               fc="#f6ad55" if c.name in crossed else
+                               "#cbd5e0" if c.name in dark else "none"))
     lit = dense.sun_fraction > 0
     for run in runs:
         xs, ys = xd[run[0]:run[-1] + 1], yd[run[0]:run[-1] + 1]

@@ -53,7 +53,10 @@ class FocalTrack:
     ``kind`` is ``"line"`` (crossing the focal plane: the vertices are far outside it),
     ``"segment"`` or ``"polyline"``; ``values`` holds, per vertex, the model values
     (``height, zenith, phi, mag``) in effect there. A track from an ``orbit:`` is a polyline
-    (or has no vertices when the pass renders no streak); ``message`` says how it went.
+    (or has no vertices when the pass renders no streak); ``message`` says how it went. An
+    orbit's pass may be sunlit in several parts (it leaves Earth's shadow and re-enters it):
+    the parts follow one another, separated by a NaN vertex (value None), so that a plot of
+    ``xs, ys`` shows the gaps; :meth:`parts` gives them one by one.
     """
 
     kind: str
@@ -62,6 +65,19 @@ class FocalTrack:
     values: tuple
     angle: float
     message: str = ""
+
+    def parts(self):
+        """The track's continuous parts, each a :class:`FocalTrack` of at least two vertices."""
+        if all(v is not None for v in self.values):
+            return [self] if self.xs else []
+        out, start = [], 0
+        for k, v in enumerate((*self.values, None)):
+            if v is None:
+                if k - start >= 2:
+                    out.append(replace(self, xs=self.xs[start:k], ys=self.ys[start:k],
+                                       values=self.values[start:k]))
+                start = k + 1
+        return out
 
 
 @dataclass(frozen=True)
@@ -235,8 +251,8 @@ def _site_of(spec):
 
 
 def _orbit_track(where, spec, sat, scene, raw):
-    """A satellite's track from its orbit during the exposure: the apparent, sunlit part of the
-    pass inside the field as a polyline in mm (:func:`inject.orbits.track_runs` on a pass
+    """A satellite's track from its orbit during the exposure: the apparent, sunlit parts of
+    the pass inside the field (all of them, in time order) as a polyline in mm (:func:`inject.orbits.track_runs` on a pass
     sampled every 0.1 s: a vertex at least every second and wherever the path bends by more
     than 0.05 px), each vertex with the orbit's height, zenith (90 - alt), phi and the
     satellite's ``mag`` dimmed by the penumbra (the streak model scales it with range and
@@ -245,13 +261,19 @@ def _orbit_track(where, spec, sat, scene, raw):
     pass's, not those of the paper's spherical Earth at that height and zenith). A pass that never
     enters the field or is in shadow there has no vertices, and says why (OrbitWarning)."""
     dense = _orbit_pass(where, spec, raw, scene.exptime, scene.pointing)
-    run, values, message = _orbit_vertices(where, dense, sat.mag)
-    if run is None:
+    runs, message = _orbit_vertices(where, dense, sat.mag)
+    if not runs:
         return FocalTrack("polyline", (), (), (), 0.0, message)
     xd, yd = dense.focal_mm()
-    xs, ys = tuple(float(v) for v in xd[run]), tuple(float(v) for v in yd[run])
+    xs, ys, values = [], [], []
+    for run, vals in runs:
+        if xs:  # a break between sunlit parts
+            xs.append(np.nan), ys.append(np.nan), values.append(None)
+        xs += [float(v) for v in xd[run]]
+        ys += [float(v) for v in yd[run]]
+        values += vals
     angle = float(np.degrees(np.arctan2(ys[1] - ys[0], xs[1] - xs[0])))
-    return FocalTrack("polyline", xs, ys, values, angle, message)
+    return FocalTrack("polyline", tuple(xs), tuple(ys), tuple(values), angle, message)
 
 
 def _orbit_pass(where, spec, raw, exptime, pointing):
@@ -290,30 +312,29 @@ def _no_streak(where, dense):
 
 
 def _orbit_vertices(where, dense, mag):
-    """The longest sunlit run of a pass's track: (sample indices, vertex values, message), or
-    (None, None, message) when there is none."""
-    import warnings
-
-    from .errors import OrbitWarning
+    """The sunlit runs of a pass's track, in time order: a list of (sample indices, vertex
+    values), and a message; no runs when there is no streak (the message says why)."""
     from .orbits import track_runs
 
     xd, yd, runs = track_runs(dense, lit_only=True)
     if not runs:
-        return None, None, _no_streak(where, dense)
-    run = max(runs, key=lambda r: dense.t_s[r[-1]] - dense.t_s[r[0]])
-    message = "crosses the field, sunlit" if dense.sun_fraction[run].min() >= 1 else \
+        return [], _no_streak(where, dense)
+    lit = np.concatenate(runs)
+    message = "crosses the field, sunlit" if dense.sun_fraction[lit].min() >= 1 else \
         "crosses the field, partly in Earth's shadow (the streak ends or fades there)"
     if len(runs) > 1:
-        message += f"; {len(runs)} sunlit parts, the longest rendered"
-        warnings.warn(f"{where}: {message}", OrbitWarning, stacklevel=3)
-    dim = -2.5 * np.log10(dense.sun_fraction[run])
-    phi = np.where(np.isfinite(dense.phi_deg[run]), dense.phi_deg[run], 90.0)  # at the zenith
-    values = tuple({"height": float(h), "zenith": float(90.0 - a), "phi": float(f),
-                    "mag": float(mag + d), "range": float(r), "angular_speed": float(w)}
-                   for h, a, f, d, r, w in zip(dense.height_km[run], dense.alt_deg[run], phi, dim,
-                                               dense.range_km[run],
-                                               dense.angular_speed_rad_s[run]))
-    return run, values, message
+        message += f"; {len(runs)} sunlit parts (out of and back into the shadow), all rendered"
+    out = []
+    for run in runs:
+        dim = -2.5 * np.log10(dense.sun_fraction[run])
+        phi = np.where(np.isfinite(dense.phi_deg[run]), dense.phi_deg[run], 90.0)  # at zenith
+        values = [{"height": float(h), "zenith": float(90.0 - a), "phi": float(f),
+                   "mag": float(mag + d), "range": float(r), "angular_speed": float(w)}
+                  for h, a, f, d, r, w in zip(dense.height_km[run], dense.alt_deg[run], phi,
+                                              dim, dense.range_km[run],
+                                              dense.angular_speed_rad_s[run])]
+        out.append((run, values))
+    return out, message
 
 
 def ccd_orbit_satellites(raw, satellites, shape, pointing):
@@ -341,19 +362,19 @@ def ccd_orbit_satellites(raw, satellites, shape, pointing):
             if key in sat:
                 raise SceneError(f"satellites[{i}].{key}: comes from the orbit (remove it)")
         dense = _orbit_pass(where, sat["orbit"], raw, exptime, pointing)
-        run, values, _ = _orbit_vertices(where, dense, _number(f"satellites[{i}].mag",
-                                                                sat.get("mag")))
+        runs, _ = _orbit_vertices(where, dense, _number(f"satellites[{i}].mag", sat.get("mag")))
         rest = {k: v for k, v in sat.items() if k != "orbit"}
-        if run is None:
+        if not runs:
             far = -9e5  # 50 deg off: nothing of it on the image
             vertices = [{"x": far, "y": far}, {"x": far + 1.0, "y": far}]
             out.append({**rest, "height": float(np.nanmean(dense.height_km)),
                         "track": {"vertices": vertices}})
             continue
-        x = (nx - 1) / 2 + dense.field_x_deg[run] / scale_deg
-        y = (ny - 1) / 2 + dense.field_y_deg[run] / scale_deg
-        vertices = [{"x": float(a), "y": float(b), **v} for a, b, v in zip(x, y, values)]
-        out.append({**rest, "height": values[0]["height"], "track": {"vertices": vertices}})
+        for run, values in runs:  # one streak (and TRUTH row) per sunlit part
+            x = (nx - 1) / 2 + dense.field_x_deg[run] / scale_deg
+            y = (ny - 1) / 2 + dense.field_y_deg[run] / scale_deg
+            vertices = [{"x": float(a), "y": float(b), **v} for a, b, v in zip(x, y, values)]
+            out.append({**rest, "height": values[0]["height"], "track": {"vertices": vertices}})
     return out
 
 
@@ -389,14 +410,15 @@ def margins_px(fscene):
     quieter sensor's noise (a tighter tolerance, so a wider footprint)."""
     noise = min(pixel_noise(replace(fscene.scene, detector=det)) for det in fp.SENSORS.values())
     out = []
-    for i, track in enumerate(fscene.tracks):
+    for i, whole in enumerate(fscene.tracks):
         reach = 0.0
-        for k, values in enumerate(track.values):
-            j = min(k, len(track.xs) - 2)
-            angle = float(np.degrees(np.arctan2(track.ys[j + 1] - track.ys[j],
-                                                track.xs[j + 1] - track.xs[j])))
-            reach = max(reach, _reach_px(vertex_model(fscene, i, values), round(angle, 9),
-                                         noise))
+        for track in whole.parts():
+            for k, values in enumerate(track.values):
+                j = min(k, len(track.xs) - 2)
+                angle = float(np.degrees(np.arctan2(track.ys[j + 1] - track.ys[j],
+                                                    track.xs[j + 1] - track.xs[j])))
+                reach = max(reach, _reach_px(vertex_model(fscene, i, values), round(angle, 9),
+                                             noise))
         out.append(reach + 2.0)  # a pixel's diagonal, so no pixel centre within reach is missed
     return tuple(out)
 
@@ -439,10 +461,11 @@ def ccd_streaks(fscene, ccd, margins=None):
     margins = margins_px(fscene) if margins is None else margins
     shape = ccd_shape(fscene, ccd)
     out = []
-    for i, (track, margin) in enumerate(zip(fscene.tracks, margins)):
-        pieces = fp.clip_path(track.xs, track.ys, ccd.bounds_mm(margin, shape))
-        for run in _runs(pieces):
-            out.append(_ccd_streak(i, track, run, ccd))
+    for i, (whole, margin) in enumerate(zip(fscene.tracks, margins)):
+        for track in whole.parts():
+            pieces = fp.clip_path(track.xs, track.ys, ccd.bounds_mm(margin, shape))
+            for run in _runs(pieces):
+                out.append(_ccd_streak(i, track, run, ccd))
     return out
 
 

@@ -416,3 +416,106 @@ def test_ccd_scene_orbit_that_misses_says_why():
     assert all(v["x"] < -1e5 for v in scene.satellites[0].track.vertices)  # off the image
     with pytest.raises(SceneError, match="pointing: required with an orbit"):
         parse_scene({k: v for k, v in raw.items() if k != "pointing"})
+
+
+def _terminator_pass(aim_s=5.0):
+    """The example shell aimed east near the terminator: in the field, through the penumbra
+    into the umbra (as in the test above), the pointing on where it appears ``aim_s`` after
+    the start. Returns the orbit, exposure and pointing."""
+    from astropy.time import Time
+
+    from inject.orbits import aimed_orbit
+
+    t_aim = Time("2026-06-15T23:27:00")
+    orbit = aimed_orbit(t_aim, 60.0, 90.0)
+    exposure = Exposure(t_aim + 5 * u.s, 10.0)
+    first = compute_pass(orbit, exposure, Pointing(0.0, 0.0), t_s=[aim_s])
+    frame = AltAz(obstime=first.utc[0], location=RUBIN.location)
+    c = SkyCoord(az=first.apparent_az_deg[0] * u.deg, alt=first.apparent_alt_deg[0] * u.deg,
+                 frame=frame).transform_to(ICRS())
+    return orbit, exposure, Pointing(float(c.ra.deg), float(c.dec.deg))
+
+
+def _pass_args(orbit, exposure, pointing, tmp_path):
+    tle = tmp_path / "sat.tle"
+    tle.write_text("\n".join(orbit.tle_lines()) + "\n")
+    return ("--tle", tle, "--time", exposure.start.isot, "--exptime", exposure.exptime_s,
+            "--ra", pointing.ra_deg, "--dec", pointing.dec_deg)
+
+
+def test_pass_lists_only_the_sunlit_ccds_as_focalplane_renders(capsys, tmp_path):
+    """`inject pass`'s detectors are the CCDs the focal-plane scene's (sunlit) track crosses;
+    those crossed only in the umbra are listed apart, with no streak."""
+    from inject.focalscene import parse_focal_scene
+
+    orbit, exposure, pointing = _terminator_pass(aim_s=8.0)  # umbra entry in the field
+    report, _ = run_json(capsys, *_pass_args(orbit, exposure, pointing, tmp_path))
+    raw = _scene(exptime=exposure.exptime_s, time=exposure.start.isot,
+                 pointing={"ra": pointing.ra_deg, "dec": pointing.dec_deg})
+    raw["satellites"] = [{**raw["satellites"][0], "orbit": {"tle": list(orbit.tle_lines())}}]
+    track = parse_focal_scene(raw).tracks[0]
+    rendered = set()
+    for part in track.parts():
+        rendered.update(c.name for c in fp.ccds_reached(part.xs, part.ys))
+    assert rendered and set(report["detectors"]) == rendered
+    assert report["detectors_in_shadow"]  # the umbra part crosses CCDs too
+    assert not rendered & set(report["detectors_in_shadow"])
+    assert report["in_field"]
+
+
+def test_pass_in_shadow_crosses_ccds_but_lists_none(capsys, tmp_path):
+    from astropy.time import Time
+
+    from inject.orbits import aimed_orbit
+
+    t = Time("2026-06-15T23:30:00")
+    orbit = aimed_orbit(t, 60.0, 90.0)  # east at this time: in Earth's shadow
+    frame = AltAz(obstime=t, location=RUBIN.location)
+    c = SkyCoord(az=90 * u.deg, alt=60 * u.deg, frame=frame).transform_to(ICRS())
+    report, _ = run_json(capsys, *_pass_args(orbit, Exposure(t - 2 * u.s, 4.0),
+                                             Pointing(float(c.ra.deg), float(c.dec.deg)),
+                                             tmp_path))
+    assert report["detectors"] == [] and report["detectors_in_shadow"]
+    assert report["in_field"] and "shadow" in report["message"]
+
+
+def test_every_sunlit_part_is_rendered(monkeypatch):
+    """A pass that leaves Earth's shadow and re-enters it in one exposure (made here by
+    darkening the middle of the example pass) renders both sunlit parts, with the gap
+    between them dark: no CCD streak covers the shadowed stretch."""
+    from inject import focalscene
+    from inject.focalscene import ccd_streaks, margins_px, parse_focal_scene
+
+    real = focalscene._orbit_pass
+
+    def darkened(*args, **kwargs):
+        dense = real(*args, **kwargs)
+        dark = (dense.t_s > 1.5) & (dense.t_s < 2.5)
+        dense.sun_fraction = np.where(dark, 0.0, dense.sun_fraction)
+        return dense
+
+    monkeypatch.setattr(focalscene, "_orbit_pass", darkened)
+    fscene = parse_focal_scene(_scene(exptime=4, time="2026-06-15T23:29:58"))
+    track = fscene.tracks[0]
+    parts = track.parts()
+    assert len(parts) == 2 and "2 sunlit parts" in track.message
+    dense = darkened("x", _scene()["satellites"][0]["orbit"],
+                     {"time": "2026-06-15T23:29:58"}, 4.0, fscene.pointing)
+    x, y = dense.focal_mm()
+    t_of = [dense.t_s[[int(np.nanargmin(np.hypot(x - a, y - b))) for a, b in zip(p.xs, p.ys)]]
+            for p in parts]
+    assert t_of[0].max() <= 1.5 and t_of[1].min() >= 2.5  # each part on its own side
+    margins = margins_px(fscene)
+    pieces = [(ccd, s) for ccd in fscene.ccds for s in ccd_streaks(fscene, ccd, margins)]
+    assert pieces
+    # No rendered piece bridges the gap: every segment of every piece stays > 0.5 mm from
+    # the shadowed samples (the satellite moves ~5 mm per 0.1 s).
+    gap = (dense.t_s > 1.6) & (dense.t_s < 2.4)
+    gx, gy = x[gap], y[gap]
+    for ccd, s in pieces:
+        xm, ym = ccd.pixel_to_focal(np.array([v["x"] for v in s.track.vertices]),
+                                    np.array([v["y"] for v in s.track.vertices]))
+        for x0, y0, x1, y1 in zip(xm[:-1], ym[:-1], xm[1:], ym[1:]):
+            dx, dy = x1 - x0, y1 - y0
+            t = np.clip(((gx - x0) * dx + (gy - y0) * dy) / (dx * dx + dy * dy), 0, 1)
+            assert np.hypot(x0 + t * dx - gx, y0 + t * dy - gy).min() > 0.5
