@@ -65,6 +65,11 @@ class FocalTrack:
     values: tuple
     angle: float
     message: str = ""
+    #: An orbit's pass: its name, whether it enters the field and is sunlit there (None for
+    #: a hand-placed track).
+    name: str = ""
+    in_field: bool | None = None
+    sunlit: bool | None = None
 
     def parts(self):
         """The track's continuous parts, each a :class:`FocalTrack` of at least two vertices."""
@@ -262,8 +267,10 @@ def _orbit_track(where, spec, sat, scene, raw):
     enters the field or is in shadow there has no vertices, and says why (OrbitWarning)."""
     dense = _orbit_pass(where, spec, raw, scene.exptime, scene.pointing)
     runs, message = _orbit_vertices(where, dense, sat.mag)
+    about = {"name": dense.orbit.name or "", "in_field": bool(dense.in_field),
+             "sunlit": bool(dense.visible)}
     if not runs:
-        return FocalTrack("polyline", (), (), (), 0.0, message)
+        return FocalTrack("polyline", (), (), (), 0.0, message, **about)
     xd, yd = dense.focal_mm()
     xs, ys, values = [], [], []
     for run, vals in runs:
@@ -273,7 +280,7 @@ def _orbit_track(where, spec, sat, scene, raw):
         ys += [float(v) for v in yd[run]]
         values += vals
     angle = float(np.degrees(np.arctan2(ys[1] - ys[0], xs[1] - xs[0])))
-    return FocalTrack("polyline", tuple(xs), tuple(ys), tuple(values), angle, message)
+    return FocalTrack("polyline", tuple(xs), tuple(ys), tuple(values), angle, message, **about)
 
 
 def _orbit_pass(where, spec, raw, exptime, pointing):
@@ -537,9 +544,44 @@ def plan(fscene, ccds=None, margins=None):
                         "streaks": [{"x0": s.ends[0], "y0": s.ends[1], "x1": s.ends[2],
                                      "y1": s.ends[3], "satellite": s.satellite}
                                     for s in streaks]})
-    return {"detectors": out,
-            "satellites": [{"satellite": i, "message": t.message}
-                           for i, t in enumerate(fscene.tracks) if t.message]}
+    return {"detectors": out, "satellites": satellite_records(fscene, margins)}
+
+
+#: Columns of OUTDIR/satellites.csv (:func:`satellite_records`).
+SATELLITE_FIELDS = ("satellite", "name", "source", "in_field", "sunlit", "ccds", "n_ccds",
+                    "flags", "message", "scene_sha256")
+
+
+def satellite_records(fscene, margins=None):
+    """One record per satellite of the exposure, whether it left a streak or not.
+
+    ``satellite`` (index in the scene), ``name`` (an orbit's), ``source`` (``track`` or
+    ``orbit``), ``in_field`` and ``sunlit`` (an orbit's pass; for a track, whether it reaches
+    a CCD, and None), ``ccds`` (space-separated names of the scene's CCDs its footprint
+    reaches: where it is rendered, whichever CCDs a run or ``--job`` slice asks for),
+    ``n_ccds``, ``flags`` (TRUTH's bits: ``FLAG_OFF_IMAGE`` when no CCD is reached),
+    ``message`` (why there is no streak, or how the pass goes) and the scene digest.
+    """
+    from .maskplanes import FLAG_OFF_IMAGE
+
+    margins = margins_px(fscene) if margins is None else margins
+    reached = [[] for _ in fscene.tracks]
+    for ccd in fscene.ccds:
+        for i in sorted({s.satellite for s in ccd_streaks(fscene, ccd, margins)}):
+            reached[i].append(ccd.name)
+    out = []
+    for i, (track, names) in enumerate(zip(fscene.tracks, reached)):
+        orbit = track.in_field is not None
+        message = track.message
+        if not names and (not orbit or track.xs):
+            message = (f"{message}; " if message else "") + \
+                "reaches none of the scene's CCDs (outside them or in a gap)"
+        out.append({"satellite": i, "name": track.name, "source": "orbit" if orbit else "track",
+                    "in_field": track.in_field if orbit else bool(names),
+                    "sunlit": track.sunlit, "ccds": " ".join(names), "n_ccds": len(names),
+                    "flags": 0 if names else FLAG_OFF_IMAGE, "message": message,
+                    "scene_sha256": fscene.digest})
+    return out
 
 
 # -------------------------------------------------------------------------------------------

@@ -235,7 +235,9 @@ def test_plan_of_the_orbit_scene_matches_inject_pass(capsys, monkeypatch):
         dx = np.maximum(np.maximum(bx0 - (x0 + tt * (x1 - x0)), 0), (x0 + tt * (x1 - x0)) - bx1)
         dy = np.maximum(np.maximum(by0 - (y0 + tt * (y1 - y0)), 0), (y0 + tt * (y1 - y0)) - by1)
         assert np.hypot(dx, dy).min() < 3.0  # mm: 300 px, more than the footprint's reach
-    assert plan["satellites"] == [{"satellite": 0, "message": "crosses the field, sunlit"}]
+    (record,) = plan["satellites"]
+    assert record["message"] == "crosses the field, sunlit" and record["sunlit"]
+    assert set(record["ccds"].split()) == names and record["in_field"]
 
 
 def test_orbit_track_vertices_carry_the_pass():
