@@ -332,8 +332,11 @@ def _polyline_track(where, track):
     return {"x0": first["x"], "y0": first["y"], "angle": angle, "vertices": tuple(checked)}
 
 
-def parse_scene(raw):
-    """Validate a scene mapping (defaults filled from :data:`DEFAULT_SCENE`)."""
+def parse_scene(raw, check_charge=True):
+    """Validate a scene mapping (defaults filled from :data:`DEFAULT_SCENE`).
+
+    ``check_charge=False`` leaves out :func:`check_charge` (a focal-plane scene checks its
+    tracks' own vertex values once they are known, not its placeholder satellites')."""
     _check_keys("scene", raw, _TOP_KEYS)
     merged = {k: v for k, v in DEFAULT_SCENE.items() if k != "satellites"} | raw
     _check_detector(merged["detector"])
@@ -372,13 +375,14 @@ def parse_scene(raw):
                   noise=merged["noise"],
                   satellites=tuple(_satellite(i, s) for i, s in enumerate(satellites)),
                   pointing=pointing, units=units, raw=raw, **rates)
-    _check_charge(scene)
+    if check_charge:
+        check_charge(scene)
     ny, nx = detector.shape
     check_memory(nx * ny * SIMULATE_BYTES_PER_PIXEL, f"detector {nx} x {ny}")
     return scene
 
 
-def _check_charge(scene):
+def check_charge(scene):
     """Refuse a scene whose brightest pixel would hold more charge than can be drawn.
 
     An upper bound, from numbers alone (no profile is built): the sky, the dark current, the

@@ -150,13 +150,15 @@ def parse_focal_scene(raw):
             for key in ("height", "phi"):
                 if key in sat:
                     raise SceneError(f"satellites[{i}].{key}: comes from the orbit (remove it)")
-            # Placeholders: every vertex of the orbit's track carries its own height and phi.
+            # Placeholders: every vertex of the orbit's track carries its own height and phi
+            # (the charge is checked below, on the vertices).
             sat = {k: v for k, v in sat.items() if k != "orbit"} | {"height": 550.0}
         elif not isinstance(sat, dict) or "track" not in sat:
             _check_keys(f"satellites[{i}]", sat, {"track"}, {"track"})
         placeholders.append({**sat, "track": {"x0": 0.0, "y0": 0.0, "angle": 0.0}})
     ccd_part = {k: v for k, v in raw.items() if k not in ("detectors", "cutout", "time", "site")}
-    scene = parse_scene({**ccd_part, "satellites": placeholders, "detector": {"type": "itl"}})
+    scene = parse_scene({**ccd_part, "satellites": placeholders, "detector": {"type": "itl"}},
+                        check_charge=False)
     try:
         fp._check_pointing(scene.pointing)
         ccds = fp.select(raw.get("detectors"))
@@ -166,11 +168,24 @@ def parse_focal_scene(raw):
         _orbit_track(f"satellites[{i}].orbit", sat["orbit"], spec, scene, raw)
         if "orbit" in sat else _focal_track(f"satellites[{i}].track", sat["track"], spec, scene)
         for i, (sat, spec) in enumerate(zip(satellites, scene.satellites)))
+    _check_track_charge(scene, tracks)
     return FocalScene(scene=scene, tracks=tracks, ccds=ccds,
                       cutout=_cutout(raw.get("cutout")),
                       # The resolved tracks too: an orbit's TLE file may change under its name.
                       digest=scene_digest({"scene": raw, "tracks": [
                           (t.kind, t.xs, t.ys, t.values) for t in tracks]}), raw=raw)
+
+
+def _check_track_charge(scene, tracks):
+    """:func:`inject.config.check_charge` on every satellite's own vertex values (an orbit's
+    pass, a polyline's overrides; the satellite's for a line or segment), at the nominal
+    plate scale; a pass with no streak has no charge."""
+    from .config import check_charge
+
+    sats = tuple(replace(spec, track=Track(0.0, 0.0, 0.0, None, tuple(
+        v for v in track.values if v is not None) if track.kind == "polyline" else None))
+        for spec, track in zip(scene.satellites, tracks) if track.values)
+    check_charge(replace(scene, satellites=sats))
 
 
 def _cutout(spec):

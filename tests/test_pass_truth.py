@@ -82,3 +82,39 @@ def test_focal_plane_ccd_truth_is_the_pass(dense):
     omega = dense.angular_speed_rad_s[a] + f * np.diff(dense.angular_speed_rad_s[[a, b]])[0]
     rng = dense.range_km[a] + f * np.diff(dense.range_km[[a, b]])[0]
     _check_row(row, omega, rng, streaks[0].pixel_scale)
+
+
+def test_focal_charge_check_uses_the_pass():
+    """The focal-plane scene's charge check (refusing > 1e15 e- per pixel) bounds the pass's
+    own vertices (range, speed, zenith), not a 550 km placeholder: its figure is the largest
+    charge per pixel of track over the pass's samples on the track, from independent models."""
+    import re
+    import warnings
+
+    from inject.errors import SceneError
+    from inject.focalscene import parse_focal_scene
+    from inject.profile import Seeing
+    from inject.streak import StreakModel
+
+    raw = _raw()
+    track = parse_focal_scene(raw).tracks[0]
+    p = compute_pass(Orbit.read_tle(TLE), Exposure(START, EXPTIME), Pointing(RA, DEC, 0.0),
+                     step_s=TRACK_STEP_S)
+    x, y = p.focal_mm()
+    idx = [int(np.nanargmin(np.hypot(x - a, y - b))) for a, b in zip(track.xs, track.ys)]
+    mag = -21.0
+    worst = max(StreakModel(float(p.height_km[i]), float(90 - p.alt_deg[i]),
+                            float(p.phi_deg[i]), mag=mag, seeing=Seeing(raw["seeing"]),
+                            range_km=float(p.range_km[i]),
+                            angular_speed_rad_s=float(p.angular_speed_rad_s[i])).flux_per_px
+                for i in idx)
+    raw["satellites"] = [{**raw["satellites"][0], "mag": mag}]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # mag -21 is warned about as implausible
+        with pytest.raises(SceneError, match=r"expected charge per pixel from satellites\[0\]"
+                           ) as err:
+            parse_focal_scene(raw)
+    figure = float(re.search(r"satellites\[0\]=([0-9.e+]+)", str(err.value)).group(1))
+    assert figure == pytest.approx(worst, rel=5e-3)  # printed to 3 significant figures
+    placeholder = StreakModel(550.0, raw["zenith"], 90.0, mag=mag).flux_per_px
+    assert abs(placeholder / worst - 1) > 0.02  # the old check's figure is told apart
