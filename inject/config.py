@@ -332,10 +332,10 @@ def _polyline_track(where, track):
     return {"x0": first["x"], "y0": first["y"], "angle": angle, "vertices": tuple(checked)}
 
 
-def parse_scene(raw, check_charge=True):
+def parse_scene(raw, charge_check=True):
     """Validate a scene mapping (defaults filled from :data:`DEFAULT_SCENE`).
 
-    ``check_charge=False`` leaves out :func:`check_charge` (a focal-plane scene checks its
+    ``charge_check=False`` leaves out :func:`check_charge` (a focal-plane scene checks its
     tracks' own vertex values once they are known, not its placeholder satellites')."""
     _check_keys("scene", raw, _TOP_KEYS)
     merged = {k: v for k, v in DEFAULT_SCENE.items() if k != "satellites"} | raw
@@ -375,7 +375,7 @@ def parse_scene(raw, check_charge=True):
                   noise=merged["noise"],
                   satellites=tuple(_satellite(i, s) for i, s in enumerate(satellites)),
                   pointing=pointing, units=units, raw=raw, **rates)
-    if check_charge:
+    if charge_check:
         check_charge(scene)
     ny, nx = detector.shape
     check_memory(nx * ny * SIMULATE_BYTES_PER_PIXEL, f"detector {nx} x {ny}")

@@ -158,7 +158,7 @@ def parse_focal_scene(raw):
         placeholders.append({**sat, "track": {"x0": 0.0, "y0": 0.0, "angle": 0.0}})
     ccd_part = {k: v for k, v in raw.items() if k not in ("detectors", "cutout", "time", "site")}
     scene = parse_scene({**ccd_part, "satellites": placeholders, "detector": {"type": "itl"}},
-                        check_charge=False)
+                        charge_check=False)
     try:
         fp._check_pointing(scene.pointing)
         ccds = fp.select(raw.get("detectors"))
