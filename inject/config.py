@@ -87,6 +87,8 @@ class Scene:
     cosmic_rays: float = 0.0
     units: str = "electron"
     raw: dict = field(default_factory=dict, compare=False, repr=False)
+    #: Exposure start, UTC (ISO 8601), when the scene gives ``time:``.
+    time: str | None = None
 
 
 class _SceneLoader(yaml.SafeLoader):
@@ -370,16 +372,53 @@ def parse_scene(raw, charge_check=True):
     units = merged.get("units", "electron")
     if units not in ("electron", "adu"):
         raise SceneError(f"units={units!r}: choose electron or adu")
+    start = None if merged.get("time") is None else exposure_start(merged["time"])
     scene = Scene(seed=seed, band=merged["band"], exptime=exptime, seeing=seeing, zenith=zenith,
                   detector=detector, sky=merged["sky"], stars=merged["stars"],
                   noise=merged["noise"],
                   satellites=tuple(_satellite(i, s) for i, s in enumerate(satellites)),
-                  pointing=pointing, units=units, raw=raw, **rates)
+                  pointing=pointing, units=units, raw=raw, time=start, **rates)
     if charge_check:
         check_charge(scene)
     ny, nx = detector.shape
     check_memory(nx * ny * SIMULATE_BYTES_PER_PIXEL, f"detector {nx} x {ny}")
     return scene
+
+
+def exposure_start(value):
+    """A scene's ``time:`` (a YAML timestamp or an ISO 8601 string, UTC) as ISO 8601 UTC."""
+    from .orbits import parse_time
+
+    try:
+        return parse_time(value, "time").utc.isot
+    except InjectError as err:
+        raise SceneError(str(err)) from None
+
+
+def time_cards(scene):
+    """FITS cards of the exposure's time, when the scene has one (``{}`` otherwise).
+
+    As LSSTCam's headers and afw's VisitInfo have them: ``TIMESYS = 'TAI'`` and the dates in
+    TAI (the FITS standard reads DATE-* and MJD-* in TIMESYS's scale; TAI - UTC is 37 s in
+    2026): ``DATE-OBS``/``MJD-OBS`` the exposure start (the UTC start in the comment),
+    ``DATE-AVG``/``MJD-AVG`` its middle (what afw takes as the VisitInfo date), ``DATE-END``
+    /``MJD-END`` its end.
+    """
+    if scene.time is None:
+        return {}
+    from astropy.time import Time, TimeDelta
+
+    start = Time(scene.time, scale="utc")
+    cards = {"TIMESYS": ("TAI", "time scale of DATE-* and MJD-*")}
+    for key, t, what in (("OBS", start, "exposure start"),
+                         ("AVG", start + TimeDelta(scene.exptime / 2, format="sec"),
+                          "middle of the exposure"),
+                         ("END", start + TimeDelta(scene.exptime, format="sec"),
+                          "exposure end")):
+        tai = t.tai
+        cards[f"DATE-{key}"] = (tai.isot, f"{what} (TAI)")
+        cards[f"MJD-{key}"] = (float(tai.mjd), f"[d] {what}, MJD (TAI)")
+    return cards
 
 
 def check_charge(scene):

@@ -156,7 +156,7 @@ def parse_focal_scene(raw):
         elif not isinstance(sat, dict) or "track" not in sat:
             _check_keys(f"satellites[{i}]", sat, {"track"}, {"track"})
         placeholders.append({**sat, "track": {"x0": 0.0, "y0": 0.0, "angle": 0.0}})
-    ccd_part = {k: v for k, v in raw.items() if k not in ("detectors", "cutout", "time", "site")}
+    ccd_part = {k: v for k, v in raw.items() if k not in ("detectors", "cutout")}
     scene = parse_scene({**ccd_part, "satellites": placeholders, "detector": {"type": "itl"}},
                         charge_check=False)
     try:

@@ -118,3 +118,45 @@ def test_focal_charge_check_uses_the_pass():
     assert figure == pytest.approx(worst, rel=5e-3)  # printed to 3 significant figures
     placeholder = StreakModel(550.0, raw["zenith"], 90.0, mag=mag).flux_per_px
     assert abs(placeholder / worst - 1) > 0.02  # the old check's figure is told apart
+
+
+def test_scene_time_reaches_the_headers(tmp_path):
+    """DATE-OBS/MJD-OBS (start), DATE-AVG/MJD-AVG (middle), DATE-END/MJD-END in TAI with
+    TIMESYS = 'TAI', as LSSTCam and afw write them: 37 s after the UTC time of the scene
+    (TAI - UTC since 2017), in a CCD scene and on a focal-plane CCD; none without a time."""
+    from datetime import datetime, timedelta
+
+    from astropy.io import fits
+
+    from inject.cli import main
+
+    start_utc = datetime.fromisoformat(START)
+
+    def check(header, exptime):
+        assert header["TIMESYS"] == "TAI"
+        for key, dt in (("OBS", 0.0), ("AVG", exptime / 2), ("END", exptime)):
+            tai = start_utc + timedelta(seconds=37 + dt)
+            assert datetime.fromisoformat(header[f"DATE-{key}"]) == tai
+            # MJD 40587 is 1970-01-01
+            mjd = 40587 + (tai - datetime(1970, 1, 1)).total_seconds() / 86400
+            assert header[f"MJD-{key}"] == pytest.approx(mjd, abs=1e-8)  # 1 ms
+
+    import yaml
+
+    raw = _raw(detector={"type": "itl", "nx": 64, "ny": 64}, pointing={"ra": RA, "dec": DEC})
+    raw.pop("zenith")
+    path = tmp_path / "ccd.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    assert main(["simulate", str(path), "-o", str(tmp_path / "ccd.fits")]) == 0
+    check(fits.getheader(tmp_path / "ccd.fits", 0), EXPTIME)
+    raw = {k: v for k, v in raw.items() if k not in ("time", "satellites")}
+    path.write_text(yaml.safe_dump(raw))
+    assert main(["simulate", str(path), "-o", str(tmp_path / "none.fits")]) == 0
+    assert "DATE-OBS" not in fits.getheader(tmp_path / "none.fits", 0)
+
+    from inject.focalscene import margins_px, parse_focal_scene
+    from inject.parallel import Task, render_ccd
+
+    fscene = parse_focal_scene(_raw(cutout={"nx": 64, "ny": 64}))
+    row = render_ccd(Task(fscene, "R22_S12", str(tmp_path), margins_px(fscene)))
+    check(fits.getheader(tmp_path / row["file"], 0), EXPTIME)
