@@ -42,44 +42,21 @@ def add_pass_parser(sub):
 
 
 def parse_orbit_option(text, time):
-    """An :class:`~inject.orbits.Orbit` from ``--orbit`` text ``key=value,...``."""
-    from .orbits import CIRCULAR_ORBIT_KEYS as ORBIT_KEYS, Orbit
+    """An :class:`~inject.orbits.Orbit` from ``--orbit`` text ``key=value,...`` (through
+    :func:`inject.orbits.orbit_from_spec`, as a scene's ``orbit:``)."""
+    from .orbits import CIRCULAR_ORBIT_KEYS, orbit_from_spec
 
     values = {}
     for item in text.split(","):
         key, sep, value = item.partition("=")
         key = key.strip()
-        if not sep or key not in ORBIT_KEYS:
+        if not sep or key not in CIRCULAR_ORBIT_KEYS:
             raise InputError("--orbit", item, f"each item must be KEY=VALUE with KEY one of "
-                                              f"{', '.join(ORBIT_KEYS)}")
+                                              f"{', '.join(CIRCULAR_ORBIT_KEYS)}")
         if key in values:
             raise InputError("--orbit", text, f"{key} given twice")
         values[key] = value.strip()
-    missing = [k for k in ORBIT_KEYS[:4] if k not in values]
-    if missing:
-        raise InputError("--orbit", text, f"needs {', '.join(missing)}")
-    numbers = {}
-    for k in ORBIT_KEYS[:4]:
-        try:
-            numbers[k] = float(values[k])
-        except ValueError:
-            raise InputError(f"--orbit {k}", values[k], "must be a number") from None
-    return Orbit.circular(numbers["height"], numbers["inclination"], numbers["raan"],
-                          numbers["mean_anomaly"], values.get("epoch", time), name="orbit")
-
-
-def parse_site(text):
-    """A :class:`~inject.orbits.Site` from ``LAT,LON,M``."""
-    from .orbits import Site
-
-    parts = text.split(",")
-    try:
-        if len(parts) != 3:
-            raise ValueError
-        lat, lon, height = (float(v) for v in parts)
-    except ValueError:
-        raise InputError("--site", text, "must be LAT,LON,M (deg, deg, m)") from None
-    return Site(lat, lon, height)
+    return orbit_from_spec(values, time, "--orbit")
 
 
 def pass_report(orbit, exposure, pointing, site):
@@ -137,16 +114,17 @@ def pass_report(orbit, exposure, pointing, site):
 
 
 def run_pass(args):
-    from .orbits import Exposure, Orbit, Pointing, RUBIN, parse_time
+    from .orbits import Exposure, Pointing, orbit_from_spec, parse_time, site_from_spec
+    from .validate import RANGES, check_pointing
 
     time = parse_time(args.time, "--time")
-    orbit = (Orbit.read_tle(args.tle) if args.tle is not None
+    orbit = (orbit_from_spec({"tle": args.tle}, time, "--tle") if args.tle is not None
              else parse_orbit_option(args.orbit, time))
-    site = RUBIN if args.site is None else parse_site(args.site)
-    exposure = Exposure(time, args.exptime)
-    if not 0 <= args.ra < 360:
-        raise InputError("--ra", args.ra, "must be in [0, 360)")
-    pointing = Pointing(args.ra, args.dec, args.rotation)
+    site = site_from_spec(args.site, "--site")
+    exposure = Exposure(time, RANGES["exptime"].check(args.exptime, "--exptime"))
+    pointing = Pointing(*check_pointing({"ra": args.ra, "dec": args.dec,
+                                         "rotation": args.rotation},
+                                        {"ra": "--ra", "dec": "--dec", "rotation": "--rotation"}))
     if args.plot:
         from .io.atomic import check_writable
 

@@ -15,7 +15,7 @@ from .detector import Detector, detector_from_spec
 from .errors import InjectError, InputError, SceneError
 from .photometry import band
 from .satellite import Shape, shape_from_dict
-from .validate import RANGES, check_memory, positive
+from .validate import RANGES, check_memory, check_pointing, positive
 
 #: The embedded default scene: the paper's 550 km satellite on one full ITL CCD.
 DEFAULT_SCENE = {
@@ -354,9 +354,12 @@ def parse_scene(raw, charge_check=True):
         if not isinstance(merged[flag], (bool, dict)):
             raise SceneError(f"{flag}={merged[flag]!r}: must be true, false or a mapping")
     pointing = merged.get("pointing")
-    if pointing is not None:  # ranges are checked where the WCS is made (inject.wcs)
+    if pointing is not None:  # validate.check_pointing: the one check of a pointing
         _check_keys("pointing", pointing, {"ra", "dec", "rotation"}, {"ra", "dec"})
-        pointing = {k: _ranged(f"pointing.{k}", f"pointing.{k}", v) for k, v in pointing.items()}
+        try:
+            pointing = dict(zip(("ra", "dec", "rotation"), check_pointing(pointing)))
+        except InjectError as err:
+            raise SceneError(str(err)) from None
     satellites = merged.get("satellites", [])
     if not isinstance(satellites, list):
         raise SceneError(f"satellites={satellites!r}: must be a list")

@@ -235,41 +235,6 @@ def _focal_track(where, track, spec, scene):
                       angle)
 
 
-def _orbit_of(where, spec, time):
-    """The :class:`~inject.orbits.Orbit` of a satellite's ``orbit:`` mapping."""
-    from .orbits import CIRCULAR_ORBIT_KEYS, Orbit
-
-    _check_keys(where, spec, {"tle", *CIRCULAR_ORBIT_KEYS})
-    if "tle" in spec:
-        if set(spec) != {"tle"}:
-            raise SceneError(f"{where}: 'tle' takes no other key (got {sorted(spec)})")
-        tle = spec["tle"]
-        if isinstance(tle, str):
-            return Orbit.read_tle(tle)
-        if isinstance(tle, list) and len(tle) == 2:
-            return Orbit.from_tle(*tle)
-        raise SceneError(f"{where}.tle={tle!r}: a TLE file name or [line1, line2]")
-    missing = sorted({"height", "inclination", "raan", "mean_anomaly"} - set(spec))
-    if missing:
-        raise SceneError(f"{where}: needs {', '.join(missing)} (or tle)")
-    numbers = [_number(f"{where}.{k}", spec[k])
-               for k in ("height", "inclination", "raan", "mean_anomaly")]
-    return Orbit.circular(*numbers, spec.get("epoch", time), name="orbit")
-
-
-def _site_of(spec):
-    from .orbits import RUBIN, Site
-
-    if spec is None:
-        return RUBIN
-    if isinstance(spec, dict):
-        _check_keys("site", spec, {"lat", "lon", "height"}, {"lat", "lon", "height"})
-        spec = [spec["lat"], spec["lon"], spec["height"]]
-    if not isinstance(spec, list) or len(spec) != 3:
-        raise SceneError(f"site={spec!r}: needs {{lat, lon, height}} (deg, deg, m)")
-    return Site(*(_number("site", v) for v in spec))
-
-
 def _orbit_track(where, spec, sat, scene, raw):
     """A satellite's track from its orbit during the exposure: the apparent, sunlit parts of
     the pass inside the field (all of them, in time order) as a polyline in mm (:func:`inject.orbits.track_runs` on a pass
@@ -300,20 +265,23 @@ def _orbit_track(where, spec, sat, scene, raw):
 
 def _orbit_pass(where, spec, raw, exptime, pointing):
     """The pass (every 0.1 s) of a satellite's ``orbit:`` in a scene, errors as SceneError."""
-    from .orbits import TRACK_STEP_S, Exposure, Pointing, compute_pass, parse_time
+    from .orbits import (TRACK_STEP_S, Exposure, Pointing, compute_pass, orbit_from_spec,
+                         parse_time, site_from_spec)
 
     if raw.get("time") is None:
         raise SceneError(f"time: required with {where} (exposure start, ISO 8601 UTC)")
     try:
         time = parse_time(raw["time"], "time")
-        orbit = _orbit_of(where, spec, time)
-        site = _site_of(raw.get("site"))
+        orbit = orbit_from_spec(spec, time, where)
+        site = site_from_spec(raw.get("site"))
         point = Pointing(pointing["ra"], pointing["dec"], pointing.get("rotation", 0.0))
         return compute_pass(orbit, Exposure(time, exptime), point, site, step_s=TRACK_STEP_S)
     except SceneError:
         raise
     except InjectError as err:
-        raise SceneError(f"{where}: {err}") from None
+        text = str(err)
+        raise SceneError(text if text.startswith(("site", where)) else f"{where}: {text}") \
+            from None
 
 
 def _no_streak(where, dense):

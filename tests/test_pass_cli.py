@@ -181,12 +181,29 @@ def test_bad_tle_file(tmp_path, capsys, edit, what):
     (["--orbit", "height=550,inclination=53,raan=10,mean_anomaly=4,colour=red"], "colour"),
     (["--tle", str(TLE), "--site", "30,70"], "30,70"),
     (["--tle", str(TLE), "--exptime", "-1"], "-1"),
+    # The input-ranges table (inject.validate.RANGES) on every value of inject pass:
+    (["--tle", str(TLE), "--exptime", "4000"], "--exptime=4000.0: must be > 0 and <= 3600"),
+    (["--orbit", "height=550,inclination=200,raan=0,mean_anomaly=0"],
+     "--orbit.inclination=200.0: must be >= 0 and <= 180"),
+    (["--orbit", "height=20,inclination=50,raan=0,mean_anomaly=0"],
+     "--orbit.height=20.0: must be >= 80"),
+    (["--orbit", "height=550,inclination=50,raan=x,mean_anomaly=0"],
+     "--orbit.raan='x': must be a number"),
+    (["--orbit", f"height=550,inclination=50,raan=0,mean_anomaly=0,epoch={'2026-01-01'}"],
+     "more than 60 is refused"),
+    (["--tle", str(TLE), "--site", "-95,-70,2000"], "--site lat=-95.0: must be >= -90"),
+    (["--tle", str(TLE), "--site", "-30,-70,20000"], "--site height=20000.0: must be >= -500 "
+                                                      "and <= 10000 m"),
+    (["--tle", str(TLE), "--ra", "400"], "--ra=400.0: must be >= 0 and < 360"),
+    (["--tle", str(TLE), "--dec", "-91"], "--dec=-91.0: must be >= -90"),
 ])
 def test_bad_options_one_line(capsys, args, named):
     base = {"--time": START, "--exptime": "30", "--ra": str(RA), "--dec": str(DEC)}
     for k, v in zip(args[::2], args[1::2]):
         base[k] = v
-    argv = ["pass"] + [item for kv in base.items() for item in kv]
+    # (a value starting with '-' needs KEY=VALUE, as the help of --site says)
+    argv = ["pass"] + [item for k, v in base.items()
+                       for item in ([f"{k}={v}"] if v.startswith("-") else [k, v])]
     status = main(argv)
     _, err = capsys.readouterr()
     assert status == 2 and len(err.strip().splitlines()) == 1 and named in err
@@ -305,6 +322,18 @@ def test_orbit_scene_without_a_streak_says_why(changes, why, capsys):
                                 "mean_anomaly": 0}}]}, "comes from the orbit"),
     ({"satellites": [{"mag": 5, "shape": {"type": "box", "length": 7, "width": 2},
                       "orbit": {"height": 550, "inclination": 53}}]}, "raan"),
+    # The same table and parser as inject pass's --orbit and --site:
+    ({"satellites": [{"mag": 5, "shape": {"type": "box", "length": 7, "width": 2},
+                      "orbit": {"height": 550, "inclination": -3, "raan": 0,
+                                "mean_anomaly": 0}}]},
+     r"^satellites\[0\]\.orbit\.inclination=-3: must be >= 0 and <= 180"),
+    ({"satellites": [{"mag": 5, "shape": {"type": "box", "length": 7, "width": 2},
+                      "orbit": {"height": 550, "inclination": 53, "raan": 0,
+                                "mean_anomaly": 0, "epoch": "2026-01-01"}}]},
+     "more than 60 is refused"),
+    ({"site": {"lat": -30, "lon": -70, "height": 1e5}}, "site height=100000.0: must be"),
+    ({"site": [-30, -70]}, "site=\\[-30, -70\\]: must be LAT,LON,M"),
+    ({"pointing": {"ra": 151.95, "dec": 95}}, r"pointing\.dec=95"),
 ])
 def test_bad_orbit_scene(change, named):
     from inject.errors import SceneError
