@@ -160,3 +160,28 @@ def test_scene_time_reaches_the_headers(tmp_path):
     fscene = parse_focal_scene(_raw(cutout={"nx": 64, "ny": 64}))
     row = render_ccd(Task(fscene, "R22_S12", str(tmp_path), margins_px(fscene)))
     check(fits.getheader(tmp_path / row["file"], 0), EXPTIME)
+
+
+@pytest.mark.parametrize("case", ["pass", "terminator"])
+def test_sampled_margin_bounds_every_vertex(case):
+    """The footprint margin from a few vertices (focalscene._sampled, + REACH_ALLOWANCE) is
+    at least the largest reach over every vertex, and not much more: for the example pass
+    and a pass fading in the penumbra (its brightness, so its tolerance, changes)."""
+    from inject.focalscene import REACH_ALLOWANCE, margins_px, parse_focal_scene
+
+    if case == "pass":
+        raw = _raw(exptime=3.0, time="2026-06-15T23:29:58.5", noise=True, sky=True)
+    else:
+        from test_pass_cli import _terminator_pass
+
+        orbit, exposure, pointing = _terminator_pass(aim_s=8.0)
+        raw = _raw(exptime=exposure.exptime_s, time=exposure.start.isot, noise=True, sky=True,
+                   pointing={"ra": pointing.ra_deg, "dec": pointing.dec_deg})
+        raw["satellites"] = [{**raw["satellites"][0],
+                              "orbit": {"tle": list(orbit.tle_lines())}}]
+    fscene = parse_focal_scene(raw)
+    n = len(fscene.tracks[0].values)
+    assert n > 7  # more vertices than _sampled picks at most
+    (every,) = margins_px(fscene, exhaustive=True)
+    (sampled,) = margins_px(fscene)
+    assert every <= sampled <= (every - 2.0) * (1 + REACH_ALLOWANCE) + 2.0 + 1e-9
