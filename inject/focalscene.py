@@ -152,7 +152,10 @@ def parse_focal_scene(raw):
                     raise SceneError(f"satellites[{i}].{key}: comes from the orbit (remove it)")
             # Placeholders: every vertex of the orbit's track carries its own height and phi
             # (the charge is checked below, on the vertices).
-            sat = {k: v for k, v in sat.items() if k != "orbit"} | {"height": 550.0}
+            sat = {k: v for k, v in sat.items() if k not in ("orbit", "lumos")} | {
+                "height": 550.0}
+        elif isinstance(sat, dict) and "lumos" in sat:
+            raise SceneError(f"satellites[{i}].lumos: only with an orbit (its pass's geometry)")
         elif not isinstance(sat, dict) or "track" not in sat:
             _check_keys(f"satellites[{i}]", sat, {"track"}, {"track"})
         placeholders.append({**sat, "track": {"x0": 0.0, "y0": 0.0, "angle": 0.0}})
@@ -165,7 +168,7 @@ def parse_focal_scene(raw):
     except InjectError as err:
         raise SceneError(str(err)) from None
     tracks = tuple(
-        _orbit_track(f"satellites[{i}].orbit", sat["orbit"], spec, scene, raw)
+        _orbit_track(f"satellites[{i}].orbit", sat["orbit"], spec, scene, raw, sat.get("lumos"))
         if "orbit" in sat else _focal_track(f"satellites[{i}].track", sat["track"], spec, scene)
         for i, (sat, spec) in enumerate(zip(satellites, scene.satellites)))
     _check_track_charge(scene, tracks)
@@ -235,7 +238,7 @@ def _focal_track(where, track, spec, scene):
                       angle)
 
 
-def _orbit_track(where, spec, sat, scene, raw):
+def _orbit_track(where, spec, sat, scene, raw, lumos=None):
     """A satellite's track from its orbit during the exposure: the apparent, sunlit parts of
     the pass inside the field (all of them, in time order) as a polyline in mm (:func:`inject.orbits.track_runs` on a pass
     sampled every 0.1 s: a vertex at least every second and wherever the path bends by more
@@ -246,7 +249,7 @@ def _orbit_track(where, spec, sat, scene, raw):
     pass's, not those of the paper's spherical Earth at that height and zenith). A pass that never
     enters the field or is in shadow there has no vertices, and says why (OrbitWarning)."""
     dense = _orbit_pass(where, spec, raw, scene.exptime, scene.pointing)
-    runs, message = _orbit_vertices(where, dense, sat.mag)
+    runs, message = _orbit_vertices(where, dense, sat.mag, lumos, sat.ref_range)
     about = {"name": dense.orbit.name or "", "in_field": bool(dense.in_field),
              "sunlit": bool(dense.visible)}
     if not runs:
@@ -301,9 +304,12 @@ def _no_streak(where, dense):
     return message
 
 
-def _orbit_vertices(where, dense, mag):
+def _orbit_vertices(where, dense, mag, lumos=None, ref_range=550.0):
     """The sunlit runs of a pass's track, in time order: a list of (sample indices, vertex
-    values), and a message; no runs when there is no streak (the message says why)."""
+    values), and a message; no runs when there is no streak (the message says why).
+
+    ``lumos`` (a satellite's ``lumos:`` mapping): each vertex's brightness from lumos-sat
+    (:mod:`inject.lumos_brightness`) instead of ``mag`` scaled by the paper's law."""
     from .orbits import track_runs
 
     xd, yd, runs = track_runs(dense, lit_only=True)
@@ -317,12 +323,24 @@ def _orbit_vertices(where, dense, mag):
     out = []
     for run in runs:
         dim = -2.5 * np.log10(dense.sun_fraction[run])
+        base = np.full(len(run), float(mag))
+        if lumos is not None:
+            from .geometry import nadir_angle
+            from .lumos_brightness import magnitudes
+            from .photometry import apparent_magnitude
+
+            # The mag at ref_range, face-on, that the streak model's cos/r^2 scaling turns
+            # into lumos's apparent magnitude here.
+            zenith = 90.0 - dense.alt_deg[run]
+            base = magnitudes(where.replace(".orbit", ".lumos"), lumos, dense, run) - \
+                apparent_magnitude(0.0, dense.range_km[run],
+                                   nadir_angle(dense.height_km[run], zenith), ref_range)
         phi = np.where(np.isfinite(dense.phi_deg[run]), dense.phi_deg[run], 90.0)  # at zenith
         values = [{"height": float(h), "zenith": float(90.0 - a), "phi": float(f),
-                   "mag": float(mag + d), "range": float(r), "angular_speed": float(w)}
-                  for h, a, f, d, r, w in zip(dense.height_km[run], dense.alt_deg[run], phi,
-                                              dim, dense.range_km[run],
-                                              dense.angular_speed_rad_s[run])]
+                   "mag": float(m + d), "range": float(r), "angular_speed": float(w)}
+                  for h, a, f, m, d, r, w in zip(dense.height_km[run], dense.alt_deg[run], phi,
+                                                 base, dim, dense.range_km[run],
+                                                 dense.angular_speed_rad_s[run])]
         out.append((run, values))
     return out, message
 
@@ -352,8 +370,10 @@ def ccd_orbit_satellites(raw, satellites, shape, pointing):
             if key in sat:
                 raise SceneError(f"satellites[{i}].{key}: comes from the orbit (remove it)")
         dense = _orbit_pass(where, sat["orbit"], raw, exptime, pointing)
-        runs, _ = _orbit_vertices(where, dense, _number(f"satellites[{i}].mag", sat.get("mag")))
-        rest = {k: v for k, v in sat.items() if k != "orbit"}
+        runs, _ = _orbit_vertices(where, dense, _number(f"satellites[{i}].mag", sat.get("mag")),
+                                  sat.get("lumos"), _number(f"satellites[{i}].ref_range",
+                                                            sat.get("ref_range", 550.0)))
+        rest = {k: v for k, v in sat.items() if k not in ("orbit", "lumos")}
         if not runs:
             far = -9e5  # 50 deg off: nothing of it on the image
             vertices = [{"x": far, "y": far}, {"x": far + 1.0, "y": far}]
