@@ -91,6 +91,7 @@ def run_focalplane(args):
         raise OutputError(f"{args.output}: exists and is not a directory")
     if not ccds:
         raise InputError("--detectors/--job", (args.detectors, args.job), "no CCD to render")
+    records = _check_satellites_file(fscene, args, margins)
     mosaic = os.path.join(args.output, "mosaic.png")
     if not args.no_mosaic and os.path.exists(mosaic) and not args.overwrite:
         from .parallel import read_manifest
@@ -99,10 +100,54 @@ def run_focalplane(args):
         if not any(r.get("scene_sha256") == fscene.digest for r in rows):
             raise OutputError(f"{mosaic}: exists (not this scene's); pass --overwrite to "
                               "replace it")
-    _render(fscene, ccds, margins, args)
+    _render(fscene, ccds, margins, args, records)
 
 
-def _render(fscene, ccds, margins, args):
+#: The exposure-level record of every satellite, next to manifest.csv.
+SATELLITES_CSV = "satellites.csv"
+
+
+def _check_satellites_file(fscene, args, margins):
+    """The satellite records of the run; refuse (before any work) to replace another scene's
+    satellites.csv without --overwrite."""
+    import csv
+
+    from .focalscene import satellite_records
+
+    path = os.path.join(args.output, SATELLITES_CSV)
+    if os.path.exists(path) and not args.overwrite:
+        with open(path, newline="") as stream:
+            digests = {row.get("scene_sha256") for row in csv.DictReader(stream)}
+        if digests - {fscene.digest}:
+            raise OutputError(f"{path}: exists (not this scene's); pass --overwrite to "
+                              "replace it")
+    return satellite_records(fscene, margins)
+
+
+def write_satellites(outdir, records):
+    """Write OUTDIR/satellites.csv atomically: one row per satellite of the scene (see
+    :func:`inject.focalscene.satellite_records`), so a satellite that renders nowhere still
+    says why. Its content depends on the scene alone (every ``--job`` slice writes the same)."""
+    import csv
+    import io
+
+    from .focalscene import SATELLITE_FIELDS
+    from .io.atomic import atomic_path
+
+    text = io.StringIO()
+    writer = csv.DictWriter(text, SATELLITE_FIELDS)
+    writer.writeheader()
+    for row in records:
+        writer.writerow({k: ("" if row[k] is None else str(row[k]).lower()
+                             if isinstance(row[k], bool) else row[k]) for k in SATELLITE_FIELDS})
+    path = os.path.join(outdir, SATELLITES_CSV)
+    with atomic_path(path, overwrite=True) as tmp:
+        with open(tmp, "w", newline="") as stream:
+            stream.write(text.getvalue())
+    return path
+
+
+def _render(fscene, ccds, margins, args, records):
     from .parallel import DASK_MEMORY_LIMIT, dask_executor, process_pool, run
 
     if args.scheduler:
@@ -117,6 +162,11 @@ def _render(fscene, ccds, margins, args):
                      retries=args.retries, margins=margins)
     print(f"{args.output}: {len(result.rendered)} CCDs rendered, {len(result.skipped)} "
           f"already done, {len(result.failed)} failed", file=sys.stderr)
+    write_satellites(args.output, records)
+    for row in records:
+        if not row["n_ccds"]:
+            print(f"satellites[{row['satellite']}]: renders on no CCD (why: "
+                  f"{os.path.join(args.output, SATELLITES_CSV)})", file=sys.stderr)
     if not args.no_mosaic:
         from .io.mosaic import write_mosaic
 

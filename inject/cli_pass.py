@@ -42,44 +42,21 @@ def add_pass_parser(sub):
 
 
 def parse_orbit_option(text, time):
-    """An :class:`~inject.orbits.Orbit` from ``--orbit`` text ``key=value,...``."""
-    from .orbits import CIRCULAR_ORBIT_KEYS as ORBIT_KEYS, Orbit
+    """An :class:`~inject.orbits.Orbit` from ``--orbit`` text ``key=value,...`` (through
+    :func:`inject.orbits.orbit_from_spec`, as a scene's ``orbit:``)."""
+    from .orbits import CIRCULAR_ORBIT_KEYS, orbit_from_spec
 
     values = {}
     for item in text.split(","):
         key, sep, value = item.partition("=")
         key = key.strip()
-        if not sep or key not in ORBIT_KEYS:
+        if not sep or key not in CIRCULAR_ORBIT_KEYS:
             raise InputError("--orbit", item, f"each item must be KEY=VALUE with KEY one of "
-                                              f"{', '.join(ORBIT_KEYS)}")
+                                              f"{', '.join(CIRCULAR_ORBIT_KEYS)}")
         if key in values:
             raise InputError("--orbit", text, f"{key} given twice")
         values[key] = value.strip()
-    missing = [k for k in ORBIT_KEYS[:4] if k not in values]
-    if missing:
-        raise InputError("--orbit", text, f"needs {', '.join(missing)}")
-    numbers = {}
-    for k in ORBIT_KEYS[:4]:
-        try:
-            numbers[k] = float(values[k])
-        except ValueError:
-            raise InputError(f"--orbit {k}", values[k], "must be a number") from None
-    return Orbit.circular(numbers["height"], numbers["inclination"], numbers["raan"],
-                          numbers["mean_anomaly"], values.get("epoch", time), name="orbit")
-
-
-def parse_site(text):
-    """A :class:`~inject.orbits.Site` from ``LAT,LON,M``."""
-    from .orbits import Site
-
-    parts = text.split(",")
-    try:
-        if len(parts) != 3:
-            raise ValueError
-        lat, lon, height = (float(v) for v in parts)
-    except ValueError:
-        raise InputError("--site", text, "must be LAT,LON,M (deg, deg, m)") from None
-    return Site(lat, lon, height)
+    return orbit_from_spec(values, time, "--orbit")
 
 
 def pass_report(orbit, exposure, pointing, site):
@@ -88,7 +65,9 @@ def pass_report(orbit, exposure, pointing, site):
     Returns
     -------
     report : dict
-        CONTRACT.md's keys (``in_field``, ``message``, ``detectors``, ``samples``) and more.
+        CONTRACT.md's keys (``in_field``, ``message``, ``detectors``: the CCDs the track
+        crosses while sunlit, those with a streak, ``samples``) and more
+        (``detectors_in_shadow``: CCDs crossed only in Earth's shadow).
     p : inject.orbits.Pass
         The pass at the report's samples (1 s apart, with the middle).
     track : tuple
@@ -103,37 +82,49 @@ def pass_report(orbit, exposure, pointing, site):
     dense = compute_pass(orbit, exposure, pointing, site, step_s=TRACK_STEP_S,
                          check_epoch=False)
     xd, yd, runs = track_runs(dense)
-    crossed = set()
-    for run in runs:
-        crossed.update(fp.ccds_reached(xd[run], yd[run]))
-    detectors = [c.name for c in sorted(crossed, key=lambda c: c.id)]
-    in_field = bool(detectors)
+
+    def crossed(parts):
+        reached = set()
+        for run in parts:
+            reached.update(fp.ccds_reached(xd[run], yd[run]))
+        return reached
+
+    # Only sunlit parts leave a streak (as inject focalplane renders them); CCDs crossed only
+    # in Earth's shadow are listed apart.
+    lit = crossed(track_runs(dense, lit_only=True)[2])
+    detectors = [c.name for c in sorted(lit, key=lambda c: c.id)]
+    dark = [c.name for c in sorted(crossed(runs) - lit, key=lambda c: c.id)]
+    in_field = bool(detectors or dark)
     message = p.message
     if p.in_field and not in_field:
         message = "enters the field but crosses no science CCD (a gap or outside the CCDs)"
     elif in_field and not p.in_field:  # the disc test on 1 s chords missed a corner cut
         message = "crosses the field"
+    if dark and not detectors:
+        message = "crosses the CCDs in Earth's shadow: no streak"
     report = p.to_dict()
     x, y = p.focal_mm()
     samples = report["samples"]
     for row, xi, yi in zip(samples, x, y):
         row["x_mm"] = float(xi) if math.isfinite(xi) else None
         row["y_mm"] = float(yi) if math.isfinite(yi) else None
-    report.update(in_field=in_field, message=message, detectors=detectors, samples=samples)
+    report.update(in_field=in_field, message=message, detectors=detectors,
+                  detectors_in_shadow=dark, samples=samples)
     return report, p, (dense, xd, yd, runs)
 
 
 def run_pass(args):
-    from .orbits import Exposure, Orbit, Pointing, RUBIN, parse_time
+    from .orbits import Exposure, Pointing, orbit_from_spec, parse_time, site_from_spec
+    from .validate import RANGES, check_pointing
 
     time = parse_time(args.time, "--time")
-    orbit = (Orbit.read_tle(args.tle) if args.tle is not None
+    orbit = (orbit_from_spec({"tle": args.tle}, time, "--tle") if args.tle is not None
              else parse_orbit_option(args.orbit, time))
-    site = RUBIN if args.site is None else parse_site(args.site)
-    exposure = Exposure(time, args.exptime)
-    if not 0 <= args.ra < 360:
-        raise InputError("--ra", args.ra, "must be in [0, 360)")
-    pointing = Pointing(args.ra, args.dec, args.rotation)
+    site = site_from_spec(args.site, "--site")
+    exposure = Exposure(time, RANGES["exptime"].check(args.exptime, "--exptime"))
+    pointing = Pointing(*check_pointing({"ra": args.ra, "dec": args.dec,
+                                         "rotation": args.rotation},
+                                        {"ra": "--ra", "dec": "--dec", "rotation": "--rotation"}))
     if args.plot:
         from .io.atomic import check_writable
 
@@ -147,6 +138,9 @@ def run_pass(args):
         return
     print(f"{report['satellite']}: {report['message']}")
     print(f"detectors: {', '.join(report['detectors']) or 'none'}")
+    if report["detectors_in_shadow"]:
+        print(f"crossed in Earth's shadow only (no streak): "
+              f"{', '.join(report['detectors_in_shadow'])}")
     print(f"{'t_s':>5} {'utc':23} {'alt':>6} {'az':>7} {'range_km':>9} {'nadir':>6} "
           f"{'phi':>7} {'rad/s':>8} {'sunlit':>6} {'x_mm':>8} {'y_mm':>8}")
     for s in report["samples"]:
@@ -162,7 +156,8 @@ def run_pass(args):
 def streak_along(p, idx, mag_ref=5.0):
     """FWHM (arcsec) and peak surface brightness (e-/px) of the paper's satellite
     (:class:`~inject.streak.StreakModel` defaults: 7.25 m x 2.65 m box, ``mag_ref`` g at 550 km)
-    at samples ``idx`` of a pass: each sample's height, zenith (90 - alt) and phi."""
+    at samples ``idx`` of a pass: each sample's height, zenith (90 - alt) and phi, with the
+    pass's exact range and angular speed."""
     from .streak import StreakModel
 
     fwhm, peak = [], []
@@ -172,7 +167,9 @@ def streak_along(p, idx, mag_ref=5.0):
             peak.append(np.nan)
             continue
         m = StreakModel(height_km=float(p.height_km[i]), zenith_deg=float(90 - p.alt_deg[i]),
-                        phi_deg=float(p.phi_deg[i]), mag=mag_ref)
+                        phi_deg=float(p.phi_deg[i]), mag=mag_ref,
+                        range_km=float(p.range_km[i]),
+                        angular_speed_rad_s=float(p.angular_speed_rad_s[i]))
         fwhm.append(m.fwhm_arcsec)
         peak.append(m.peak_e_per_px * p.sun_fraction[i])  # the penumbra dims it
     return np.array(fwhm), np.array(peak)
@@ -192,11 +189,12 @@ def write_plot(path, report, p, track, overwrite=False):
     fig = Figure(figsize=(11, 6))
     FigureCanvasAgg(fig)
     ax = fig.add_axes([0.05, 0.08, 0.45, 0.84])
-    crossed = set(report["detectors"])
+    crossed, dark = set(report["detectors"]), set(report["detectors_in_shadow"])
     for c in fp.CCDS:
         x0, x1, y0, y1 = c.bounds_mm()
         ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, lw=0.4, ec="#4a5568",
-                               fc="#f6ad55" if c.name in crossed else "none"))
+                               fc="#f6ad55" if c.name in crossed else
+                               "#cbd5e0" if c.name in dark else "none"))
     lit = dense.sun_fraction > 0
     for run in runs:
         xs, ys = xd[run[0]:run[-1] + 1], yd[run[0]:run[-1] + 1]

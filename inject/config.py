@@ -15,7 +15,7 @@ from .detector import Detector, detector_from_spec
 from .errors import InjectError, InputError, SceneError
 from .photometry import band
 from .satellite import Shape, shape_from_dict
-from .validate import RANGES, check_memory, positive
+from .validate import RANGES, check_memory, check_pointing, positive
 
 #: The embedded default scene: the paper's 550 km satellite on one full ITL CCD.
 DEFAULT_SCENE = {
@@ -35,7 +35,7 @@ _TOP_KEYS = {"seed", "band", "exptime", "seeing", "zenith", "detector", "sky", "
              "satellites", "pointing", "dark_current", "cosmic_rays", "units", "time", "site"}
 _SATELLITE_KEYS = {"height", "phi", "shape", "mag", "ref_range", "track"}
 _TRACK_KEYS = {"x0", "y0", "angle", "length"}
-_VERTEX_KEYS = {"x", "y", "height", "zenith", "phi", "mag"}
+_VERTEX_KEYS = {"x", "y", "height", "zenith", "phi", "mag", "range", "angular_speed"}
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,9 @@ class Track:
 
     ``vertices`` makes it a polyline: a tuple of mappings with ``x``, ``y`` (pixels) and
     optionally ``height``, ``zenith``, ``phi``, ``mag`` overriding the satellite's values at
-    that vertex (so width, speed and brightness can change along the track).
+    that vertex (so width, speed and brightness can change along the track), and ``range``
+    (km), ``angular_speed`` (rad/s) replacing the spherical-Earth range and angular speed of
+    (height, zenith, phi) there (an orbit's vertices carry the pass's exact values).
     """
 
     x0: float
@@ -85,6 +87,8 @@ class Scene:
     cosmic_rays: float = 0.0
     units: str = "electron"
     raw: dict = field(default_factory=dict, compare=False, repr=False)
+    #: Exposure start, UTC (ISO 8601), when the scene gives ``time:``.
+    time: str | None = None
 
 
 class _SceneLoader(yaml.SafeLoader):
@@ -330,8 +334,11 @@ def _polyline_track(where, track):
     return {"x0": first["x"], "y0": first["y"], "angle": angle, "vertices": tuple(checked)}
 
 
-def parse_scene(raw):
-    """Validate a scene mapping (defaults filled from :data:`DEFAULT_SCENE`)."""
+def parse_scene(raw, charge_check=True):
+    """Validate a scene mapping (defaults filled from :data:`DEFAULT_SCENE`).
+
+    ``charge_check=False`` leaves out :func:`check_charge` (a focal-plane scene checks its
+    tracks' own vertex values once they are known, not its placeholder satellites')."""
     _check_keys("scene", raw, _TOP_KEYS)
     merged = {k: v for k, v in DEFAULT_SCENE.items() if k != "satellites"} | raw
     _check_detector(merged["detector"])
@@ -347,9 +354,12 @@ def parse_scene(raw):
         if not isinstance(merged[flag], (bool, dict)):
             raise SceneError(f"{flag}={merged[flag]!r}: must be true, false or a mapping")
     pointing = merged.get("pointing")
-    if pointing is not None:  # ranges are checked where the WCS is made (inject.wcs)
+    if pointing is not None:  # validate.check_pointing: the one check of a pointing
         _check_keys("pointing", pointing, {"ra", "dec", "rotation"}, {"ra", "dec"})
-        pointing = {k: _ranged(f"pointing.{k}", f"pointing.{k}", v) for k, v in pointing.items()}
+        try:
+            pointing = dict(zip(("ra", "dec", "rotation"), check_pointing(pointing)))
+        except InjectError as err:
+            raise SceneError(str(err)) from None
     satellites = merged.get("satellites", [])
     if not isinstance(satellites, list):
         raise SceneError(f"satellites={satellites!r}: must be a list")
@@ -365,18 +375,56 @@ def parse_scene(raw):
     units = merged.get("units", "electron")
     if units not in ("electron", "adu"):
         raise SceneError(f"units={units!r}: choose electron or adu")
+    start = None if merged.get("time") is None else exposure_start(merged["time"])
     scene = Scene(seed=seed, band=merged["band"], exptime=exptime, seeing=seeing, zenith=zenith,
                   detector=detector, sky=merged["sky"], stars=merged["stars"],
                   noise=merged["noise"],
                   satellites=tuple(_satellite(i, s) for i, s in enumerate(satellites)),
-                  pointing=pointing, units=units, raw=raw, **rates)
-    _check_charge(scene)
+                  pointing=pointing, units=units, raw=raw, time=start, **rates)
+    if charge_check:
+        check_charge(scene)
     ny, nx = detector.shape
     check_memory(nx * ny * SIMULATE_BYTES_PER_PIXEL, f"detector {nx} x {ny}")
     return scene
 
 
-def _check_charge(scene):
+def exposure_start(value):
+    """A scene's ``time:`` (a YAML timestamp or an ISO 8601 string, UTC) as ISO 8601 UTC."""
+    from .orbits import parse_time
+
+    try:
+        return parse_time(value, "time").utc.isot
+    except InjectError as err:
+        raise SceneError(str(err)) from None
+
+
+def time_cards(scene):
+    """FITS cards of the exposure's time, when the scene has one (``{}`` otherwise).
+
+    As LSSTCam's headers and afw's VisitInfo have them: ``TIMESYS = 'TAI'`` and the dates in
+    TAI (the FITS standard reads DATE-* and MJD-* in TIMESYS's scale; TAI - UTC is 37 s in
+    2026): ``DATE-OBS``/``MJD-OBS`` the exposure start (the UTC start in the comment),
+    ``DATE-AVG``/``MJD-AVG`` its middle (what afw takes as the VisitInfo date), ``DATE-END``
+    /``MJD-END`` its end.
+    """
+    if scene.time is None:
+        return {}
+    from astropy.time import Time, TimeDelta
+
+    start = Time(scene.time, scale="utc")
+    cards = {"TIMESYS": ("TAI", "time scale of DATE-* and MJD-*")}
+    for key, t, what in (("OBS", start, "exposure start"),
+                         ("AVG", start + TimeDelta(scene.exptime / 2, format="sec"),
+                          "middle of the exposure"),
+                         ("END", start + TimeDelta(scene.exptime, format="sec"),
+                          "exposure end")):
+        tai = t.tai
+        cards[f"DATE-{key}"] = (tai.isot, f"{what} (TAI)")
+        cards[f"MJD-{key}"] = (float(tai.mjd), f"[d] {what}, MJD (TAI)")
+    return cards
+
+
+def check_charge(scene):
     """Refuse a scene whose brightest pixel would hold more charge than can be drawn.
 
     An upper bound, from numbers alone (no profile is built): the sky, the dark current, the
@@ -397,7 +445,9 @@ def _check_charge(scene):
         for vertex in sat.track.vertices or ({},):
             model = StreakModel(vertex.get("height", sat.height), vertex.get("zenith", scene.zenith),
                                 vertex.get("phi", sat.phi), sat.shape, vertex.get("mag", sat.mag),
-                                scene.band, ref_range_km=sat.ref_range)
+                                scene.band, ref_range_km=sat.ref_range,
+                                range_km=vertex.get("range"),
+                                angular_speed_rad_s=vertex.get("angular_speed"))
             if base + model.flux_per_px > worst:
                 worst, where = base + model.flux_per_px, f"satellites[{i}]"
     try:

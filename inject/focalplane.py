@@ -250,17 +250,10 @@ def pixel_scale_along(x_mm, y_mm, angle_deg):
 # Celestial WCS
 
 def _check_pointing(pointing):
-    try:
-        ra, dec = float(pointing["ra"]), float(pointing["dec"])
-        rotation = float(pointing.get("rotation", 0.0))
-    except (KeyError, TypeError, ValueError, AttributeError):
-        raise InputError("pointing", pointing, "needs numeric ra and dec (deg), optional "
-                                               "rotation") from None
-    if not (np.isfinite(ra) and np.isfinite(dec) and np.isfinite(rotation)):
-        raise InputError("pointing", pointing, "ra, dec and rotation must be finite")
-    if not (0 <= ra < 360 and -90 <= dec <= 90):
-        raise InputError("pointing", pointing, "ra must be in [0, 360), dec in [-90, 90]")
-    return ra, dec, rotation
+    """``(ra, dec, rotation)`` of a pointing, by :func:`inject.validate.check_pointing`."""
+    from .validate import check_pointing
+
+    return check_pointing(pointing)
 
 
 def rotation_matrix(rotation_deg):

@@ -27,8 +27,8 @@ from .config import Track, _check_keys, _number, _polyline_track, _TOP_KEYS, par
 from .errors import InjectError, SceneError
 from .instrument import LSST
 from .profile import Seeing
-from .render import AUTO_MIN_TOLERANCE, Budget, swept_profile
-from .scene import NOISE_FRACTION, pixel_noise, render_tracks, rng, simulate
+from .render import Budget, swept_profile
+from .scene import pixel_noise, render_tracks, rng, simulate
 from .streak import StreakModel
 
 FOCAL_KEYS = (_TOP_KEYS - {"detector"}) | {"detectors", "cutout"}
@@ -41,6 +41,9 @@ _TILE_GRID = 80  # tiles per side, centred on the boresight (covers +-400 mm)
 STAR_TILE_KEY = 1000
 #: Vertex keys that vary the streak model along a polyline.
 VERTEX_MODEL_KEYS = ("height", "zenith", "phi", "mag")
+#: Vertex keys of an orbit's track only: the pass's exact range (km) and angular speed across
+#: the star field (rad/s), in place of the spherical-Earth ones of (height, zenith, phi).
+PASS_KEYS = ("range", "angular_speed")
 
 
 @dataclass(frozen=True)
@@ -50,7 +53,10 @@ class FocalTrack:
     ``kind`` is ``"line"`` (crossing the focal plane: the vertices are far outside it),
     ``"segment"`` or ``"polyline"``; ``values`` holds, per vertex, the model values
     (``height, zenith, phi, mag``) in effect there. A track from an ``orbit:`` is a polyline
-    (or has no vertices when the pass renders no streak); ``message`` says how it went.
+    (or has no vertices when the pass renders no streak); ``message`` says how it went. An
+    orbit's pass may be sunlit in several parts (it leaves Earth's shadow and re-enters it):
+    the parts follow one another, separated by a NaN vertex (value None), so that a plot of
+    ``xs, ys`` shows the gaps; :meth:`parts` gives them one by one.
     """
 
     kind: str
@@ -59,6 +65,24 @@ class FocalTrack:
     values: tuple
     angle: float
     message: str = ""
+    #: An orbit's pass: its name, whether it enters the field and is sunlit there (None for
+    #: a hand-placed track).
+    name: str = ""
+    in_field: bool | None = None
+    sunlit: bool | None = None
+
+    def parts(self):
+        """The track's continuous parts, each a :class:`FocalTrack` of at least two vertices."""
+        if all(v is not None for v in self.values):
+            return [self] if self.xs else []
+        out, start = [], 0
+        for k, v in enumerate((*self.values, None)):
+            if v is None:
+                if k - start >= 2:
+                    out.append(replace(self, xs=self.xs[start:k], ys=self.ys[start:k],
+                                       values=self.values[start:k]))
+                start = k + 1
+        return out
 
 
 @dataclass(frozen=True)
@@ -126,27 +150,45 @@ def parse_focal_scene(raw):
             for key in ("height", "phi"):
                 if key in sat:
                     raise SceneError(f"satellites[{i}].{key}: comes from the orbit (remove it)")
-            # Placeholders: every vertex of the orbit's track carries its own height and phi.
-            sat = {k: v for k, v in sat.items() if k != "orbit"} | {"height": 550.0}
+            # Placeholders: every vertex of the orbit's track carries its own height and phi
+            # (the charge is checked below, on the vertices).
+            sat = {k: v for k, v in sat.items() if k not in ("orbit", "lumos")} | {
+                "height": 550.0}
+        elif isinstance(sat, dict) and "lumos" in sat:
+            raise SceneError(f"satellites[{i}].lumos: only with an orbit (its pass's geometry)")
         elif not isinstance(sat, dict) or "track" not in sat:
             _check_keys(f"satellites[{i}]", sat, {"track"}, {"track"})
         placeholders.append({**sat, "track": {"x0": 0.0, "y0": 0.0, "angle": 0.0}})
-    ccd_part = {k: v for k, v in raw.items() if k not in ("detectors", "cutout", "time", "site")}
-    scene = parse_scene({**ccd_part, "satellites": placeholders, "detector": {"type": "itl"}})
+    ccd_part = {k: v for k, v in raw.items() if k not in ("detectors", "cutout")}
+    scene = parse_scene({**ccd_part, "satellites": placeholders, "detector": {"type": "itl"}},
+                        charge_check=False)
     try:
         fp._check_pointing(scene.pointing)
         ccds = fp.select(raw.get("detectors"))
     except InjectError as err:
         raise SceneError(str(err)) from None
     tracks = tuple(
-        _orbit_track(f"satellites[{i}].orbit", sat["orbit"], spec, scene, raw)
+        _orbit_track(f"satellites[{i}].orbit", sat["orbit"], spec, scene, raw, sat.get("lumos"))
         if "orbit" in sat else _focal_track(f"satellites[{i}].track", sat["track"], spec, scene)
         for i, (sat, spec) in enumerate(zip(satellites, scene.satellites)))
+    _check_track_charge(scene, tracks)
     return FocalScene(scene=scene, tracks=tracks, ccds=ccds,
                       cutout=_cutout(raw.get("cutout")),
                       # The resolved tracks too: an orbit's TLE file may change under its name.
                       digest=scene_digest({"scene": raw, "tracks": [
                           (t.kind, t.xs, t.ys, t.values) for t in tracks]}), raw=raw)
+
+
+def _check_track_charge(scene, tracks):
+    """:func:`inject.config.check_charge` on every satellite's own vertex values (an orbit's
+    pass, a polyline's overrides; the satellite's for a line or segment), at the nominal
+    plate scale; a pass with no streak has no charge."""
+    from .config import check_charge
+
+    sats = tuple(replace(spec, track=Track(0.0, 0.0, 0.0, None, tuple(
+        v for v in track.values if v is not None) if track.kind == "polyline" else None))
+        for spec, track in zip(scene.satellites, tracks) if track.values)
+    check_charge(replace(scene, satellites=sats))
 
 
 def _cutout(spec):
@@ -196,75 +238,53 @@ def _focal_track(where, track, spec, scene):
                       angle)
 
 
-def _orbit_of(where, spec, time):
-    """The :class:`~inject.orbits.Orbit` of a satellite's ``orbit:`` mapping."""
-    from .orbits import CIRCULAR_ORBIT_KEYS, Orbit
-
-    _check_keys(where, spec, {"tle", *CIRCULAR_ORBIT_KEYS})
-    if "tle" in spec:
-        if set(spec) != {"tle"}:
-            raise SceneError(f"{where}: 'tle' takes no other key (got {sorted(spec)})")
-        tle = spec["tle"]
-        if isinstance(tle, str):
-            return Orbit.read_tle(tle)
-        if isinstance(tle, list) and len(tle) == 2:
-            return Orbit.from_tle(*tle)
-        raise SceneError(f"{where}.tle={tle!r}: a TLE file name or [line1, line2]")
-    missing = sorted({"height", "inclination", "raan", "mean_anomaly"} - set(spec))
-    if missing:
-        raise SceneError(f"{where}: needs {', '.join(missing)} (or tle)")
-    numbers = [_number(f"{where}.{k}", spec[k])
-               for k in ("height", "inclination", "raan", "mean_anomaly")]
-    return Orbit.circular(*numbers, spec.get("epoch", time), name="orbit")
-
-
-def _site_of(spec):
-    from .orbits import RUBIN, Site
-
-    if spec is None:
-        return RUBIN
-    if isinstance(spec, dict):
-        _check_keys("site", spec, {"lat", "lon", "height"}, {"lat", "lon", "height"})
-        spec = [spec["lat"], spec["lon"], spec["height"]]
-    if not isinstance(spec, list) or len(spec) != 3:
-        raise SceneError(f"site={spec!r}: needs {{lat, lon, height}} (deg, deg, m)")
-    return Site(*(_number("site", v) for v in spec))
-
-
-def _orbit_track(where, spec, sat, scene, raw):
-    """A satellite's track from its orbit during the exposure: the apparent, sunlit part of the
-    pass inside the field as a polyline in mm (:func:`inject.orbits.track_runs` on a pass
+def _orbit_track(where, spec, sat, scene, raw, lumos=None):
+    """A satellite's track from its orbit during the exposure: the apparent, sunlit parts of
+    the pass inside the field (all of them, in time order) as a polyline in mm (:func:`inject.orbits.track_runs` on a pass
     sampled every 0.1 s: a vertex at least every second and wherever the path bends by more
     than 0.05 px), each vertex with the orbit's height, zenith (90 - alt), phi and the
     satellite's ``mag`` dimmed by the penumbra (the streak model scales it with range and
-    nadir angle itself, as :meth:`inject.orbits.Pass.magnitude` does). A pass that never
+    nadir angle itself, as :meth:`inject.orbits.Pass.magnitude` does), and the pass's exact
+    ``range`` and ``angular_speed`` (so t_eff, the charge per pixel and the defocus are the
+    pass's, not those of the paper's spherical Earth at that height and zenith). A pass that never
     enters the field or is in shadow there has no vertices, and says why (OrbitWarning)."""
     dense = _orbit_pass(where, spec, raw, scene.exptime, scene.pointing)
-    run, values, message = _orbit_vertices(where, dense, sat.mag)
-    if run is None:
-        return FocalTrack("polyline", (), (), (), 0.0, message)
+    runs, message = _orbit_vertices(where, dense, sat.mag, lumos, sat.ref_range)
+    about = {"name": dense.orbit.name or "", "in_field": bool(dense.in_field),
+             "sunlit": bool(dense.visible)}
+    if not runs:
+        return FocalTrack("polyline", (), (), (), 0.0, message, **about)
     xd, yd = dense.focal_mm()
-    xs, ys = tuple(float(v) for v in xd[run]), tuple(float(v) for v in yd[run])
+    xs, ys, values = [], [], []
+    for run, vals in runs:
+        if xs:  # a break between sunlit parts
+            xs.append(np.nan), ys.append(np.nan), values.append(None)
+        xs += [float(v) for v in xd[run]]
+        ys += [float(v) for v in yd[run]]
+        values += vals
     angle = float(np.degrees(np.arctan2(ys[1] - ys[0], xs[1] - xs[0])))
-    return FocalTrack("polyline", xs, ys, values, angle, message)
+    return FocalTrack("polyline", tuple(xs), tuple(ys), tuple(values), angle, message, **about)
 
 
 def _orbit_pass(where, spec, raw, exptime, pointing):
     """The pass (every 0.1 s) of a satellite's ``orbit:`` in a scene, errors as SceneError."""
-    from .orbits import TRACK_STEP_S, Exposure, Pointing, compute_pass, parse_time
+    from .orbits import (TRACK_STEP_S, Exposure, Pointing, compute_pass, orbit_from_spec,
+                         parse_time, site_from_spec)
 
     if raw.get("time") is None:
         raise SceneError(f"time: required with {where} (exposure start, ISO 8601 UTC)")
     try:
         time = parse_time(raw["time"], "time")
-        orbit = _orbit_of(where, spec, time)
-        site = _site_of(raw.get("site"))
+        orbit = orbit_from_spec(spec, time, where)
+        site = site_from_spec(raw.get("site"))
         point = Pointing(pointing["ra"], pointing["dec"], pointing.get("rotation", 0.0))
         return compute_pass(orbit, Exposure(time, exptime), point, site, step_s=TRACK_STEP_S)
     except SceneError:
         raise
     except InjectError as err:
-        raise SceneError(f"{where}: {err}") from None
+        text = str(err)
+        raise SceneError(text if text.startswith(("site", where)) else f"{where}: {text}") \
+            from None
 
 
 def _no_streak(where, dense):
@@ -284,29 +304,45 @@ def _no_streak(where, dense):
     return message
 
 
-def _orbit_vertices(where, dense, mag):
-    """The longest sunlit run of a pass's track: (sample indices, vertex values, message), or
-    (None, None, message) when there is none."""
-    import warnings
+def _orbit_vertices(where, dense, mag, lumos=None, ref_range=550.0):
+    """The sunlit runs of a pass's track, in time order: a list of (sample indices, vertex
+    values), and a message; no runs when there is no streak (the message says why).
 
-    from .errors import OrbitWarning
+    ``lumos`` (a satellite's ``lumos:`` mapping): each vertex's brightness from lumos-sat
+    (:mod:`inject.lumos_brightness`) instead of ``mag`` scaled by the paper's law."""
     from .orbits import track_runs
 
     xd, yd, runs = track_runs(dense, lit_only=True)
     if not runs:
-        return None, None, _no_streak(where, dense)
-    run = max(runs, key=lambda r: dense.t_s[r[-1]] - dense.t_s[r[0]])
-    message = "crosses the field, sunlit" if dense.sun_fraction[run].min() >= 1 else \
+        return [], _no_streak(where, dense)
+    lit = np.concatenate(runs)
+    message = "crosses the field, sunlit" if dense.sun_fraction[lit].min() >= 1 else \
         "crosses the field, partly in Earth's shadow (the streak ends or fades there)"
     if len(runs) > 1:
-        message += f"; {len(runs)} sunlit parts, the longest rendered"
-        warnings.warn(f"{where}: {message}", OrbitWarning, stacklevel=3)
-    dim = -2.5 * np.log10(dense.sun_fraction[run])
-    phi = np.where(np.isfinite(dense.phi_deg[run]), dense.phi_deg[run], 90.0)  # at the zenith
-    values = tuple({"height": float(h), "zenith": float(90.0 - a), "phi": float(f),
-                    "mag": float(mag + d)}
-                   for h, a, f, d in zip(dense.height_km[run], dense.alt_deg[run], phi, dim))
-    return run, values, message
+        message += f"; {len(runs)} sunlit parts (out of and back into the shadow), all rendered"
+    out = []
+    for run in runs:
+        dim = -2.5 * np.log10(dense.sun_fraction[run])
+        base = np.full(len(run), float(mag))
+        if lumos is not None:
+            from .geometry import nadir_angle
+            from .lumos_brightness import magnitudes
+            from .photometry import apparent_magnitude
+
+            # The mag at ref_range, face-on, that the streak model's cos/r^2 scaling turns
+            # into lumos's apparent magnitude here.
+            zenith = 90.0 - dense.alt_deg[run]
+            base = magnitudes(where.replace(".orbit", ".lumos"), lumos, dense, run) - \
+                apparent_magnitude(0.0, dense.range_km[run],
+                                   nadir_angle(dense.height_km[run], zenith), ref_range)
+        phi = np.where(np.isfinite(dense.phi_deg[run]), dense.phi_deg[run], 90.0)  # at zenith
+        values = [{"height": float(h), "zenith": float(90.0 - a), "phi": float(f),
+                   "mag": float(m + d), "range": float(r), "angular_speed": float(w)}
+                  for h, a, f, m, d, r, w in zip(dense.height_km[run], dense.alt_deg[run], phi,
+                                                 base, dim, dense.range_km[run],
+                                                 dense.angular_speed_rad_s[run])]
+        out.append((run, values))
+    return out, message
 
 
 def ccd_orbit_satellites(raw, satellites, shape, pointing):
@@ -334,19 +370,21 @@ def ccd_orbit_satellites(raw, satellites, shape, pointing):
             if key in sat:
                 raise SceneError(f"satellites[{i}].{key}: comes from the orbit (remove it)")
         dense = _orbit_pass(where, sat["orbit"], raw, exptime, pointing)
-        run, values, _ = _orbit_vertices(where, dense, _number(f"satellites[{i}].mag",
-                                                                sat.get("mag")))
-        rest = {k: v for k, v in sat.items() if k != "orbit"}
-        if run is None:
+        runs, _ = _orbit_vertices(where, dense, _number(f"satellites[{i}].mag", sat.get("mag")),
+                                  sat.get("lumos"), _number(f"satellites[{i}].ref_range",
+                                                            sat.get("ref_range", 550.0)))
+        rest = {k: v for k, v in sat.items() if k not in ("orbit", "lumos")}
+        if not runs:
             far = -9e5  # 50 deg off: nothing of it on the image
             vertices = [{"x": far, "y": far}, {"x": far + 1.0, "y": far}]
             out.append({**rest, "height": float(np.nanmean(dense.height_km)),
                         "track": {"vertices": vertices}})
             continue
-        x = (nx - 1) / 2 + dense.field_x_deg[run] / scale_deg
-        y = (ny - 1) / 2 + dense.field_y_deg[run] / scale_deg
-        vertices = [{"x": float(a), "y": float(b), **v} for a, b, v in zip(x, y, values)]
-        out.append({**rest, "height": values[0]["height"], "track": {"vertices": vertices}})
+        for run, values in runs:  # one streak (and TRUTH row) per sunlit part
+            x = (nx - 1) / 2 + dense.field_x_deg[run] / scale_deg
+            y = (ny - 1) / 2 + dense.field_y_deg[run] / scale_deg
+            vertices = [{"x": float(a), "y": float(b), **v} for a, b, v in zip(x, y, values)]
+            out.append({**rest, "height": values[0]["height"], "track": {"vertices": vertices}})
     return out
 
 
@@ -360,35 +398,63 @@ def vertex_model(fscene, i, values, pixel_scale=None):
     return StreakModel(height_km=values["height"], zenith_deg=values["zenith"],
                        phi_deg=values["phi"], shape=spec.shape, mag=values["mag"],
                        band_name=scene.band, seeing=Seeing(scene.seeing), telescope=telescope,
-                       ref_range_km=spec.ref_range)
+                       ref_range_km=spec.ref_range, range_km=values.get("range"),
+                       angular_speed_rad_s=values.get("angular_speed"))
 
 
 @lru_cache(maxsize=64)
-def _reach_px(model, angle, noise_sigma):
-    """Support across plus end cap along the track of the renderer's swept profile, px
-    (with the tolerance that :func:`inject.scene.render_tracks` would use at this noise)."""
-    budget = Budget()
-    if noise_sigma > 0:
-        tolerance = max(AUTO_MIN_TOLERANCE, NOISE_FRACTION * noise_sigma / model.peak_e_per_px)
-        if tolerance < budget.tolerance:
-            budget = replace(budget, tolerance=tolerance)
+def _reach_px(model, angle, budget):
+    """Support across plus end cap along the track of the renderer's swept profile, px."""
     plan = swept_profile(model, angle, budget).plan
     return float(plan.support_px + plan.cap_px)
 
 
-def margins_px(fscene):
-    """Each satellite's footprint margin (px): the largest reach over its vertices, at the
-    quieter sensor's noise (a tighter tolerance, so a wider footprint)."""
+#: Relative allowance on the sampled reach (:func:`margins_px`): the reach changes by < 0.1%
+#: between the sampled vertices of a LEO pass (tests/test_pass_truth.py checks the bound).
+REACH_ALLOWANCE = 0.01
+
+
+def _sampled(models, angles):
+    """Indices of the vertices whose reach bounds the others': the first and last, the
+    nearest and farthest (defocus and shape grow as 1/range), the brightest and faintest
+    charge per pixel, and the angle whose pixel projects widest across the track (45 deg)."""
+    ranges = [m.geometry.range_km for m in models]
+    fluxes = [m.flux_per_px for m in models]
+    slant = [abs(np.sin(2 * np.radians(a))) for a in angles]
+    return sorted({0, len(models) - 1, int(np.argmin(ranges)), int(np.argmax(ranges)),
+                   int(np.argmax(fluxes)), int(np.argmin(fluxes)), int(np.argmax(slant))})
+
+
+def margins_px(fscene, exhaustive=False):
+    """Each satellite's footprint margin (px): the reach of the renderer's swept profile
+    (with the tolerance :func:`inject.scene.render_tracks` uses at the quieter sensor's
+    noise: tighter, so wider), plus a pixel's diagonal.
+
+    The reach changes only where the vertex values do: for each tolerance the vertices take
+    (:func:`inject.scene.render_tracks` snaps it to a grid), it is computed at a few
+    vertices (:func:`_sampled`) and allowed :data:`REACH_ALLOWANCE` more, instead of at
+    every vertex (``exhaustive=True``, ~0.25 s a vertex).
+    """
+    from .scene import _own_budget
+
     noise = min(pixel_noise(replace(fscene.scene, detector=det)) for det in fp.SENSORS.values())
     out = []
-    for i, track in enumerate(fscene.tracks):
+    for i, whole in enumerate(fscene.tracks):
         reach = 0.0
-        for k, values in enumerate(track.values):
-            j = min(k, len(track.xs) - 2)
-            angle = float(np.degrees(np.arctan2(track.ys[j + 1] - track.ys[j],
-                                                track.xs[j + 1] - track.xs[j])))
-            reach = max(reach, _reach_px(vertex_model(fscene, i, values), round(angle, 9),
-                                         noise))
+        for track in whole.parts():
+            models = [vertex_model(fscene, i, values) for values in track.values]
+            angles = []
+            for k in range(len(models)):
+                j = min(k, len(track.xs) - 2)
+                angles.append(round(float(np.degrees(np.arctan2(
+                    track.ys[j + 1] - track.ys[j], track.xs[j + 1] - track.xs[j]))), 9))
+            budgets = [_own_budget(Budget(), m, noise) for m in models]
+            for budget in dict.fromkeys(budgets):
+                group = [k for k, b in enumerate(budgets) if b == budget]
+                picks = group if exhaustive else [group[k] for k in _sampled(
+                    [models[g] for g in group], [angles[g] for g in group])]
+                found = max(_reach_px(models[k], angles[k], budget) for k in picks)
+                reach = max(reach, found if exhaustive else found * (1 + REACH_ALLOWANCE))
         out.append(reach + 2.0)  # a pixel's diagonal, so no pixel centre within reach is missed
     return tuple(out)
 
@@ -431,10 +497,11 @@ def ccd_streaks(fscene, ccd, margins=None):
     margins = margins_px(fscene) if margins is None else margins
     shape = ccd_shape(fscene, ccd)
     out = []
-    for i, (track, margin) in enumerate(zip(fscene.tracks, margins)):
-        pieces = fp.clip_path(track.xs, track.ys, ccd.bounds_mm(margin, shape))
-        for run in _runs(pieces):
-            out.append(_ccd_streak(i, track, run, ccd))
+    for i, (whole, margin) in enumerate(zip(fscene.tracks, margins)):
+        for track in whole.parts():
+            pieces = fp.clip_path(track.xs, track.ys, ccd.bounds_mm(margin, shape))
+            for run in _runs(pieces):
+                out.append(_ccd_streak(i, track, run, ccd))
     return out
 
 
@@ -455,7 +522,7 @@ def _interpolate(track, k, t):
     x = track.xs[k] + t * (track.xs[k + 1] - track.xs[k])
     y = track.ys[k] + t * (track.ys[k + 1] - track.ys[k])
     a, b = track.values[k], track.values[k + 1]
-    return x, y, {key: a[key] + t * (b[key] - a[key]) for key in VERTEX_MODEL_KEYS}
+    return x, y, {key: a[key] + t * (b[key] - a[key]) for key in a}
 
 
 def _ccd_streak(i, track, run, ccd):
@@ -506,9 +573,44 @@ def plan(fscene, ccds=None, margins=None):
                         "streaks": [{"x0": s.ends[0], "y0": s.ends[1], "x1": s.ends[2],
                                      "y1": s.ends[3], "satellite": s.satellite}
                                     for s in streaks]})
-    return {"detectors": out,
-            "satellites": [{"satellite": i, "message": t.message}
-                           for i, t in enumerate(fscene.tracks) if t.message]}
+    return {"detectors": out, "satellites": satellite_records(fscene, margins)}
+
+
+#: Columns of OUTDIR/satellites.csv (:func:`satellite_records`).
+SATELLITE_FIELDS = ("satellite", "name", "source", "in_field", "sunlit", "ccds", "n_ccds",
+                    "flags", "message", "scene_sha256")
+
+
+def satellite_records(fscene, margins=None):
+    """One record per satellite of the exposure, whether it left a streak or not.
+
+    ``satellite`` (index in the scene), ``name`` (an orbit's), ``source`` (``track`` or
+    ``orbit``), ``in_field`` and ``sunlit`` (an orbit's pass; for a track, whether it reaches
+    a CCD, and None), ``ccds`` (space-separated names of the scene's CCDs its footprint
+    reaches: where it is rendered, whichever CCDs a run or ``--job`` slice asks for),
+    ``n_ccds``, ``flags`` (TRUTH's bits: ``FLAG_OFF_IMAGE`` when no CCD is reached),
+    ``message`` (why there is no streak, or how the pass goes) and the scene digest.
+    """
+    from .maskplanes import FLAG_OFF_IMAGE
+
+    margins = margins_px(fscene) if margins is None else margins
+    reached = [[] for _ in fscene.tracks]
+    for ccd in fscene.ccds:
+        for i in sorted({s.satellite for s in ccd_streaks(fscene, ccd, margins)}):
+            reached[i].append(ccd.name)
+    out = []
+    for i, (track, names) in enumerate(zip(fscene.tracks, reached)):
+        orbit = track.in_field is not None
+        message = track.message
+        if not names and (not orbit or track.xs):
+            message = (f"{message}; " if message else "") + \
+                "reaches none of the scene's CCDs (outside them or in a gap)"
+        out.append({"satellite": i, "name": track.name, "source": "orbit" if orbit else "track",
+                    "in_field": track.in_field if orbit else bool(names),
+                    "sunlit": track.sunlit, "ccds": " ".join(names), "n_ccds": len(names),
+                    "flags": 0 if names else FLAG_OFF_IMAGE, "message": message,
+                    "scene_sha256": fscene.digest})
+    return out
 
 
 # -------------------------------------------------------------------------------------------

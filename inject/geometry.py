@@ -106,7 +106,10 @@ def track_direction(height_km, zenith_deg, phi_deg=90.0):
 class Geometry:
     """Everything the streak depends on for one orbit height and line of sight (scalars).
 
-    Build it with :meth:`from_orbit`.
+    Build it with :meth:`from_orbit`. ``range_km`` and ``angular_speed_rad_s`` are the
+    paper's spherical-Earth values unless given explicitly (a real pass's exact ones, from
+    :func:`inject.orbits.compute_pass`); then ``t_eff = p / omega`` and the tangential speed
+    ``omega r`` follow them.
     """
 
     height_km: float
@@ -121,16 +124,28 @@ class Geometry:
     t_eff_s: float
 
     @classmethod
-    def from_orbit(cls, height_km, zenith_deg=0.0, phi_deg=90.0, pixel_scale_arcsec=0.2):
-        """Compute the geometry of a circular orbit seen at one zenith angle."""
-        omega = float(angular_speed(height_km, zenith_deg, phi_deg))
+    def from_orbit(cls, height_km, zenith_deg=0.0, phi_deg=90.0, pixel_scale_arcsec=0.2,
+                   range_km=None, angular_speed_rad_s=None):
+        """Compute the geometry of a circular orbit seen at one zenith angle.
+
+        ``range_km`` and ``angular_speed_rad_s`` (optional) replace the spherical-Earth range
+        and the angular speed across the star field (see the class docstring).
+        """
+        r = float(slant_range(height_km, zenith_deg) if range_km is None
+                  else positive("range_km", range_km))
+        if angular_speed_rad_s is None:
+            omega = float(angular_speed(height_km, zenith_deg, phi_deg))
+            v_t = float(tangential_speed(height_km, zenith_deg, phi_deg))
+            t_eff = float(effective_exposure(height_km, zenith_deg, phi_deg, pixel_scale_arcsec))
+        else:
+            omega = float(positive("angular_speed_rad_s", angular_speed_rad_s))
+            v_t = omega * r * 1e3
+            t_eff = float(positive("pixel_scale_arcsec", pixel_scale_arcsec)) / ARCSEC_PER_RAD \
+                / omega
         return cls(
             height_km=float(height_km), zenith_deg=float(zenith_deg), phi_deg=float(phi_deg),
             pixel_scale_arcsec=float(pixel_scale_arcsec),
             nadir_angle_deg=float(nadir_angle(height_km, zenith_deg)),
-            range_km=float(slant_range(height_km, zenith_deg)),
-            orbital_speed_m_s=float(orbital_speed(height_km)),
-            tangential_speed_m_s=float(tangential_speed(height_km, zenith_deg, phi_deg)),
-            angular_speed_rad_s=omega,
-            t_eff_s=float(effective_exposure(height_km, zenith_deg, phi_deg, pixel_scale_arcsec)),
+            range_km=r, orbital_speed_m_s=float(orbital_speed(height_km)),
+            tangential_speed_m_s=v_t, angular_speed_rad_s=omega, t_eff_s=t_eff,
         )

@@ -45,7 +45,7 @@ from .errors import InputError, OrbitError, OrbitWarning
 from .focalplane import focal_of_field_angle, rotation_matrix
 from .geometry import R_EARTH_KM
 from .photometry import apparent_magnitude
-from .validate import finite, in_range, positive
+from .validate import RANGES, check_pointing, finite, in_range, positive
 
 # Offline: never download Earth-orientation data; past the bundled table, warn and extrapolate.
 iers.conf.auto_download = False
@@ -58,11 +58,12 @@ EARTH_ROTATION_RAD_S = 7.292115855e-5
 #: Solar radius, km (astropy's IAU 2015 nominal value).
 R_SUN_KM = R_sun.to_value("km")
 #: A TLE epoch this many days from the exposure gives an OrbitWarning: SGP4's along-track error
-#: grows to km after a week or two for LEO (drag), i.e. the streak lands far from its true place.
-EPOCH_WARN_DAYS = 14.0
+#: grows to km after a week or two for LEO (drag), i.e. the streak lands far from its true place
+#: (RANGES' ``orbit.epoch_days`` row).
+EPOCH_WARN_DAYS = RANGES["orbit.epoch_days"].warn_hi
 #: Beyond this many days the TLE is refused (OrbitError): the predicted position is meaningless
 #: for a given exposure (tens to hundreds of km along track, i.e. degrees on the sky).
-EPOCH_REFUSE_DAYS = 60.0
+EPOCH_REFUSE_DAYS = RANGES["orbit.epoch_days"].hi
 #: Radius of the disc that counts as "the field", degrees of field angle. It encloses every
 #: LSSTCam science CCD (the outer corner of R01 is at 370 mm, ~2.06 deg); the focal-plane module
 #: decides which CCDs are actually crossed.
@@ -80,9 +81,9 @@ class Site:
     height_m: float = 2647.0
 
     def __post_init__(self):
-        in_range("site latitude", self.lat_deg, -90.0, 90.0, hi_open=False, scalar=True)
-        in_range("site longitude", self.lon_deg, -360.0, 360.0, hi_open=False, scalar=True)
-        in_range("site height", self.height_m, -500.0, 10000.0, scalar=True)
+        for key, value in (("lat", self.lat_deg), ("lon", self.lon_deg),
+                           ("height", self.height_m)):
+            RANGES[f"site.{key}"].check(value)
 
     @cached_property
     def location(self):
@@ -125,7 +126,7 @@ class Exposure:
 
     def __post_init__(self):
         object.__setattr__(self, "start", parse_time(self.start, "time"))
-        positive("exptime", self.exptime_s, scalar=True)
+        RANGES["exptime"].check(self.exptime_s)
 
     def sample_times(self, step_s=1.0):
         """Seconds from the start: 0 to ``exptime_s``, at most ``step_s`` apart, with the middle.
@@ -156,9 +157,7 @@ class Pointing:
     rotation_deg: float = 0.0
 
     def __post_init__(self):
-        finite("ra", self.ra_deg, scalar=True)
-        in_range("dec", self.dec_deg, -90.0, 90.0, hi_open=False, scalar=True)
-        finite("rotation", self.rotation_deg, scalar=True)
+        check_pointing({"ra": self.ra_deg, "dec": self.dec_deg, "rotation": self.rotation_deg})
 
     @property
     def icrs(self):
@@ -186,6 +185,83 @@ focal_to_sky = sky_to_focal
 #: Keys of a circular orbit (:meth:`Orbit.circular`'s elements; ``epoch`` optional), as the
 #: ``orbit:`` scene key and ``inject pass --orbit`` take them.
 CIRCULAR_ORBIT_KEYS = ("height", "inclination", "raan", "mean_anomaly", "epoch")
+
+def orbit_from_spec(spec, time, where="orbit"):
+    """The one parser of an orbit given as a mapping: a scene's ``orbit:`` and ``inject
+    pass``'s ``--tle``/``--orbit``.
+
+    Parameters
+    ----------
+    spec : mapping
+        ``{tle: FILE}``, ``{tle: [line1, line2]}`` or the circular-orbit keys
+        :data:`CIRCULAR_ORBIT_KEYS` (``epoch`` optional, default ``time``); numbers may be
+        strings (from a command line). Each is checked against :data:`~inject.validate.RANGES`
+        (``orbit.height`` etc.).
+    time : Time or str
+        The exposure start (the default epoch).
+    where : str
+        How the user wrote it, for messages (``satellites[0].orbit``, ``--orbit``).
+
+    Raises
+    ------
+    InputError, OrbitError
+    """
+    if not isinstance(spec, dict):
+        raise InputError(where, spec, "must be {tle: FILE or [line1, line2]} or "
+                                      "{height, inclination, raan, mean_anomaly[, epoch]}")
+    unknown = sorted(set(spec) - {"tle", *CIRCULAR_ORBIT_KEYS})
+    if unknown:
+        raise InputError(f"{where}.{unknown[0]}", spec[unknown[0]],
+                         f"unknown key (known: tle, {', '.join(CIRCULAR_ORBIT_KEYS)})")
+    if "tle" in spec:
+        if set(spec) != {"tle"}:
+            raise InputError(where, sorted(spec), "'tle' takes no other key")
+        tle = spec["tle"]
+        if isinstance(tle, str):
+            return Orbit.read_tle(tle)
+        if isinstance(tle, (list, tuple)) and len(tle) == 2:
+            return Orbit.from_tle(*tle)
+        raise InputError(f"{where}.tle", tle, "a TLE file name or [line1, line2]")
+    missing = [k for k in CIRCULAR_ORBIT_KEYS[:4] if k not in spec]
+    if missing:
+        raise InputError(where, sorted(spec), f"needs {', '.join(missing)} (or tle)")
+    numbers = []
+    for k in CIRCULAR_ORBIT_KEYS[:4]:
+        value = spec[k]
+        if isinstance(value, str):
+            try:
+                value = float(value)
+            except ValueError:
+                raise InputError(f"{where}.{k}", value, "must be a number") from None
+        numbers.append(value)
+    epoch = parse_time(spec.get("epoch", time), f"{where}.epoch")
+    return Orbit.circular(*numbers, epoch, name="orbit", where=where)
+
+
+def site_from_spec(spec, where="site"):
+    """The one parser of a site: None (Rubin), ``{lat, lon, height}``, ``[lat, lon, height]``
+    or ``"LAT,LON,M"`` (deg, deg, m; checked against RANGES' ``site.*`` rows)."""
+    if spec is None:
+        return RUBIN
+    given = spec
+    if isinstance(spec, str):
+        spec = [v.strip() for v in spec.split(",")]
+    if isinstance(spec, dict):
+        if set(spec) != {"lat", "lon", "height"}:
+            raise InputError(where, spec, "needs exactly lat, lon, height (deg, deg, m)")
+        spec = [spec["lat"], spec["lon"], spec["height"]]
+    if not isinstance(spec, (list, tuple)) or len(spec) != 3:
+        raise InputError(where, given, "must be LAT,LON,M or {lat, lon, height} (deg, deg, m)")
+    values = []
+    for key, value in zip(("lat", "lon", "height"), spec):
+        if isinstance(value, str):
+            try:
+                value = float(value)
+            except ValueError:
+                raise InputError(where, given, "must be LAT,LON,M (deg, deg, m)") from None
+        values.append(RANGES[f"site.{key}"].check(value, f"{where} {key}"))
+    return Site(*values)
+
 
 def _tle_checksum_ok(line):
     return len(line) >= 69 and line[68].isdigit() and int(line[68]) == compute_checksum(line)
@@ -260,18 +336,20 @@ class Orbit:
 
     @classmethod
     def circular(cls, height_km, inclination_deg, raan_deg, mean_anomaly_deg, epoch,
-                 name="circular", satnum=99999):
+                 name="circular", satnum=99999, where="orbit"):
         """A circular orbit as SGP4 mean elements (eccentricity 0, no drag).
 
         ``height_km`` is the height of the Brouwer mean semi-major axis above
         :data:`~inject.geometry.R_EARTH_KM`; SGP4 adds the J2 secular drift (nodal precession) and
         the short-period terms (the radius oscillates by a few km about it). ``mean_anomaly_deg``
-        is the argument of latitude at ``epoch`` (deg from the ascending node).
+        is the argument of latitude at ``epoch`` (deg from the ascending node). The elements
+        are checked against :data:`~inject.validate.RANGES` (``orbit.*``; messages name them
+        ``<where>.<key>``).
         """
-        h = positive("height", height_km, scalar=True)
-        inc = in_range("inclination", inclination_deg, 0.0, 180.0, hi_open=False, scalar=True)
-        raan = finite("raan", raan_deg, scalar=True) % 360.0
-        ma = finite("mean_anomaly", mean_anomaly_deg, scalar=True) % 360.0
+        h, inc, raan, ma = (RANGES[f"orbit.{k}"].check(v, f"{where}.{k}") for k, v in (
+            ("height", height_km), ("inclination", inclination_deg), ("raan", raan_deg),
+            ("mean_anomaly", mean_anomaly_deg)))
+        raan, ma = raan % 360.0, ma % 360.0
         epoch = parse_time(epoch, "epoch")
         a_er = (R_EARTH_KM + h) / _wgs72_radius_km()
         # sgp4init takes the Kozai mean motion and derives the Brouwer one (and Satrec.a) from

@@ -196,7 +196,8 @@ def _grouped(models, tracks, budgets):
     return [i for members in groups.values() for i in members]
 
 
-_VERTEX_FIELDS = {"height": "height_km", "zenith": "zenith_deg", "phi": "phi_deg", "mag": "mag"}
+_VERTEX_FIELDS = {"height": "height_km", "zenith": "zenith_deg", "phi": "phi_deg", "mag": "mag",
+                  "range": "range_km", "angular_speed": "angular_speed_rad_s"}
 
 
 def _render_polyline_track(image, model, track, budget, cache=PROFILE_CACHE):

@@ -40,6 +40,11 @@ class StreakModel:
         Pupil and plate scale.
     ref_range_km : float
         Range at which ``mag`` is given.
+    range_km, angular_speed_rad_s : float, optional
+        A real pass's exact range and angular speed across the tracked star field
+        (:func:`inject.orbits.compute_pass`), in place of the paper's spherical-Earth values
+        from (height, zenith, phi): ``t_eff``, the charge per pixel, the defocus and the
+        shape's angular size then follow the pass. None (the default): the paper's.
 
     Raises
     ------
@@ -57,6 +62,8 @@ class StreakModel:
     seeing: Seeing = Seeing()
     telescope: object = LSST
     ref_range_km: float = 550.0
+    range_km: float | None = None
+    angular_speed_rad_s: float | None = None
 
     def __post_init__(self):
         # Wrong types would otherwise fail much later, as an AttributeError or TypeError.
@@ -68,6 +75,9 @@ class StreakModel:
                 raise InputError(name, getattr(self, name), f"must be {what}")
         for name in ("height_km", "zenith_deg", "phi_deg", "mag", "ref_range_km"):
             finite(name, getattr(self, name), scalar=True)  # not an array, a string or None
+        for name in ("range_km", "angular_speed_rad_s"):
+            if getattr(self, name) is not None:
+                positive(name, getattr(self, name), scalar=True)
         positive("ref_range_km", self.ref_range_km)
         if not isinstance(self.band_name, str):
             raise InputError("band", self.band_name, "must be a band name such as 'g'")
@@ -78,15 +88,17 @@ class StreakModel:
     def geometry(self):
         """The :class:`~inject.geometry.Geometry` of this pass."""
         return Geometry.from_orbit(self.height_km, self.zenith_deg, self.phi_deg,
-                                   self.telescope.pixel_scale_arcsec)
+                                   self.telescope.pixel_scale_arcsec, self.range_km,
+                                   self.angular_speed_rad_s)
 
     @property
     def profile_key(self):
         """What the stationary profile (and so every table built from it) depends on: the
         geometry, shape, seeing and telescope; not the magnitude or band, which only scale
-        the charge. Models with equal keys share swept profiles (:mod:`inject.render`)."""
+        the charge; the range override (the defocus) but not the angular speed's. Models
+        with equal keys share swept profiles (:mod:`inject.render`)."""
         return (self.height_km, self.zenith_deg, self.phi_deg, self.shape, self.seeing,
-                self.telescope)
+                self.telescope, self.range_km)
 
     @property
     def pixel_scale(self):

@@ -217,9 +217,29 @@ RANGES = {r.name: r for r in (
     Range("stars.mag_bright", "AB mag", -2, 30, "Sirius, the brightest star, is -1.5"),
     Range("stars.density_per_deg2", "per deg^2", 0, 1e8, "1e8 per deg^2 is a star every 3 px",
           lo_open=True),
-    Range("pointing.ra", "deg", 0, 360, "right ascension", hi_open=True, options="add-streak --ra0"),
-    Range("pointing.dec", "deg", -90, 90, "declination", options="add-streak --dec0"),
-    Range("pointing.rotation", "deg", -_INF, _INF, "any angle"),
+    Range("pointing.ra", "deg", 0, 360, "right ascension", hi_open=True,
+          options="add-streak --ra0, pass --ra"),
+    Range("pointing.dec", "deg", -90, 90, "declination", options="add-streak --dec0, pass --dec"),
+    Range("pointing.rotation", "deg", -_INF, _INF, "any angle", options="pass --rotation"),
+    Range("orbit.height", "km", 80, 1e6, "a perigee below 80 km has decayed; at 1e6 km the "
+          "Sun's pull matters more than the Earth's", warn_hi=4e5,
+          warn_why="beyond the Moon (384 400 km) nothing is an Earth satellite",
+          options="pass --orbit height"),
+    Range("orbit.inclination", "deg", 0, 180, "0 prograde equatorial, 180 retrograde",
+          options="pass --orbit inclination"),
+    Range("orbit.raan", "deg", -_INF, _INF, "any angle (taken modulo 360)",
+          options="pass --orbit raan"),
+    Range("orbit.mean_anomaly", "deg", -_INF, _INF, "any angle (the argument of latitude at "
+          "the epoch, taken modulo 360)", options="pass --orbit mean_anomaly"),
+    Range("orbit.epoch_days", "days", 0, 60, "|epoch - exposure start| of a TLE or orbit: "
+          "SGP4's along-track error for LEO reaches tens to hundreds of km (degrees on the "
+          "sky) in two months", warn_hi=14, warn_why="after a week or two the position may be "
+          "km off (drag)", options="pass --tle, pass --orbit epoch"),
+    Range("site.lat", "deg", -90, 90, "geodetic latitude", options="pass --site"),
+    Range("site.lon", "deg", -360, 360, "geodetic longitude (east positive)",
+          options="pass --site"),
+    Range("site.height", "m", -500, 10000, "above the WGS84 ellipsoid: the Dead Sea shore to "
+          "above Everest", options="pass --site"),
     Range("height", "km", 100, _INF, "nothing orbits below ~100 km, and the speed is a "
           "circular orbit's", warn_hi=4e5,
           warn_why="beyond the Moon (384 400 km) nothing is an Earth satellite, and the "
@@ -227,6 +247,10 @@ RANGES = {r.name: r for r in (
     Range("mag", "AB mag", -30, 100, "-30 is brighter than the Sun, at -26.7", warn_lo=-10,
           warn_why="brighter than any satellite seen (Iridium flares reached -9.5)", options="--mag, evaluate --mags"),
     Range("phi", "deg", -_INF, _INF, "any angle (the velocity's direction)", options="--phi"),
+    Range("range", "km", 0, 1e6, "a polyline vertex's exact range (an orbit's vertices carry "
+          "it), in place of the spherical-Earth one", lo_open=True),
+    Range("angular_speed", "rad/s", 0, 1, "a polyline vertex's exact angular speed across the "
+          "star field (an orbit's vertices carry it); LEO at zenith is ~0.014", lo_open=True),
     Range("ref_range", "km", 1, 1e6, "magnitudes are quoted at 550 or 1000 km", options="--ref-range"),
     Range("size", "m", 0, 200, "the shape's largest extent, box diagonal, disk diameter or "
           "composite span; the ISS, the largest satellite, is 109 m", lo_open=True, options="--length, --width, --radius"),
@@ -250,13 +274,46 @@ def check(quantity, value, name=None):
     return RANGES[quantity].check(value, name)
 
 
+def check_pointing(pointing, names=None):
+    """The one check of a pointing ``{ra, dec[, rotation]}`` (deg): :data:`RANGES`' rows
+    ``pointing.ra``, ``pointing.dec``, ``pointing.rotation``.
+
+    Parameters
+    ----------
+    pointing : mapping
+    names : mapping, optional
+        How the user wrote each key (``{"ra": "--ra", ...}``); default ``pointing.<key>``.
+
+    Returns
+    -------
+    ra, dec, rotation : float
+
+    Raises
+    ------
+    InputError
+        Not a mapping with numeric ``ra`` and ``dec``, or a value out of its range.
+    """
+    names = names or {}
+    if not hasattr(pointing, "get") or pointing.get("ra") is None or \
+            pointing.get("dec") is None:
+        raise InputError("pointing", pointing, "needs numeric ra and dec (deg), optional "
+                                               "rotation")
+    out = []
+    for k in ("ra", "dec", "rotation"):
+        value = pointing.get(k, 0.0)
+        if isinstance(value, numbers.Real) and not isinstance(value, bool):
+            value = float(value)  # named as a float, as every scene number
+        out.append(RANGES[f"pointing.{k}"].check(value, names.get(k, f"pointing.{k}")))
+    return tuple(out)
+
+
 def ranges_markdown():
     """The README's table of :data:`RANGES` (markdown)."""
     lines = ["| scene key | options | unit | accepted | warned | why |",
              "|---|---|---|---|---|---|"]
     for r in RANGES.values():
         why = r.why + (f"; warned: {r.warn_why}" if r.warn_why else "")
-        options = ", ".join(f"`{o.strip()}`" if o.strip().startswith(("-", "add", "eval"))
+        options = ", ".join(f"`{o.strip()}`" if o.strip().startswith(("-", "add", "eval", "pass"))
                             else o.strip() for o in r.options.split(",")) if r.options else ""
         lines.append(f"| `{r.name}` | {options} | {r.unit} | {r.bounds()} | {r.plausible()} "
                      f"| {why} |")

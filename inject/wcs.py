@@ -1,8 +1,9 @@
 """Celestial WCS of a CCD from a pointing (TAN projection)."""
 from astropy.wcs import WCS
 
-from .errors import SceneError
+from .errors import InputError, SceneError
 from .focalplane import rotation_matrix
+from .validate import check_pointing
 
 
 def pointing_wcs(pointing, shape, pixel_scale_arcsec, crpix=None):
@@ -22,13 +23,9 @@ def pointing_wcs(pointing, shape, pixel_scale_arcsec, crpix=None):
         the boresight passes its own offset here).
     """
     try:
-        ra, dec = float(pointing["ra"]), float(pointing["dec"])
-        rotation = float(pointing.get("rotation", 0.0))
-    except (KeyError, TypeError, ValueError):
-        raise SceneError(f"pointing={pointing!r}: needs numeric ra and dec (deg), "
-                         "optional rotation") from None
-    if not (0 <= ra < 360 and -90 <= dec <= 90):
-        raise SceneError(f"pointing={pointing!r}: ra must be in [0, 360), dec in [-90, 90]")
+        ra, dec, rotation = check_pointing(pointing)
+    except InputError as err:
+        raise SceneError(str(err)) from None
     ny, nx = shape
     if crpix is None:
         crpix = ((nx - 1) / 2, (ny - 1) / 2)

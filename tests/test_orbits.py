@@ -134,8 +134,18 @@ def test_bad_checksum_is_refused(sat):
 
 
 def test_decayed_orbit_is_refused():
-    with pytest.raises(OrbitError, match="decayed"):
+    from inject.errors import InputError
+
+    # A circular orbit's height by the input-ranges table (orbit.height >= 80 km) ...
+    with pytest.raises(InputError, match="orbit.height=50.0: .*decayed"):
         Orbit.circular(50.0, 53.0, 0.0, 0.0, Time(START))
+    # ... any element set (a TLE) by its perigee.
+    from sgp4.io import compute_checksum
+
+    l1, l2 = Orbit.circular(550.0, 53.0, 0.0, 0.0, Time(START)).tle_lines()
+    l2 = l2[:26] + "0700000" + l2[33:68]  # eccentricity 0.07: perigee ~40 km
+    with pytest.raises(OrbitError, match="perigee height .* decayed"):
+        Orbit.from_tle(l1, l2 + str(compute_checksum(l2)))
 
 
 def test_epoch_far_from_exposure_warns_then_refuses(sat):

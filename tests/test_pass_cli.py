@@ -181,12 +181,29 @@ def test_bad_tle_file(tmp_path, capsys, edit, what):
     (["--orbit", "height=550,inclination=53,raan=10,mean_anomaly=4,colour=red"], "colour"),
     (["--tle", str(TLE), "--site", "30,70"], "30,70"),
     (["--tle", str(TLE), "--exptime", "-1"], "-1"),
+    # The input-ranges table (inject.validate.RANGES) on every value of inject pass:
+    (["--tle", str(TLE), "--exptime", "4000"], "--exptime=4000.0: must be > 0 and <= 3600"),
+    (["--orbit", "height=550,inclination=200,raan=0,mean_anomaly=0"],
+     "--orbit.inclination=200.0: must be >= 0 and <= 180"),
+    (["--orbit", "height=20,inclination=50,raan=0,mean_anomaly=0"],
+     "--orbit.height=20.0: must be >= 80"),
+    (["--orbit", "height=550,inclination=50,raan=x,mean_anomaly=0"],
+     "--orbit.raan='x': must be a number"),
+    (["--orbit", f"height=550,inclination=50,raan=0,mean_anomaly=0,epoch={'2026-01-01'}"],
+     "more than 60 is refused"),
+    (["--tle", str(TLE), "--site", "-95,-70,2000"], "--site lat=-95.0: must be >= -90"),
+    (["--tle", str(TLE), "--site", "-30,-70,20000"], "--site height=20000.0: must be >= -500 "
+                                                      "and <= 10000 m"),
+    (["--tle", str(TLE), "--ra", "400"], "--ra=400.0: must be >= 0 and < 360"),
+    (["--tle", str(TLE), "--dec", "-91"], "--dec=-91.0: must be >= -90"),
 ])
 def test_bad_options_one_line(capsys, args, named):
     base = {"--time": START, "--exptime": "30", "--ra": str(RA), "--dec": str(DEC)}
     for k, v in zip(args[::2], args[1::2]):
         base[k] = v
-    argv = ["pass"] + [item for kv in base.items() for item in kv]
+    # (a value starting with '-' needs KEY=VALUE, as the help of --site says)
+    argv = ["pass"] + [item for k, v in base.items()
+                       for item in ([f"{k}={v}"] if v.startswith("-") else [k, v])]
     status = main(argv)
     _, err = capsys.readouterr()
     assert status == 2 and len(err.strip().splitlines()) == 1 and named in err
@@ -235,7 +252,9 @@ def test_plan_of_the_orbit_scene_matches_inject_pass(capsys, monkeypatch):
         dx = np.maximum(np.maximum(bx0 - (x0 + tt * (x1 - x0)), 0), (x0 + tt * (x1 - x0)) - bx1)
         dy = np.maximum(np.maximum(by0 - (y0 + tt * (y1 - y0)), 0), (y0 + tt * (y1 - y0)) - by1)
         assert np.hypot(dx, dy).min() < 3.0  # mm: 300 px, more than the footprint's reach
-    assert plan["satellites"] == [{"satellite": 0, "message": "crosses the field, sunlit"}]
+    (record,) = plan["satellites"]
+    assert record["message"] == "crosses the field, sunlit" and record["sunlit"]
+    assert set(record["ccds"].split()) == names and record["in_field"]
 
 
 def test_orbit_track_vertices_carry_the_pass():
@@ -255,13 +274,15 @@ def test_orbit_track_vertices_carry_the_pass():
         assert values["zenith"] == pytest.approx(90 - dense.alt_deg[i], abs=1e-9)
         assert values["phi"] == pytest.approx(dense.phi_deg[i], abs=1e-9)
         assert values["mag"] == pytest.approx(5.0)  # sunlit: the reference magnitude
-        # The streak model's own range from (height, zenith) on the paper's spherical Earth is
-        # the pass's range to 0.5% (the site's 2.6 km height and the geoid), so its brightness
-        # is Pass.magnitude to ~0.01 mag.
+        # The vertex carries the pass's exact range and angular speed (the spherical Earth's
+        # would be 0.5% and 3.5% off), so the model's brightness is Pass.magnitude's (the
+        # nadir angle is still the spherical Earth's: < 0.01 mag).
         from inject.focalscene import vertex_model
         model = vertex_model(fscene, 0, values)
-        assert model.geometry.range_km == pytest.approx(dense.range_km[i], rel=5e-3)
-        assert model.apparent_mag == pytest.approx(Pass.magnitude(dense, 5.0)[i], abs=0.02)
+        assert model.geometry.range_km == pytest.approx(dense.range_km[i], rel=1e-12)
+        assert model.geometry.angular_speed_rad_s == pytest.approx(
+            dense.angular_speed_rad_s[i], rel=1e-12)
+        assert model.apparent_mag == pytest.approx(Pass.magnitude(dense, 5.0)[i], abs=0.01)
 
 
 @pytest.mark.parametrize("changes, why", [
@@ -301,6 +322,18 @@ def test_orbit_scene_without_a_streak_says_why(changes, why, capsys):
                                 "mean_anomaly": 0}}]}, "comes from the orbit"),
     ({"satellites": [{"mag": 5, "shape": {"type": "box", "length": 7, "width": 2},
                       "orbit": {"height": 550, "inclination": 53}}]}, "raan"),
+    # The same table and parser as inject pass's --orbit and --site:
+    ({"satellites": [{"mag": 5, "shape": {"type": "box", "length": 7, "width": 2},
+                      "orbit": {"height": 550, "inclination": -3, "raan": 0,
+                                "mean_anomaly": 0}}]},
+     r"^satellites\[0\]\.orbit\.inclination=-3: must be >= 0 and <= 180"),
+    ({"satellites": [{"mag": 5, "shape": {"type": "box", "length": 7, "width": 2},
+                      "orbit": {"height": 550, "inclination": 53, "raan": 0,
+                                "mean_anomaly": 0, "epoch": "2026-01-01"}}]},
+     "more than 60 is refused"),
+    ({"site": {"lat": -30, "lon": -70, "height": 1e5}}, "site height=100000.0: must be"),
+    ({"site": [-30, -70]}, "site=\\[-30, -70\\]: must be LAT,LON,M"),
+    ({"pointing": {"ra": 151.95, "dec": 95}}, r"pointing\.dec=95"),
 ])
 def test_bad_orbit_scene(change, named):
     from inject.errors import SceneError
@@ -414,3 +447,106 @@ def test_ccd_scene_orbit_that_misses_says_why():
     assert all(v["x"] < -1e5 for v in scene.satellites[0].track.vertices)  # off the image
     with pytest.raises(SceneError, match="pointing: required with an orbit"):
         parse_scene({k: v for k, v in raw.items() if k != "pointing"})
+
+
+def _terminator_pass(aim_s=5.0):
+    """The example shell aimed east near the terminator: in the field, through the penumbra
+    into the umbra (as in the test above), the pointing on where it appears ``aim_s`` after
+    the start. Returns the orbit, exposure and pointing."""
+    from astropy.time import Time
+
+    from inject.orbits import aimed_orbit
+
+    t_aim = Time("2026-06-15T23:27:00")
+    orbit = aimed_orbit(t_aim, 60.0, 90.0)
+    exposure = Exposure(t_aim + 5 * u.s, 10.0)
+    first = compute_pass(orbit, exposure, Pointing(0.0, 0.0), t_s=[aim_s])
+    frame = AltAz(obstime=first.utc[0], location=RUBIN.location)
+    c = SkyCoord(az=first.apparent_az_deg[0] * u.deg, alt=first.apparent_alt_deg[0] * u.deg,
+                 frame=frame).transform_to(ICRS())
+    return orbit, exposure, Pointing(float(c.ra.deg), float(c.dec.deg))
+
+
+def _pass_args(orbit, exposure, pointing, tmp_path):
+    tle = tmp_path / "sat.tle"
+    tle.write_text("\n".join(orbit.tle_lines()) + "\n")
+    return ("--tle", tle, "--time", exposure.start.isot, "--exptime", exposure.exptime_s,
+            "--ra", pointing.ra_deg, "--dec", pointing.dec_deg)
+
+
+def test_pass_lists_only_the_sunlit_ccds_as_focalplane_renders(capsys, tmp_path):
+    """`inject pass`'s detectors are the CCDs the focal-plane scene's (sunlit) track crosses;
+    those crossed only in the umbra are listed apart, with no streak."""
+    from inject.focalscene import parse_focal_scene
+
+    orbit, exposure, pointing = _terminator_pass(aim_s=8.0)  # umbra entry in the field
+    report, _ = run_json(capsys, *_pass_args(orbit, exposure, pointing, tmp_path))
+    raw = _scene(exptime=exposure.exptime_s, time=exposure.start.isot,
+                 pointing={"ra": pointing.ra_deg, "dec": pointing.dec_deg})
+    raw["satellites"] = [{**raw["satellites"][0], "orbit": {"tle": list(orbit.tle_lines())}}]
+    track = parse_focal_scene(raw).tracks[0]
+    rendered = set()
+    for part in track.parts():
+        rendered.update(c.name for c in fp.ccds_reached(part.xs, part.ys))
+    assert rendered and set(report["detectors"]) == rendered
+    assert report["detectors_in_shadow"]  # the umbra part crosses CCDs too
+    assert not rendered & set(report["detectors_in_shadow"])
+    assert report["in_field"]
+
+
+def test_pass_in_shadow_crosses_ccds_but_lists_none(capsys, tmp_path):
+    from astropy.time import Time
+
+    from inject.orbits import aimed_orbit
+
+    t = Time("2026-06-15T23:30:00")
+    orbit = aimed_orbit(t, 60.0, 90.0)  # east at this time: in Earth's shadow
+    frame = AltAz(obstime=t, location=RUBIN.location)
+    c = SkyCoord(az=90 * u.deg, alt=60 * u.deg, frame=frame).transform_to(ICRS())
+    report, _ = run_json(capsys, *_pass_args(orbit, Exposure(t - 2 * u.s, 4.0),
+                                             Pointing(float(c.ra.deg), float(c.dec.deg)),
+                                             tmp_path))
+    assert report["detectors"] == [] and report["detectors_in_shadow"]
+    assert report["in_field"] and "shadow" in report["message"]
+
+
+def test_every_sunlit_part_is_rendered(monkeypatch):
+    """A pass that leaves Earth's shadow and re-enters it in one exposure (made here by
+    darkening the middle of the example pass) renders both sunlit parts, with the gap
+    between them dark: no CCD streak covers the shadowed stretch."""
+    from inject import focalscene
+    from inject.focalscene import ccd_streaks, margins_px, parse_focal_scene
+
+    real = focalscene._orbit_pass
+
+    def darkened(*args, **kwargs):
+        dense = real(*args, **kwargs)
+        dark = (dense.t_s > 1.5) & (dense.t_s < 2.5)
+        dense.sun_fraction = np.where(dark, 0.0, dense.sun_fraction)
+        return dense
+
+    monkeypatch.setattr(focalscene, "_orbit_pass", darkened)
+    fscene = parse_focal_scene(_scene(exptime=4, time="2026-06-15T23:29:58"))
+    track = fscene.tracks[0]
+    parts = track.parts()
+    assert len(parts) == 2 and "2 sunlit parts" in track.message
+    dense = darkened("x", _scene()["satellites"][0]["orbit"],
+                     {"time": "2026-06-15T23:29:58"}, 4.0, fscene.pointing)
+    x, y = dense.focal_mm()
+    t_of = [dense.t_s[[int(np.nanargmin(np.hypot(x - a, y - b))) for a, b in zip(p.xs, p.ys)]]
+            for p in parts]
+    assert t_of[0].max() <= 1.5 and t_of[1].min() >= 2.5  # each part on its own side
+    margins = margins_px(fscene)
+    pieces = [(ccd, s) for ccd in fscene.ccds for s in ccd_streaks(fscene, ccd, margins)]
+    assert pieces
+    # No rendered piece bridges the gap: every segment of every piece stays > 0.5 mm from
+    # the shadowed samples (the satellite moves ~5 mm per 0.1 s).
+    gap = (dense.t_s > 1.6) & (dense.t_s < 2.4)
+    gx, gy = x[gap], y[gap]
+    for ccd, s in pieces:
+        xm, ym = ccd.pixel_to_focal(np.array([v["x"] for v in s.track.vertices]),
+                                    np.array([v["y"] for v in s.track.vertices]))
+        for x0, y0, x1, y1 in zip(xm[:-1], ym[:-1], xm[1:], ym[1:]):
+            dx, dy = x1 - x0, y1 - y0
+            t = np.clip(((gx - x0) * dx + (gy - y0) * dy) / (dx * dx + dy * dy), 0, 1)
+            assert np.hypot(x0 + t * dx - gx, y0 + t * dy - gy).min() > 0.5

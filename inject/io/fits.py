@@ -37,13 +37,10 @@ def primary_header(scene, primary_cards=None):
     hdr["BAND"] = (scene.band, "LSST filter")
     hdr["FILTER"] = (scene.band, "band (afw FilterLabel band)")
     hdr["EXPTIME"] = (scene.exptime, "[s] exposure time")
-    start = getattr(scene, "time", None)  # scenes with an exposure start (UTC) only
-    if start is not None:
-        from astropy.time import Time, TimeDelta
+    from ..config import time_cards
 
-        middle = Time(start, scale="utc") + TimeDelta(scene.exptime / 2, format="sec")
-        hdr["DATE-AVG"] = (middle.tai.isot, "middle of the exposure (TAI)")
-        hdr["TIMESYS"] = ("TAI", "time scale of DATE-AVG")
+    for key, card in time_cards(scene).items():  # a scene with an exposure start (time:)
+        hdr[key] = card
     pointing = scene.pointing
     if pointing is not None:
         rotation = float(pointing.get("rotation", 0.0))

@@ -1,0 +1,106 @@
+"""Optional satellite brightness from lumos-sat's BRDF models (``pip install lumos-sat
+--no-deps``), in place of the paper's scaling, for an orbit's streak.
+
+A satellite of an ``orbit:`` scene may give ``lumos: {surfaces: [...], earthshine: false,
+earth_albedo: 0.3}``: each surface ``{area: m^2, normal: [x, y, z], brdf: {type: lambertian,
+albedo} | {type: phong, Kd, Ks, n} | {type: abg, A, B, g}}``, normals in lumos's brightness
+frame (z away from the Earth's centre, the Sun in the y-z plane at +y). Each vertex of the
+pass then gets lumos's AB magnitude at that instant (Sun and satellite alt/az from the site,
+height above lumos's spherical Earth), dimmed by the pass's penumbra; it is turned into the
+``mag`` the streak model scales with ``cos(theta_N) / r^2`` so that the model's apparent
+magnitude is lumos's.
+
+lumos computes earthshine only with an Earth BRDF (with none it calls ``None``): with
+``earthshine: true`` the Earth is Lambertian of albedo ``earth_albedo`` (0.3 by default).
+"""
+import numpy as np
+
+from .errors import SceneError
+
+#: lumos's magnitude is in V-ish light at 532 nm (lumos.constants.WAVELENGTH).
+BRDF_KEYS = {"lambertian": ("albedo",), "phong": ("Kd", "Ks", "n"), "abg": ("A", "B", "g")}
+#: The faintest magnitude given to a vertex lumos sees dark (surfaces turned away).
+DARK_MAG = 99.0
+
+
+def _lumos():
+    try:
+        import lumos.brdf.library
+        import lumos.calculator
+        import lumos.conversions
+        import lumos.geometry
+    except ImportError:
+        raise SceneError("lumos: needs lumos-sat (pip install lumos-sat --no-deps)") from None
+    return lumos
+
+
+def surfaces(where, spec):
+    """lumos ``Surface`` objects and options from a ``lumos:`` mapping.
+
+    Returns
+    -------
+    surfaces : list of lumos.geometry.Surface
+    earth_brdf : callable or None
+        None: no earthshine.
+    """
+    from .config import _check_keys, _number
+
+    lumos = _lumos()
+    _check_keys(where, spec, {"surfaces", "earthshine", "earth_albedo"}, {"surfaces"})
+    items = spec["surfaces"]
+    if not isinstance(items, list) or not items:
+        raise SceneError(f"{where}.surfaces: needs a list of surfaces")
+    out = []
+    for j, surface in enumerate(items):
+        here = f"{where}.surfaces[{j}]"
+        _check_keys(here, surface, {"area", "normal", "brdf"}, {"area", "normal", "brdf"})
+        area = _number(f"{here}.area", surface["area"])
+        if not area > 0:
+            raise SceneError(f"{here}.area={area}: must be > 0 (m^2)")
+        normal = surface["normal"]
+        if not isinstance(normal, list) or len(normal) != 3:
+            raise SceneError(f"{here}.normal={normal!r}: needs [x, y, z]")
+        n = np.array([_number(f"{here}.normal", v) for v in normal])
+        if not np.linalg.norm(n) > 0:
+            raise SceneError(f"{here}.normal={normal!r}: must not be zero")
+        brdf = surface["brdf"]
+        kind = brdf.get("type") if isinstance(brdf, dict) else None
+        if kind not in BRDF_KEYS:
+            raise SceneError(f"{here}.brdf={brdf!r}: needs type: one of {', '.join(BRDF_KEYS)}")
+        _check_keys(f"{here}.brdf", brdf, {"type", *BRDF_KEYS[kind]}, {"type", *BRDF_KEYS[kind]})
+        params = [_number(f"{here}.brdf.{k}", brdf[k]) for k in BRDF_KEYS[kind]]
+        make = getattr(lumos.brdf.library, kind.upper())
+        out.append(lumos.geometry.Surface(area, n / np.linalg.norm(n), make(*params)))
+    earth_brdf = None
+    if spec.get("earthshine", False) is True:
+        albedo = _number(f"{where}.earth_albedo", spec.get("earth_albedo", 0.3))
+        if not 0 <= albedo <= 1:
+            raise SceneError(f"{where}.earth_albedo={albedo}: must be in [0, 1]")
+        earth_brdf = lumos.brdf.library.LAMBERTIAN(albedo)
+    elif spec.get("earthshine", False) is not False:
+        raise SceneError(f"{where}.earthshine={spec['earthshine']!r}: must be true or false")
+    return out, earth_brdf
+
+
+def magnitudes(where, spec, dense, idx):
+    """lumos's AB magnitude of the satellite at samples ``idx`` of a pass (no penumbra)."""
+    from astropy import units as u
+    from astropy.coordinates import AltAz, get_sun
+
+    lumos = _lumos()
+    surfs, earth_brdf = surfaces(where, spec)
+    times = dense.utc[idx]
+    sun = get_sun(times).transform_to(AltAz(obstime=times, location=dense.site.location))
+    out = []
+    for k, i in enumerate(idx):
+        sun_alt, sun_az = float(sun.alt.deg[k]), float(sun.az.deg[k])
+        if sun_alt > 0:
+            raise SceneError(f"{where}: lumos: the Sun is up at the site ({sun_alt:.1f} deg)")
+        flux = lumos.calculator.get_intensity_observer_frame(
+            surfs, float(dense.height_km[i]) * u.km.to(u.m), float(dense.alt_deg[i]),
+            float(dense.az_deg[i]), sun_alt, sun_az, include_sun=True,
+            include_earthshine=earth_brdf is not None, earth_brdf=earth_brdf)
+        flux = float(np.asarray(flux))
+        out.append(float(lumos.conversions.intensity_to_ab_mag(flux, clip=False))
+                   if flux > 0 else DARK_MAG)
+    return np.array(out)
