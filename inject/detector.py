@@ -90,6 +90,15 @@ class Detector:
             return np.broadcast_to(np.float64(getattr(self, name)), self.shape)
         return np.asarray(values)[self.amp_index()]
 
+    def amp_value(self, name, y, x):
+        """``gain`` or ``read_noise`` of the amplifier holding pixel ``(y, x)``."""
+        values = getattr(self, f"amp_{'gains' if name == 'gain' else name}")
+        if values is None:
+            return float(getattr(self, name))
+        row = min(y // self.amp_ny, self.N_AMP_ROWS - 1)
+        col = min(x // self.amp_nx, self.N_AMP_COLS - 1)
+        return float(values[row * self.N_AMP_COLS + col])
+
     def median(self, name):
         """Median ``gain`` or ``read_noise`` over the amplifiers."""
         values = getattr(self, f"amp_{'gains' if name == 'gain' else name}")

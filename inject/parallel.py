@@ -109,9 +109,10 @@ def render_ccd(task):
              "DETECTOR": (ccd.id, "detector id (obs_lsst, 0-188)"),
              "VENDOR": (ccd.vendor.upper(), "sensor vendor"),
              "FPSCENE": (task.fscene.digest[:16], "focal-plane scene digest (sha256)")}
-    write_exposure(path, scene, result, scene.detector.gain,
-                   wcs_header=wcs.to_header(relax=True), overwrite=True, primary_cards=cards)
-    digest = sha256_file(path)
+    # The digest of the bytes as they are written: no second read of the file.
+    digest = write_exposure(path, scene, result, scene.detector.gain,
+                            wcs_header=wcs.to_header(relax=True), overwrite=True,
+                            primary_cards=cards)
     if not task.keep:
         os.remove(path)
     end = time.perf_counter()

@@ -250,38 +250,87 @@ class AmplifierNoise:
     Each amplifier has its own random stream (spawned from the scene seed, the detector and
     the amplifier), so the result is the same whatever the number of threads; numpy's
     generators release the GIL, so two cores draw twice as fast.
+
+    The expected charge comes in two parts, ``level + varying``: a level uniform over the CCD
+    (sky and dark current) and what varies per pixel (streaks, stars). As the sum of
+    independent Poisson variables is Poisson with the summed mean, each amplifier draws
+    Poisson(level) for all its pixels (numpy's scalar-mean path) and Poisson(varying) only
+    where ``varying > 0``: the collected charge is distributed exactly as Poisson(level +
+    varying) per pixel (tests/test_noise_split.py checks it).
     """
 
     def __init__(self, detector, seed, detector_index=0, threads=None):
-        ny, nx = detector.shape
+        self.shape = ny, nx = detector.shape
         self.blocks = [(slice(y, y + detector.amp_ny), slice(x, x + detector.amp_nx))
                        for y in range(0, ny, detector.amp_ny)
                        for x in range(0, nx, detector.amp_nx)]
+        # Each block lies in one amplifier: its read noise is one number.
+        self.read_noise = [detector.amp_value("read_noise", b[0].start, b[1].start)
+                           for b in self.blocks]
         root = np.random.SeedSequence(seed, spawn_key=(detector_index, STREAMS["noise"]))
         self.generators = [np.random.default_rng(s) for s in root.spawn(len(self.blocks))]
         self.threads = threads or NOISE_THREADS or min(len(self.blocks), os.cpu_count() or 1)
 
     def _each(self, work):
+        if self.threads == 1:  # no pool to start and join in a single-threaded worker
+            for args in zip(self.generators, self.blocks, self.read_noise):
+                work(*args)
+            return
         with ThreadPoolExecutor(self.threads) as pool:
-            list(pool.map(work, self.generators, self.blocks))
+            list(pool.map(work, self.generators, self.blocks, self.read_noise))
 
-    def poisson(self, expected):
-        """Collected charge (float64) for the expected charge; negatives count as 0 (the
-        model can dip a few 1e-6 of its peak below zero by interpolation)."""
-        image = np.empty(expected.shape)
+    def poisson(self, level, varying=None):
+        """Collected charge (float64) for the expected charge ``level + varying``.
 
-        def draw(gen, block):
-            image[block] = gen.poisson(np.clip(expected[block], 0, None))
+        Parameters
+        ----------
+        level : float
+            Expected charge of every pixel, e- (>= 0).
+        varying : ndarray, optional
+            Expected charge on top of it, per pixel; values <= 0 add nothing (the streak
+            model can dip a few 1e-6 of its peak below zero by interpolation).
+        """
+        image = np.empty(self.shape if varying is None else varying.shape)
+
+        def draw(gen, block, _):
+            out = image[block]
+            counts = gen.poisson(level, size=out.shape)
+            if varying is not None:
+                part = varying[block]
+                where = np.nonzero(part > 0)
+                if where[0].size:
+                    counts[where] += gen.poisson(part[where])
+            out[...] = counts
         self._each(draw)
         return image
 
-    def add_read_noise(self, image, read_noise):
-        """Add Gaussian read noise (float32 normals: far finer than the noise itself)."""
-        def draw(gen, block):
-            image[block] += gen.standard_normal(
-                size=image[block].shape, dtype=np.float32) * read_noise[block]
-        self._each(draw)
+    def add_read_noise(self, image, dtype=np.float32):
+        """Image plus Gaussian read noise, as a new array of ``dtype`` (float32 normals: far
+        finer than the noise itself)."""
+        out = np.empty(image.shape, dtype)
 
+        def draw(gen, block, sigma):
+            noise = gen.standard_normal(size=out[block].shape, dtype=np.float32)
+            noise *= np.float32(sigma)
+            np.add(image[block], noise, out=out[block], casting="same_kind")
+        self._each(draw)
+        return out
+
+    def variance(self, level, varying=None, dtype=np.float32):
+        """Variance of each pixel, ``level + max(varying, 0) + read_noise**2`` (the Poisson
+        mean drawn plus the amplifier's read noise squared)."""
+        shape = self.shape if varying is None else varying.shape
+        out = np.empty(shape, dtype)
+
+        def fill(_, block, sigma):
+            constant = level + sigma ** 2
+            if varying is None:
+                out[block] = constant
+            else:
+                np.maximum(varying[block], 0, out=out[block], casting="same_kind")
+                out[block] += dtype(constant)
+        self._each(fill)
+        return out
 
 def sky_level(scene):
     """Sky background in e-/px for the scene (0 when ``sky`` is false).
@@ -339,22 +388,26 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
     det = scene.detector
     streaks, truth = render_streaks(scene, budget) if rendered is None else rendered
     sky = sky_level(scene)
-    expected = streaks + sky
+    # Expected charge = level (uniform: sky, dark current) + varying (streaks, stars).
+    level = sky + scene.dark_current * scene.exptime
+    if not truth:
+        # No streak: no model to add, keep or write (a read-only zero view costs nothing).
+        streaks = np.broadcast_to(np.float32(0), det.shape)
+        varying = np.zeros(det.shape) if scene.stars else None
+    else:
+        varying = np.array(streaks, dtype=np.float64)  # the model stays as rendered
     if scene.stars and add_stars is not None:
-        add_stars(expected)
+        add_stars(varying)
     elif scene.stars:
         from .stars import add_star_field
 
-        add_star_field(expected, scene, rng(scene.seed, "stars", detector_index), wcs=wcs)
-    dark = scene.dark_current * scene.exptime
-    expected += dark
-    read_noise = det.per_pixel("read_noise")
+        add_star_field(varying, scene, rng(scene.seed, "stars", detector_index), wcs=wcs)
     mask = np.zeros(det.shape, dtype=np.int32)
-    if scene.noise:
-        noise = AmplifierNoise(det, scene.seed, detector_index)
-        image = noise.poisson(expected)
+    noise = AmplifierNoise(det, scene.seed, detector_index) if scene.noise else None
+    if noise is not None:
+        image = noise.poisson(level, varying)
     else:
-        image = expected.copy()
+        image = np.full(det.shape, level) if varying is None else varying + level
     saturated = bleed_saturation(image, det.full_well, det.midline)
     if scene.cosmic_rays > 0:
         cr_rng = rng(scene.seed, "cosmic_rays", detector_index)
@@ -363,21 +416,22 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
     raw = sections = None
     if det.layout == "raw":  # the amplifiers read the collected charge, adding their own noise
         raw, sections = raw_layout(image, det, rng(scene.seed, "raw", detector_index), det.bias)
-    if scene.noise:
-        noise.add_read_noise(image, read_noise)
-        variance = expected.astype(np.float32)
-        np.maximum(variance, 0, out=variance)
-        variance += read_noise ** 2
+    if noise is not None:
+        # The written IMAGE is float32: the read noise is added in float32, in one pass.
+        image = noise.add_read_noise(image)
+        variance = noise.variance(level, varying)
         noise_sigma = pixel_noise(scene)
     else:
-        variance = np.zeros_like(expected)
+        variance = np.zeros(det.shape)
         noise_sigma = 0.0
     if noise_sigma > 0:
         threshold = STREAK_MASK_SIGMA * noise_sigma
     else:
         threshold = STREAK_MASK_FRACTION * max((row["peak_e_per_px"] for row in truth), default=0)
-    mask[streaks > threshold] |= 1 << MASK_PLANES["STREAK"]
-    mask[saturated] |= 1 << MASK_PLANES["SAT"]
+    if truth:
+        mask[streaks > threshold] |= 1 << MASK_PLANES["STREAK"]
+    if saturated.any():
+        mask[saturated] |= 1 << MASK_PLANES["SAT"]
     for row in truth:
         if row["peak_e_per_px"] + sky >= det.full_well:
             row["flags"] |= FLAG_SATURATED
