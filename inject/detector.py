@@ -181,17 +181,17 @@ def bleed_saturation(image, full_well, midline=None):
             floor, ceiling = 0, ny - 1
             if midline is not None and midline < ny:
                 floor, ceiling = (0, midline - 1) if lo < midline else (midline, ny - 1)
-            charge = column[lo]
+            charge = float(column[lo])  # a Python float: exact sums in a float32 image too
             # Grow [lo, hi] until it can hold its charge at full well.
             while charge > full_well * (hi - lo + 1):
                 # Alternate up and down; go the other way once a side is blocked.
                 grow_down = hi >= ceiling or ((hi - lo) % 2 == 1 and lo > floor)
                 if grow_down and lo > floor:
                     lo -= 1
-                    charge += column[lo]
+                    charge += float(column[lo])
                 elif hi < ceiling:
                     hi += 1
-                    charge += column[hi]
+                    charge += float(column[hi])
                 else:  # the run fills its whole half or column: the rest is lost
                     break
             n = hi - lo + 1

@@ -13,7 +13,7 @@ from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
 from inject.detector import ITL
 from inject.io.fits import write_exposure
 from inject.io.reader import read_exposure
-from inject.scene import AmplifierNoise, simulate
+from inject.scene import AmplifierNoise, PoissonTable, draw_poisson, simulate
 
 #: A small sensor: 2 x 8 amplifiers of 64 x 50 pixels, each with its own read noise.
 READ_NOISE = tuple(3.0 + 0.5 * k for k in range(16))
@@ -82,6 +82,8 @@ def test_draws_do_not_depend_on_threads_and_differ_by_seed():
     four = AmplifierNoise(DET, 5, detector_index=3, threads=4)
     a, b = one.poisson(100.0, varying), four.poisson(100.0, varying)
     np.testing.assert_array_equal(a, b)
+    as32 = AmplifierNoise(DET, 5, detector_index=3).poisson(100.0, varying, np.float32)
+    np.testing.assert_array_equal(as32, a)  # float32 holds the counts exactly
     np.testing.assert_array_equal(one.add_read_noise(a), four.add_read_noise(b))
     other = AmplifierNoise(DET, 5, detector_index=4, threads=1).poisson(100.0, varying)
     assert not np.array_equal(a, other)
@@ -97,8 +99,8 @@ def test_variance_and_read_noise_per_amplifier():
     np.testing.assert_allclose(variance, 40.0 + np.maximum(varying, 0) + rn2, rtol=1e-6)
     np.testing.assert_allclose(noise.variance(40.0), 40.0 + rn2, rtol=1e-6)
     # Read noise alone (no charge): each amplifier's own sigma.
-    flat = np.zeros(DET.shape)
-    read = np.concatenate([AmplifierNoise(DET, s, threads=2).add_read_noise(flat)[None]
+    read = np.concatenate([AmplifierNoise(DET, s, threads=2).add_read_noise(
+                               np.zeros(DET.shape, np.float32))[None]
                            for s in range(8)])
     assert read.dtype == np.float32
     for k, sigma in enumerate(READ_NOISE):
@@ -161,3 +163,28 @@ def test_with_a_streak_the_model_is_written_and_masked():
     res = simulate(scene())
     assert res.streak_model.strides != (0, 0) and res.streak_model.max() > 0
     assert (res.mask & (1 << 10)).any()
+
+
+@pytest.mark.parametrize("mean", [0.0, 0.3, 7.0, 465.0, 2.5e4])
+def test_poisson_table_is_the_inverse_cdf(mean):
+    """The guide-table draw equals the plain inversion (smallest k with CDF(k) > u) of the
+    same uniforms, the CDF being scipy's; and its sample matches Poisson(mean)."""
+    table = PoissonTable(mean)
+    k = table.draw(np.random.default_rng(4), 300_000)
+    u = np.random.default_rng(4).random(300_000)
+    cdf = stats.poisson.cdf(np.arange(table.cdf.size), mean)
+    np.testing.assert_array_equal(k, np.minimum(np.searchsorted(cdf, u, side="right"),
+                                                table.cdf.size - 1))
+    if mean == 0:
+        assert not k.any()
+        return
+    assert abs(k.mean() - mean) < 5 * np.sqrt(mean / k.size)
+    assert chi_square_pvalue(k, mean) > 1e-4
+
+
+def test_means_beyond_the_table_use_numpys_sampler():
+    mean = 2 * PoissonTable.MAX_MEAN
+    k = draw_poisson(np.random.default_rng(1), mean, 20_000)
+    assert k.dtype == np.int64
+    assert abs(k.mean() - mean) < 5 * np.sqrt(mean / k.size)
+    assert k.var() == pytest.approx(mean, rel=5 * np.sqrt(2 / k.size))
