@@ -146,8 +146,10 @@ def test_streak_free_model_is_not_allocated_and_reads_back_as_zeros(tmp_path):
 
 def test_zero_model_hole_gives_the_bytes_of_a_dense_write(tmp_path):
     """The file with the zero STREAK_MODEL left as a hole has the same bytes as the same
-    file with a dense zero array (written the ordinary way, through astropy alone)."""
-    sc = scene("satellites=[]")
+    file with a dense zero array (written the ordinary way, through astropy alone); the
+    planes are large enough for the MiB holes (the zero model, most of the mask)."""
+    sc = parse_scene(apply_overrides(DEFAULT_SCENE, ["detector.nx=1200", "detector.ny=1000",
+                                                     "satellites=[]", "stars=false"]))
     res = simulate(sc)
     sparse = tmp_path / "sparse.fits"
     write_exposure(sparse, sc, res, sc.detector.gain)
@@ -188,3 +190,23 @@ def test_means_beyond_the_table_use_numpys_sampler():
     assert k.dtype == np.int64
     assert abs(k.mean() - mean) < 5 * np.sqrt(mean / k.size)
     assert k.var() == pytest.approx(mean, rel=5 * np.sqrt(2 / k.size))
+
+
+def test_digest_stream_holes_keep_the_bytes(tmp_path):
+    """Zero runs of every length and place (one ending the file) are read back as zeros."""
+    from inject.io.fits import _DigestStream
+
+    hole = _DigestStream.HOLE
+    gen = np.random.default_rng(2)
+    pieces = [gen.integers(0, 255, 1000, dtype=np.uint8), np.zeros(3 * hole + 17, np.uint8),
+              gen.integers(0, 255, hole + 5, dtype=np.uint8), np.zeros(hole - 1, np.uint8),
+              np.zeros(2 * hole, np.uint8)]
+    path = tmp_path / "f.bin"
+    with open(path, "wb") as out:
+        stream = _DigestStream(out)
+        for piece in pieces:
+            stream.write(piece.data)
+        out.truncate()
+    data = np.concatenate(pieces).tobytes()
+    assert path.read_bytes() == data
+    assert stream.digest.hexdigest() == hashlib.sha256(data).hexdigest()

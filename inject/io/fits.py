@@ -136,22 +136,31 @@ class _DigestStream:
     """A write-only stream to a binary file that hashes (SHA-256) what goes through it, so a
     file's digest needs no second read.
 
-    ``zeros`` is an array known to be all zeros: when its buffer is written, it is hashed and
-    skipped over with a seek, leaving a hole that the file system reads back as zeros (the
-    file's bytes are the same; nothing is copied to the disk).
+    Runs of zero bytes of at least :attr:`HOLE` (a zero STREAK_MODEL, most of a MASK) are
+    skipped over with a seek instead of written: the file system leaves a hole that reads
+    back as zeros (the file's bytes, and its digest, are those of a dense write; nothing is
+    copied to the disk). The file must be truncated at its final size when done.
     """
 
-    def __init__(self, out, zeros=None):
+    #: Chunk checked for zeros, bytes (a multiple of the file system's 4 KiB blocks).
+    HOLE = 1 << 20
+
+    def __init__(self, out):
         self._out, self.digest = out, hashlib.sha256()
-        self._zeros = None if zeros is None else (_address(zeros), zeros.nbytes)
 
     def write(self, data):
         view = memoryview(data).cast("B")
         self.digest.update(view)
-        if self._zeros is not None and (_address(view), view.nbytes) == self._zeros:
-            self._out.seek(view.nbytes, os.SEEK_CUR)
-        else:
+        if view.nbytes < self.HOLE:
             self._out.write(view)
+            return view.nbytes
+        words = np.frombuffer(view, np.uint8)
+        for start in range(0, view.nbytes, self.HOLE):
+            chunk = words[start:start + self.HOLE]
+            if chunk.size == self.HOLE and not chunk.view(np.uint64).any():
+                self._out.seek(self.HOLE, os.SEEK_CUR)
+            else:
+                self._out.write(chunk)
         return view.nbytes
 
     def tell(self):  # no seek method: astropy writes to it as a stream (mode "ostream")
@@ -159,11 +168,6 @@ class _DigestStream:
 
     def flush(self):
         self._out.flush()
-
-
-def _address(buffer):
-    """Address of a buffer's first byte."""
-    return np.frombuffer(buffer, np.uint8).__array_interface__["data"][0]
 
 
 def _is_zero(array):
@@ -184,9 +188,10 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
                    primary_cards=None, xy0=(0, 0)):
     """Write a simulated CCD to ``path`` atomically (afw's MaskedImage layout, see above).
 
-    A STREAK_MODEL of zeros (a CCD no streak reaches) is not copied to the file: its data
-    is left as a hole (a sparse file where the file system has them), which reads back as
-    the same zero bytes; the file's bytes, and so its digest, are those of a dense write.
+    A STREAK_MODEL of zeros (a CCD no streak reaches) is not computed: it is a fresh
+    ``np.zeros`` that the writer leaves as a hole in the file (as it does for any MiB of
+    zeros, most of a MASK), which reads back as the same zero bytes: the file's bytes, and
+    so its digest, are those of a dense write.
 
     Parameters
     ----------
@@ -231,7 +236,7 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
         hdus.append(raw_hdu(result.raw, result.raw_sections, scene.detector.bias))
     with atomic_path(path, overwrite) as tmp:
         with open(tmp, "wb") as raw:
-            stream = _DigestStream(raw, model.data if zero_model else None)
+            stream = _DigestStream(raw)
             hdus.writeto(stream)
             raw.truncate()  # a hole at the very end still counts in the file's size
     return stream.digest.hexdigest()
