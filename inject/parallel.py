@@ -11,8 +11,9 @@ change them.
 sha256, streaks, seconds, status``, plus the scene's digest and the software version), rewritten
 atomically under a lock after every CCD, so a run killed partway (or several ``--job`` slices
 sharing the directory) leaves a manifest that says what is done. A rerun skips the CCDs whose
-file matches its row, redoes missing or corrupt ones, and refuses to replace files of another
-scene (or of no recorded run) without ``overwrite``.
+file matches its row, redoes missing or corrupt ones, removes the temporary files a killed
+worker left (:func:`inject.io.atomic.remove_stale_temporaries`), and refuses to replace files of
+another scene (or of no recorded run) without ``overwrite``.
 """
 import contextlib
 import csv
@@ -300,6 +301,12 @@ def run(fscene, outdir, executor, ccds=None, overwrite=False, retries=2, progres
     if margins is None:
         margins = margins_px(fscene)
     with _manifest_lock(outdir):
+        from .io.atomic import remove_stale_temporaries
+
+        stale = remove_stale_temporaries(outdir)  # left by a killed run
+        if stale:
+            print(f"inject: removed {len(stale)} temporary file(s) left in {outdir} by a run "
+                  f"that was killed", file=sys.stderr)
         todo, done = triage(fscene, ccds, outdir, overwrite)
         rows = read_manifest(outdir)
         # Pending rows first: a run killed before a CCD's row is written still marks its
