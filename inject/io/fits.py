@@ -179,8 +179,13 @@ def _is_zero(array):
 
 
 def _big_endian(array, dtype):
-    """``array`` as FITS stores it (big-endian ``dtype``), converted in one pass, so astropy
-    writes it as it is instead of byte-swapping it twice in place."""
+    """``array`` ready for astropy to write as ``dtype``: as it is when it already has that
+    type (astropy byte-swaps a writeable array in place and back, two cheap passes over memory
+    already mapped), else converted to big-endian ``dtype`` in one pass (not converted to the
+    native type first and then swapped)."""
+    array = np.asarray(array)
+    if array.dtype == np.dtype(dtype) and array.flags.writeable:
+        return array
     return np.asarray(array, dtype=np.dtype(dtype).newbyteorder(">"))
 
 
