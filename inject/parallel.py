@@ -380,8 +380,8 @@ def process_pool(workers=None):
 
 
 #: Memory limit per Dask LocalCluster worker. A full-size CCD (IMAGE, MASK, VARIANCE,
-#: STREAK_MODEL and the float64 planes they come from) peaks near 0.9 GiB in a worker
-#: (scripts/bench_focalplane.py measures it: 870-919 MiB); Dask spills at 60-70% of the
+#: STREAK_MODEL and the planes they come from) peaks near 0.75 GiB in a worker
+#: (scripts/bench_focalplane.py measures it: 714-766 MiB); Dask spills at 60-70% of the
 #: limit, pauses at 80% and restarts the worker at 95%, so 3 GiB leaves room.
 DASK_MEMORY_LIMIT = "3GiB"
 

@@ -40,7 +40,11 @@ def rng(seed, purpose, detector_index=0):
 
 @dataclass
 class SceneResult:
-    """Arrays of one simulated CCD (electrons) and its truth."""
+    """Arrays of one simulated CCD (electrons) and its truth.
+
+    With noise, ``image`` and ``variance`` are float32 (the types written). Without any
+    streak, ``streak_model`` is a read-only zero view of the CCD's shape (no memory).
+    """
 
     image: np.ndarray
     mask: np.ndarray
