@@ -90,6 +90,15 @@ class Detector:
             return np.broadcast_to(np.float64(getattr(self, name)), self.shape)
         return np.asarray(values)[self.amp_index()]
 
+    def amp_value(self, name, y, x):
+        """``gain`` or ``read_noise`` of the amplifier holding pixel ``(y, x)``."""
+        values = getattr(self, f"amp_{'gains' if name == 'gain' else name}")
+        if values is None:
+            return float(getattr(self, name))
+        row = min(y // self.amp_ny, self.N_AMP_ROWS - 1)
+        col = min(x // self.amp_nx, self.N_AMP_COLS - 1)
+        return float(values[row * self.N_AMP_COLS + col])
+
     def median(self, name):
         """Median ``gain`` or ``read_noise`` over the amplifiers."""
         values = getattr(self, f"amp_{'gains' if name == 'gain' else name}")
@@ -172,17 +181,17 @@ def bleed_saturation(image, full_well, midline=None):
             floor, ceiling = 0, ny - 1
             if midline is not None and midline < ny:
                 floor, ceiling = (0, midline - 1) if lo < midline else (midline, ny - 1)
-            charge = column[lo]
+            charge = float(column[lo])  # a Python float: exact sums in a float32 image too
             # Grow [lo, hi] until it can hold its charge at full well.
             while charge > full_well * (hi - lo + 1):
                 # Alternate up and down; go the other way once a side is blocked.
                 grow_down = hi >= ceiling or ((hi - lo) % 2 == 1 and lo > floor)
                 if grow_down and lo > floor:
                     lo -= 1
-                    charge += column[lo]
+                    charge += float(column[lo])
                 elif hi < ceiling:
                     hi += 1
-                    charge += column[hi]
+                    charge += float(column[hi])
                 else:  # the run fills its whole half or column: the rest is lost
                     break
             n = hi - lo + 1

@@ -11,8 +11,9 @@ change them.
 sha256, streaks, seconds, status``, plus the scene's digest and the software version), rewritten
 atomically under a lock after every CCD, so a run killed partway (or several ``--job`` slices
 sharing the directory) leaves a manifest that says what is done. A rerun skips the CCDs whose
-file matches its row, redoes missing or corrupt ones, and refuses to replace files of another
-scene (or of no recorded run) without ``overwrite``.
+file matches its row, redoes missing or corrupt ones, removes the temporary files a killed
+worker left (:func:`inject.io.atomic.remove_stale_temporaries`), and refuses to replace files of
+another scene (or of no recorded run) without ``overwrite``.
 """
 import contextlib
 import csv
@@ -109,9 +110,10 @@ def render_ccd(task):
              "DETECTOR": (ccd.id, "detector id (obs_lsst, 0-188)"),
              "VENDOR": (ccd.vendor.upper(), "sensor vendor"),
              "FPSCENE": (task.fscene.digest[:16], "focal-plane scene digest (sha256)")}
-    write_exposure(path, scene, result, scene.detector.gain,
-                   wcs_header=wcs.to_header(relax=True), overwrite=True, primary_cards=cards)
-    digest = sha256_file(path)
+    # The digest of the bytes as they are written: no second read of the file.
+    digest = write_exposure(path, scene, result, scene.detector.gain,
+                            wcs_header=wcs.to_header(relax=True), overwrite=True,
+                            primary_cards=cards)
     if not task.keep:
         os.remove(path)
     end = time.perf_counter()
@@ -299,6 +301,12 @@ def run(fscene, outdir, executor, ccds=None, overwrite=False, retries=2, progres
     if margins is None:
         margins = margins_px(fscene)
     with _manifest_lock(outdir):
+        from .io.atomic import remove_stale_temporaries
+
+        stale = remove_stale_temporaries(outdir)  # left by a killed run
+        if stale:
+            print(f"inject: removed {len(stale)} temporary file(s) left in {outdir} by a run "
+                  f"that was killed", file=sys.stderr)
         todo, done = triage(fscene, ccds, outdir, overwrite)
         rows = read_manifest(outdir)
         # Pending rows first: a run killed before a CCD's row is written still marks its
@@ -372,8 +380,8 @@ def process_pool(workers=None):
 
 
 #: Memory limit per Dask LocalCluster worker. A full-size CCD (IMAGE, MASK, VARIANCE,
-#: STREAK_MODEL and the float64 planes they come from) peaks near 0.9 GiB in a worker
-#: (scripts/bench_focalplane.py measures it: 870-919 MiB); Dask spills at 60-70% of the
+#: STREAK_MODEL and the planes they come from) peaks near 0.75 GiB in a worker
+#: (scripts/bench_focalplane.py measures it: 714-766 MiB); Dask spills at 60-70% of the
 #: limit, pauses at 80% and restarts the worker at 95%, so 3 GiB leaves room.
 DASK_MEMORY_LIMIT = "3GiB"
 

@@ -7,6 +7,7 @@ import os
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -39,7 +40,11 @@ def rng(seed, purpose, detector_index=0):
 
 @dataclass
 class SceneResult:
-    """Arrays of one simulated CCD (electrons) and its truth."""
+    """Arrays of one simulated CCD (electrons) and its truth.
+
+    With noise, ``image`` and ``variance`` are float32 (the types written). Without any
+    streak, ``streak_model`` is a read-only zero view of the CCD's shape (no memory).
+    """
 
     image: np.ndarray
     mask: np.ndarray
@@ -245,44 +250,143 @@ def _truth_row(model, track, ends, charge, expected, budget):
 NOISE_THREADS = None
 
 
+class PoissonTable:
+    """Draws of Poisson(``mean``) by inversion of its CDF, sped up by a guide table.
+
+    A draw is the smallest ``k`` with ``CDF(k) > u`` for a uniform ``u`` in [0, 1): that is
+    Poisson(mean) to the precision of the float64 CDF (the tail left out beyond ``mean + 40
+    sqrt(mean) + 40`` has a probability far below 2**-53). The guide table gives, for each of
+    :attr:`GUIDE` equal slices of ``u``, the first ``k`` it can map to; where a slice holds at
+    most one CDF step, one comparison finishes the draw, elsewhere (the far tails, a few
+    slices) a binary search does. About twice as fast as numpy's ``poisson`` at sky levels.
+    """
+
+    GUIDE = 1 << 14
+    #: Larger means take numpy's own sampler (the table would be too long).
+    MAX_MEAN = 1e6
+
+    def __init__(self, mean):
+        from scipy import stats
+
+        kmax = int(mean + 40 * np.sqrt(mean) + 40)
+        self.cdf = stats.poisson.cdf(np.arange(kmax + 1), mean)
+        self.cdf[-1] = 1.0  # every u < 1 maps inside the table
+        self.guide = np.searchsorted(self.cdf, np.arange(self.GUIDE) / self.GUIDE, side="right")
+        # Slice j maps to guide[j] .. guide[j + 1]: more than one step needs the search.
+        self.wide = np.diff(self.guide, append=kmax) > 1
+
+    def draw(self, gen, shape):
+        """An int64 array of ``shape`` of Poisson draws from generator ``gen``."""
+        u = gen.random(shape)
+        cell = (u * self.GUIDE).astype(np.intp)  # exact: GUIDE is a power of 2
+        k = self.guide[cell]
+        k += self.cdf[k] <= u
+        rare = np.nonzero(self.wide[cell])
+        if rare[0].size:
+            k[rare] = np.searchsorted(self.cdf, u[rare], side="right")
+        return k
+
+
+@lru_cache(maxsize=8)
+def _poisson_table(mean):
+    return PoissonTable(mean)
+
+
+def draw_poisson(gen, mean, shape):
+    """Poisson(``mean``) draws of ``shape`` (int64) for one scalar mean >= 0: by
+    :class:`PoissonTable` (cached per mean) up to its :attr:`~PoissonTable.MAX_MEAN`."""
+    if mean <= PoissonTable.MAX_MEAN:
+        return _poisson_table(float(mean)).draw(gen, shape)
+    return gen.poisson(mean, size=shape)
+
+
 class AmplifierNoise:
     """Poisson and read noise drawn amplifier by amplifier, on a thread pool.
 
     Each amplifier has its own random stream (spawned from the scene seed, the detector and
     the amplifier), so the result is the same whatever the number of threads; numpy's
     generators release the GIL, so two cores draw twice as fast.
+
+    The expected charge comes in two parts, ``level + varying``: a level uniform over the CCD
+    (sky and dark current) and what varies per pixel (streaks, stars). As the sum of
+    independent Poisson variables is Poisson with the summed mean, each amplifier draws
+    Poisson(level) for all its pixels (one mean: :func:`draw_poisson`) and Poisson(varying) only
+    where ``varying > 0``: the collected charge is distributed exactly as Poisson(level +
+    varying) per pixel (tests/test_noise_split.py checks it).
     """
 
     def __init__(self, detector, seed, detector_index=0, threads=None):
-        ny, nx = detector.shape
+        self.shape = ny, nx = detector.shape
         self.blocks = [(slice(y, y + detector.amp_ny), slice(x, x + detector.amp_nx))
                        for y in range(0, ny, detector.amp_ny)
                        for x in range(0, nx, detector.amp_nx)]
+        # Each block lies in one amplifier: its read noise is one number.
+        self.read_noise = [detector.amp_value("read_noise", b[0].start, b[1].start)
+                           for b in self.blocks]
         root = np.random.SeedSequence(seed, spawn_key=(detector_index, STREAMS["noise"]))
         self.generators = [np.random.default_rng(s) for s in root.spawn(len(self.blocks))]
         self.threads = threads or NOISE_THREADS or min(len(self.blocks), os.cpu_count() or 1)
 
     def _each(self, work):
+        if self.threads == 1:  # no pool to start and join in a single-threaded worker
+            for args in zip(self.generators, self.blocks, self.read_noise):
+                work(*args)
+            return
         with ThreadPoolExecutor(self.threads) as pool:
-            list(pool.map(work, self.generators, self.blocks))
+            list(pool.map(work, self.generators, self.blocks, self.read_noise))
 
-    def poisson(self, expected):
-        """Collected charge (float64) for the expected charge; negatives count as 0 (the
-        model can dip a few 1e-6 of its peak below zero by interpolation)."""
-        image = np.empty(expected.shape)
+    def poisson(self, level, varying=None, dtype=np.float64):
+        """Collected charge for the expected charge ``level + varying``.
 
-        def draw(gen, block):
-            image[block] = gen.poisson(np.clip(expected[block], 0, None))
+        Parameters
+        ----------
+        level : float
+            Expected charge of every pixel, e- (>= 0).
+        varying : ndarray, optional
+            Expected charge on top of it, per pixel; values <= 0 add nothing (the streak
+            model can dip a few 1e-6 of its peak below zero by interpolation).
+        dtype : numpy dtype
+            Of the result: float32 holds every count exactly up to 2**24 e- (100 full wells).
+        """
+        image = np.empty(self.shape if varying is None else varying.shape, dtype)
+
+        def draw(gen, block, _):
+            out = image[block]
+            counts = draw_poisson(gen, level, out.shape)
+            if varying is not None:
+                part = varying[block]
+                where = np.nonzero(part > 0)
+                if where[0].size:
+                    counts[where] += gen.poisson(part[where])
+            out[...] = counts
         self._each(draw)
         return image
 
-    def add_read_noise(self, image, read_noise):
-        """Add Gaussian read noise (float32 normals: far finer than the noise itself)."""
-        def draw(gen, block):
-            image[block] += gen.standard_normal(
-                size=image[block].shape, dtype=np.float32) * read_noise[block]
+    def add_read_noise(self, image):
+        """Add Gaussian read noise to ``image`` in place (float32 normals: far finer than
+        the noise itself) and return it."""
+        def draw(gen, block, sigma):
+            noise = gen.standard_normal(size=image[block].shape, dtype=np.float32)
+            noise *= np.float32(sigma)
+            image[block] += noise
         self._each(draw)
+        return image
 
+    def variance(self, level, varying=None, dtype=np.float32):
+        """Variance of each pixel, ``level + max(varying, 0) + read_noise**2`` (the Poisson
+        mean drawn plus the amplifier's read noise squared)."""
+        shape = self.shape if varying is None else varying.shape
+        out = np.empty(shape, dtype)
+
+        def fill(_, block, sigma):
+            constant = level + sigma ** 2
+            if varying is None:
+                out[block] = constant
+            else:
+                np.maximum(varying[block], 0, out=out[block], casting="same_kind")
+                out[block] += dtype(constant)
+        self._each(fill)
+        return out
 
 def sky_level(scene):
     """Sky background in e-/px for the scene (0 when ``sky`` is false).
@@ -340,22 +444,27 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
     det = scene.detector
     streaks, truth = render_streaks(scene, budget) if rendered is None else rendered
     sky = sky_level(scene)
-    expected = streaks + sky
+    # Expected charge = level (uniform: sky, dark current) + varying (streaks, stars).
+    level = sky + scene.dark_current * scene.exptime
+    if not truth:
+        # No streak: no model to add, keep or write (a read-only zero view costs nothing).
+        streaks = np.broadcast_to(np.float32(0), det.shape)
+        varying = np.zeros(det.shape) if scene.stars else None
+    else:
+        varying = np.array(streaks, dtype=np.float64)  # the model stays as rendered
     if scene.stars and add_stars is not None:
-        add_stars(expected)
+        add_stars(varying)
     elif scene.stars:
         from .stars import add_star_field
 
-        add_star_field(expected, scene, rng(scene.seed, "stars", detector_index), wcs=wcs)
-    dark = scene.dark_current * scene.exptime
-    expected += dark
-    read_noise = det.per_pixel("read_noise")
+        add_star_field(varying, scene, rng(scene.seed, "stars", detector_index), wcs=wcs)
     mask = np.zeros(det.shape, dtype=np.int32)
-    if scene.noise:
-        noise = AmplifierNoise(det, scene.seed, detector_index)
-        image = noise.poisson(expected)
+    noise = AmplifierNoise(det, scene.seed, detector_index) if scene.noise else None
+    if noise is not None:
+        # float32, as written: the counts are integers, exact in float32 to 2**24 e-.
+        image = noise.poisson(level, varying, np.float32)
     else:
-        image = expected.copy()
+        image = np.full(det.shape, level) if varying is None else varying + level
     saturated = bleed_saturation(image, det.full_well, det.midline)
     if scene.cosmic_rays > 0:
         cr_rng = rng(scene.seed, "cosmic_rays", detector_index)
@@ -364,21 +473,21 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
     raw = sections = None
     if det.layout == "raw":  # the amplifiers read the collected charge, adding their own noise
         raw, sections = raw_layout(image, det, rng(scene.seed, "raw", detector_index), det.bias)
-    if scene.noise:
-        noise.add_read_noise(image, read_noise)
-        variance = expected.astype(np.float32)
-        np.maximum(variance, 0, out=variance)
-        variance += read_noise ** 2
+    if noise is not None:
+        noise.add_read_noise(image)
+        variance = noise.variance(level, varying)
         noise_sigma = pixel_noise(scene)
     else:
-        variance = np.zeros_like(expected)
+        variance = np.zeros(det.shape)
         noise_sigma = 0.0
     if noise_sigma > 0:
         threshold = STREAK_MASK_SIGMA * noise_sigma
     else:
         threshold = STREAK_MASK_FRACTION * max((row["peak_e_per_px"] for row in truth), default=0)
-    mask[streaks > threshold] |= 1 << MASK_PLANES["STREAK"]
-    mask[saturated] |= 1 << MASK_PLANES["SAT"]
+    if truth:
+        mask[streaks > threshold] |= 1 << MASK_PLANES["STREAK"]
+    if saturated.any():
+        mask[saturated] |= 1 << MASK_PLANES["SAT"]
     for row in truth:
         if row["peak_e_per_px"] + sky >= det.full_well:
             row["flags"] |= FLAG_SATURATED

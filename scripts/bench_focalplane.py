@@ -1,8 +1,14 @@
 """Time the focal-plane runner, measured side by side in one run.
 
 * CCDs per second with 1 and 2 worker processes on the same full-size CCDs (half with the
-  streak, half without), and the parallel efficiency ``rate(2) / (2 rate(1))``; the same
+  streak, half without), and the parallel efficiency ``rate(2) / (2 rate(1))``, with the
+  workers' start in the clock (cold) and after each worker has imported and built the stars'
+  PSF stamps (warm); the same
   CCDs through a Dask LocalCluster of 2 single-threaded workers; peak memory per worker.
+* ``--paired N``: in this one process (one thread), N CCDs without the streak and N with it,
+  each rendered and written as the runner does, interleaved with the baseline of the same
+  CCD (Poisson sky written as IMAGE, MASK, VARIANCE); the per-CCD ratio to the baseline and
+  the whole-exposure ratio they predict (the 189 CCDs weighted by how many are crossed).
 * The whole 189-CCD exposure (sky, Bahcall-Soneira stars, noise, cosmic rays, the paper's
   satellite across the focal plane: ``sample_fields/focal_paper_550km.yaml``) end to end on 2
   workers, against the baseline of the same workers drawing Poisson sky for the 189 CCDs and
@@ -14,7 +20,8 @@ temporary directory beside ``--out``.
 
 Usage::
 
-    python scripts/bench_focalplane.py [--rate-ccds 8] [--skip-whole] [--out out/bench]
+    python scripts/bench_focalplane.py [--rate-ccds 8] [--skip-whole] [--skip-dask]
+        [--paired N] [--skip-rates] [--out out/bench]
 """
 import argparse
 import json
@@ -57,6 +64,66 @@ def baseline_ccd(args):
             "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
+def paired(fscene, crossed, plain, n, outdir, margins):
+    """Per-CCD seconds of the runner's task and of the baseline, interleaved in this process
+    (alternating which goes first), for ``n`` CCDs without and ``n`` with the streak."""
+    parallel.limit_threads()
+    os.makedirs(outdir, exist_ok=True)
+    # Warm-up (imports, the stars' PSF stamps, the profile tables' caches), not timed.
+    parallel.render_ccd(parallel.Task(fscene, plain[-1].name, outdir, margins, keep=False))
+    baseline_ccd((ccd_scene(fscene, plain[-1]), plain[-1].name, outdir))
+    out = {}
+    for kind, ccds in (("plain", plain[:n]), ("streak", crossed[:n])):
+        # Wall and CPU (user + system) seconds: on a shared machine the CPU time is the
+        # steadier measure of the work done.
+        times = {"task": ([], []), "base": ([], [])}
+
+        def timed(name, work):
+            wall, cpu = time.perf_counter(), time.process_time()
+            work()
+            times[name][0].append(time.perf_counter() - wall)
+            times[name][1].append(time.process_time() - cpu)
+
+        for k, ccd in enumerate(ccds):
+            steps = [("task", lambda: parallel.render_ccd(parallel.Task(
+                         fscene, ccd.name, outdir, margins, keep=False))),
+                     ("base", lambda: baseline_ccd((ccd_scene(fscene, ccd), ccd.name,
+                                                    outdir)))]
+            for name, work in steps if k % 2 == 0 else steps[::-1]:
+                timed(name, work)
+        (task_s, task_cpu), (base_s, base_cpu) = times["task"], times["base"]
+        out[kind] = {"ccds": len(ccds), "task_s_median": float(np.median(task_s)),
+                     "baseline_s_median": float(np.median(base_s)),
+                     "ratio_median": float(np.median(np.divide(task_s, base_s))),
+                     "task_cpu_s_median": float(np.median(task_cpu)),
+                     "baseline_cpu_s_median": float(np.median(base_cpu)),
+                     "cpu_ratio_median": float(np.median(np.divide(task_cpu, base_cpu)))}
+    n_streak, n_plain = len(crossed), len(fp.CCDS) - len(crossed)
+    for key, task, base in (("predicted_whole_over_baseline", "task_s_median",
+                             "baseline_s_median"),
+                            ("predicted_whole_over_baseline_cpu", "task_cpu_s_median",
+                             "baseline_cpu_s_median")):
+        out[key] = ((n_plain * out["plain"][task] + n_streak * out["streak"][task])
+                    / (n_plain * out["plain"][base] + n_streak * out["streak"][base]))
+    print(f"paired, predicted whole exposure over the baseline: "
+          f"{out['predicted_whole_over_baseline']:.2f} (wall), "
+          f"{out['predicted_whole_over_baseline_cpu']:.2f} (CPU) (goal <= 1.5)", flush=True)
+    return out
+
+
+def warm_worker(fscene):
+    """Run once in each worker before a warm rate's clock starts: the imports and the stars'
+    PSF stamps (cached per worker), then a pause so that each worker takes one of these."""
+    from inject.instrument import LSST
+    from inject.profile import Seeing
+    from inject.stars import psf_stamps
+
+    parallel.limit_threads()
+    psf_stamps(Seeing(fscene.scene.seeing).profile(), LSST.pixel_scale_arcsec)
+    time.sleep(1.0)
+    return os.getpid()
+
+
 def timed_run(fscene, ccds, executor, outdir, margins):
     shutil.rmtree(outdir, ignore_errors=True)
     start = time.perf_counter()
@@ -92,6 +159,10 @@ def main(argv=None):
                         help="full-size CCDs for the 1 vs 2 worker rates (half with a streak)")
     parser.add_argument("--skip-whole", action="store_true", help="skip the 189-CCD runs")
     parser.add_argument("--skip-dask", action="store_true")
+    parser.add_argument("--paired", type=int, default=0, metavar="N",
+                        help="N CCDs without and N with the streak, each against the baseline "
+                             "in this process")
+    parser.add_argument("--skip-rates", action="store_true", help="skip the 1 vs 2 worker rates")
     parser.add_argument("--out", default="out/bench")
     args = parser.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
@@ -102,19 +173,33 @@ def main(argv=None):
     plain = [c for c in fp.CCDS if c not in crossed]
     half = args.rate_ccds // 2
     sample = tuple(sorted(crossed[:half] + plain[:args.rate_ccds - half], key=lambda c: c.id))
-    report = {"crossed": len(crossed)}
+    report = {"crossed": len(crossed), "load_average_at_start": os.getloadavg()}
     try:
-        rates = {}
-        for workers in (1, 2):
-            with parallel.process_pool(workers) as pool:
-                seconds, rows = timed_run(fscene, sample, pool, os.path.join(work, "r"),
-                                          margins)
-            rates[workers] = len(sample) / seconds
-            report[f"pool_{workers}"] = {"seconds": seconds, "ccds_per_s": rates[workers],
-                                         **summary(rows)}
-            print(json.dumps({f"pool_{workers}": report[f"pool_{workers}"]}), flush=True)
-        report["parallel_efficiency_2"] = rates[2] / (2 * rates[1])
-        if not args.skip_dask:
+        if args.paired:
+            report["paired"] = paired(fscene, crossed, plain, args.paired,
+                                      os.path.join(work, "p"), margins)
+            print(json.dumps({"paired": report["paired"]}), flush=True)
+        # Cold: the clock includes starting the workers (imports, the stars' PSF stamps);
+        # warm: each worker has done that first, as in a long run.
+        for start in () if args.skip_rates else ("cold", "warm"):
+            rates = {}
+            for workers in (1, 2):
+                with parallel.process_pool(workers) as pool:
+                    if start == "warm":
+                        pids = set(pool.map(warm_worker, [fscene] * workers))
+                        assert len(pids) == workers, pids
+                    seconds, rows = timed_run(fscene, sample, pool, os.path.join(work, "r"),
+                                              margins)
+                rates[workers] = len(sample) / seconds
+                key = f"pool_{workers}" + ("" if start == "cold" else "_warm")
+                report[key] = {"seconds": seconds, "ccds_per_s": rates[workers],
+                               **summary(rows)}
+                print(json.dumps({key: report[key]}), flush=True)
+            key = "parallel_efficiency_2" + ("" if start == "cold" else "_warm")
+            report[key] = rates[2] / (2 * rates[1])
+            print(f"parallel efficiency at 2 workers ({start} workers): {report[key]:.3f} "
+                  f"(goal >= 0.85)", flush=True)
+        if not args.skip_dask and not args.skip_rates:
             with parallel.dask_executor("local", workers=2) as executor:
                 seconds, rows = timed_run(fscene, sample, executor, os.path.join(work, "d"),
                                           margins)
@@ -138,11 +223,14 @@ def main(argv=None):
                 "seconds": base, "per_ccd_s": float(np.mean([r["seconds"] for r in base_rows])),
                 "peak_rss_mib_max": float(max(r["peak_rss_mib"] for r in base_rows))}
             report["whole_over_baseline"] = whole / base
+            print(f"whole exposure over the baseline: {whole:.0f} s / {base:.0f} s = "
+                  f"{whole / base:.2f} (goal <= 1.5)", flush=True)
             report["streak_ccds_only"] = {"seconds": only, "ccds": len(crossed),
                                           "fraction_of_whole_time": only / whole,
                                           "fraction_of_ccds": len(crossed) / 189}
     finally:
         shutil.rmtree(work, ignore_errors=True)
+    report["load_average_at_end"] = os.getloadavg()
     print(json.dumps(report, indent=1))
     with open(os.path.join(args.out, "bench_focalplane.json"), "w") as stream:
         json.dump(report, stream, indent=1)

@@ -7,16 +7,25 @@ only when its block ends without an error, undoing the moves already made if a l
 fails. Temporary files are named ``.inject-*`` and never outlive the call, whatever stops
 it: an error, Ctrl-C, or SIGTERM/SIGHUP under :func:`inject.signals.handling` (the steps that
 must not be cut in two, such as creating a temporary file and registering it for removal,
-hold signals until they are done).
+hold signals until they are done). A process killed outright (SIGKILL, a lost node) cannot
+clean up: :func:`remove_stale_temporaries` removes what such a process left, telling it from a
+live writer's file by the lock every :func:`atomic_path` holds on its temporary file.
 """
 import contextlib
 import contextvars
+import fcntl
 import os
 import shutil
 import tempfile
+import time
 
 from ..errors import OutputError
 from ..signals import deferred
+
+#: Prefix of every temporary file.
+PREFIX = ".inject-"
+#: A temporary file younger than this (s) is never taken for stale (it may not be locked yet).
+STALE_AFTER_S = 60.0
 
 #: The pending ``(path, temporary, overwrite)`` moves of the active :func:`output_group`.
 _GROUP = contextvars.ContextVar("inject_output_group", default=None)
@@ -59,25 +68,73 @@ def _cannot_write(path, err):
     return OutputError(f"{path}: cannot write ({err.strerror or err})")
 
 
-def _temporary(path):
+def _temporary(path, keep_open=False):
     """A new empty file beside ``path`` (same file system, so the final rename is atomic).
 
     Call it inside :func:`~inject.signals.deferred`, together with what records the name
     for removal: a signal in between would leave the file nameless. If it cannot be set up, it
-    is removed and the :class:`OSError` raised.
+    is removed and the :class:`OSError` raised. With ``keep_open``, return ``(name, fd)``: the
+    descriptor holds an exclusive lock on the file (``flock``) until it is closed, which marks
+    the file as a live writer's for :func:`remove_stale_temporaries`.
     """
     directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".inject-", suffix=os.path.splitext(path)[1],
+    fd, tmp = tempfile.mkstemp(prefix=PREFIX, suffix=os.path.splitext(path)[1],
                                dir=directory)
     try:
-        os.close(fd)
+        if keep_open:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        else:
+            os.close(fd)
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual mode
     except BaseException:
         _remove(tmp)
+        with contextlib.suppress(OSError):
+            os.close(fd)
         raise
-    return tmp
+    return (tmp, fd) if keep_open else tmp
+
+
+def remove_stale_temporaries(directory):
+    """Remove the temporary files (``.inject-*``) that a killed process left in ``directory``.
+
+    A file is stale when no process holds its lock (a live :func:`atomic_path` does, until its
+    block ends; the lock dies with its process) and it is older than :data:`STALE_AFTER_S`.
+    Safe while other processes write into the directory (``--job`` slices); the one file not
+    locked while in use is a finished file waiting for its :func:`output_group` to end, which
+    the age guards.
+
+    Returns
+    -------
+    list of str
+        The files removed.
+    """
+    removed = []
+    try:
+        names = [n for n in os.listdir(directory) if n.startswith(PREFIX)]
+    except OSError:
+        return removed
+    now = time.time()
+    for name in names:
+        path = os.path.join(directory, name)
+        try:
+            if now - os.lstat(path).st_mtime < STALE_AFTER_S:
+                continue
+            fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+        except OSError:
+            continue  # gone meanwhile, or not a plain file
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            continue  # a live writer's
+        else:
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(path)
+                removed.append(path)
+        finally:
+            os.close(fd)
+    return removed
 
 
 def _remove(*paths):
@@ -104,10 +161,10 @@ def atomic_path(path, overwrite=False):
     if group is not None and any(os.path.realpath(p) == os.path.realpath(path)
                                  for p, _, _ in group):
         raise OutputError(f"{path}: given for two outputs")
-    tmp = None
+    tmp = fd = None
     try:
         with deferred():  # a signal here would lose the file's name before the finally
-            tmp = _temporary(path)
+            tmp, fd = _temporary(path, keep_open=True)
         yield tmp
         with deferred():
             if group is None:
@@ -120,6 +177,8 @@ def atomic_path(path, overwrite=False):
     finally:
         if tmp is not None:
             _remove(tmp)
+        if fd is not None:
+            os.close(fd)  # the lock goes with it
 
 
 @contextlib.contextmanager

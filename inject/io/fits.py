@@ -9,6 +9,9 @@ three, and the mask planes of :mod:`inject.maskplanes` (afw's ``MP_`` cards and 
 ``MSKN/MSKM/MSKD`` cards). The primary header has the cards afw's VisitInfo uses (``EXPTIME``,
 ``DATE-AVG`` + ``TIMESYS``, ``BORE-RA/DEC``, ``BORE-ROTANG`` + ``ROTTYPE``) and ``FILTER``.
 """
+import hashlib
+import os
+
 import numpy as np
 from astropy.io import fits
 from astropy.table import Table
@@ -126,9 +129,71 @@ def write_truth_csv(path, rows, overwrite=False):
         table.write(tmp, format="ascii.csv", overwrite=True)
 
 
+class _DigestStream:
+    """A write-only stream to a binary file that hashes (SHA-256) what goes through it, so a
+    file's digest needs no second read.
+
+    Runs of zero bytes of at least :attr:`HOLE` (a zero STREAK_MODEL, most of a MASK) are
+    skipped over with a seek instead of written: the file system leaves a hole that reads
+    back as zeros (the file's bytes, and its digest, are those of a dense write; nothing is
+    copied to the disk). The file must be truncated at its final size when done.
+    """
+
+    #: Chunk checked for zeros, bytes (a multiple of the file system's 4 KiB blocks).
+    HOLE = 1 << 20
+
+    def __init__(self, out):
+        self._out, self.digest = out, hashlib.sha256()
+
+    def write(self, data):
+        view = memoryview(data).cast("B")
+        self.digest.update(view)
+        if view.nbytes < self.HOLE:
+            self._out.write(view)
+            return view.nbytes
+        words = np.frombuffer(view, np.uint8)
+        for start in range(0, view.nbytes, self.HOLE):
+            chunk = words[start:start + self.HOLE]
+            if chunk.size == self.HOLE and not chunk.view(np.uint64).any():
+                self._out.seek(self.HOLE, os.SEEK_CUR)
+            else:
+                self._out.write(chunk)
+        return view.nbytes
+
+    def tell(self):  # no seek method: astropy writes to it as a stream (mode "ostream")
+        return self._out.tell()
+
+    def flush(self):
+        self._out.flush()
+
+
+def _is_zero(array):
+    """True when every value is zero (a zero-stride view is checked at one element)."""
+    array = np.asarray(array)
+    if array.size and all(s == 0 for s in array.strides):
+        return not array.flat[0]
+    return not array.any()
+
+
+def _big_endian(array, dtype):
+    """``array`` ready for astropy to write as ``dtype``: as it is when it already has that
+    type (astropy byte-swaps a writeable array in place and back, two cheap passes over memory
+    already mapped), else converted to big-endian ``dtype`` in one pass (not converted to the
+    native type first and then swapped)."""
+    array = np.asarray(array)
+    if array.dtype == np.dtype(dtype) and array.flags.writeable:
+        return array
+    return np.asarray(array, dtype=np.dtype(dtype).newbyteorder(">"))
+
+
 def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
                    primary_cards=None, xy0=(0, 0)):
     """Write a simulated CCD to ``path`` atomically (afw's MaskedImage layout, see above).
+
+    A STREAK_MODEL of zeros (a CCD no streak reaches) is not computed: it is a fresh
+    ``np.zeros`` that the writer leaves as a hole in the file (as it does for any MiB of
+    zeros, most of a MASK), which reads back as the same zero bytes: the file's bytes, and
+    so its digest, are those of a dense write.
 
     Parameters
     ----------
@@ -144,6 +209,11 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
         Extra primary-header cards (see :func:`primary_header`).
     xy0 : tuple of int
         LSST parent pixel of the array's first pixel (``LTV1/2`` and the "A" WCS).
+
+    Returns
+    -------
+    str
+        SHA-256 of the file's bytes (hex), computed as they were written.
     """
     image_hdr = plane_header("IMAGE", xy0, wcs_header)
     image_hdr["BUNIT"] = (scene.units, "pixel values")
@@ -151,17 +221,24 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
     mask_hdr = mask_header(plane_header("MASK", xy0, wcs_header))
     variance_hdr = plane_header("VARIANCE", xy0, wcs_header)
     variance_hdr["BUNIT"] = (f"{scene.units}**2", "variance of the pixel values")
-    hdus = fits.HDUList([
+    planes = [
         fits.PrimaryHDU(header=primary_header(scene, primary_cards)),
-        fits.ImageHDU(result.image.astype(np.float32), header=image_hdr, name="IMAGE"),
-        fits.ImageHDU(result.mask.astype(np.int32), header=mask_hdr, name="MASK"),
-        fits.ImageHDU(result.variance.astype(np.float32), header=variance_hdr,
+        fits.ImageHDU(_big_endian(result.image, np.float32), header=image_hdr, name="IMAGE"),
+        fits.ImageHDU(_big_endian(result.mask, np.int32), header=mask_hdr, name="MASK"),
+        fits.ImageHDU(_big_endian(result.variance, np.float32), header=variance_hdr,
                       name="VARIANCE"),
-        fits.ImageHDU(result.streak_model.astype(np.float32), name="STREAK_MODEL"),
-        truth_table(result.truth),
-    ])
+    ]
+    zero_model = _is_zero(result.streak_model)
+    # A zero model is a fresh np.zeros (pages the system maps only when touched).
+    model = fits.ImageHDU(np.zeros(np.shape(result.streak_model), ">f4") if zero_model else
+                          _big_endian(result.streak_model, np.float32), name="STREAK_MODEL")
+    model.header["BUNIT"] = "electron"
+    hdus = fits.HDUList([*planes, model, truth_table(result.truth)])
     if result.raw is not None:
         hdus.append(raw_hdu(result.raw, result.raw_sections, scene.detector.bias))
-    hdus["STREAK_MODEL"].header["BUNIT"] = "electron"
     with atomic_path(path, overwrite) as tmp:
-        hdus.writeto(tmp, overwrite=True)
+        with open(tmp, "wb") as raw:
+            stream = _DigestStream(raw)
+            hdus.writeto(stream)
+            raw.truncate()  # a hole at the very end still counts in the file's size
+    return stream.digest.hexdigest()

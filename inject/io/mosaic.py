@@ -1,7 +1,8 @@
 """``mosaic.png``: a whole focal-plane exposure as one picture, for a person to look at.
 
-Each CCD's IMAGE is block-averaged and drawn at its place in focal-plane millimetres, so the
-gaps between CCDs and rafts are to scale; one z-scale stretch for all CCDs; detector names on
+Each CCD's IMAGE is block-averaged and drawn at its place in focal-plane millimetres, each
+block at its true size (a partial last block cut at the CCD's edge), so the gaps between CCDs
+and rafts are to scale; one z-scale stretch for all CCDs; detector names on
 each; the true track of every satellite drawn over it (dashed, in focal-plane mm). CCDs of the
 exposure that have no file yet are filled grey; the gaps are dark blue.
 """
@@ -29,6 +30,15 @@ def binned_ccds(fscene, outdir, factor):
             image = np.asarray(hdus["IMAGE"].data, dtype=np.float32)  # native byte order
         out[ccd] = block_mean(image, factor)
     return out
+
+
+def block_extent(bounds, shape, binned_shape, factor):
+    """``(x0, x1, y0, y1)`` mm over which to draw a CCD's binned image so that every block
+    spans ``factor`` pixels: the last block of a row or column, partly beyond the CCD's
+    ``shape`` (``ceil(n / factor)`` blocks), overhangs its edge (clip it to ``bounds``)."""
+    x0, x1, y0, y1 = bounds
+    (ny, nx), (by, bx) = shape, binned_shape
+    return (x0, x0 + (x1 - x0) * bx * factor / nx, y0, y0 + (y1 - y0) * by * factor / ny)
 
 
 def track_paths(fscene):
@@ -84,10 +94,14 @@ def write_mosaic(path, fscene, outdir, factor=DEFAULT_BIN, overwrite=True, margi
     ax = fig.add_axes([0.0, 0.0, 1.0, 0.97])
     ax.set_facecolor("#20304a")  # the gaps: no silicon
     for ccd in fscene.ccds:
-        x0, x1, y0, y1 = ccd.bounds_mm(0.0, ccd_shape(fscene, ccd))
+        shape = ccd_shape(fscene, ccd)
+        x0, x1, y0, y1 = ccd.bounds_mm(0.0, shape)
         if ccd in binned:
-            ax.imshow(binned[ccd], origin="lower", cmap="gray", vmin=vmin, vmax=vmax,
-                      extent=(x0, x1, y0, y1), interpolation="nearest")
+            shown = ax.imshow(binned[ccd], origin="lower", cmap="gray", vmin=vmin, vmax=vmax,
+                              extent=block_extent((x0, x1, y0, y1), shape, binned[ccd].shape,
+                                                  factor), interpolation="nearest")
+            # The overhang of the last blocks is cut at the CCD's edge: the gaps stay to scale.
+            shown.set_clip_path(Rectangle((x0, y0), x1 - x0, y1 - y0, transform=ax.transData))
         else:  # not rendered (yet): grey, so it is not mistaken for a gap
             ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fc="#5a6270", lw=0.4,
                                    ec="#8d99ae"))

@@ -1,0 +1,212 @@
+"""The noise path: the split Poisson draw is Poisson, the variance is the drawn mean plus read
+noise, the draws do not depend on the threads, and a CCD without streaks has a STREAK_MODEL
+that costs nothing yet reads back as float32 zeros (with astropy and with inject's reader)."""
+import hashlib
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from astropy.io import fits
+from scipy import stats
+
+from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
+from inject.detector import ITL
+from inject.io.fits import write_exposure
+from inject.io.reader import read_exposure
+from inject.scene import AmplifierNoise, PoissonTable, draw_poisson, simulate
+
+#: A small sensor: 2 x 8 amplifiers of 64 x 50 pixels, each with its own read noise.
+READ_NOISE = tuple(3.0 + 0.5 * k for k in range(16))
+DET = replace(ITL, nx=8 * 64, ny=2 * 50, amp_nx=64, amp_ny=50, amp_read_noise=READ_NOISE)
+
+
+def pixel_classes(shape):
+    """Varying expected charge by column band: 0, a few e-, tens of e-, and a slight negative
+    (an interpolation dip: collects nothing)."""
+    varying = np.zeros(shape)
+    varying[:, 128:256] = 3.7
+    varying[:, 256:384] = 52.5
+    varying[:, 384:448] = -1e-6
+    return varying, {"zero": np.s_[:, :128], "few": np.s_[:, 128:256],
+                     "tens": np.s_[:, 256:384], "dip": np.s_[:, 384:448]}
+
+
+def chi_square_pvalue(counts, mean):
+    """p-value of the counts' histogram against Poisson(mean) (bins with >= 5 expected)."""
+    lo, hi = int(stats.poisson.ppf(1e-4, mean)), int(stats.poisson.ppf(1 - 1e-4, mean))
+    edges = np.arange(lo, hi + 2)
+    observed = np.array([(counts < lo).sum(), *np.histogram(counts, edges)[0],
+                         (counts > hi).sum()])
+    probs = np.diff(stats.poisson.cdf(edges - 1, mean))
+    expected = len(counts) * np.array([stats.poisson.cdf(lo - 1, mean), *probs,
+                                       stats.poisson.sf(hi, mean)])
+    # Merge sparse bins into their neighbours so the chi-square approximation holds.
+    obs, exp, o, e = [], [], 0.0, 0.0
+    for a, b in zip(observed, expected):
+        o, e = o + a, e + b
+        if e >= 5:
+            obs.append(o), exp.append(e)
+            o, e = 0.0, 0.0
+    obs[-1] += o
+    exp[-1] += e
+    return stats.chisquare(obs, np.array(exp) * sum(obs) / sum(exp)).pvalue
+
+
+@pytest.mark.parametrize("level", [0.0, 2.5, 465.0])
+def test_split_draw_is_poisson_of_the_summed_mean(level):
+    """Poisson(level) everywhere plus Poisson(varying) where varying > 0 is Poisson(level +
+    max(varying, 0)) per pixel: mean, variance and the whole distribution per class."""
+    varying, classes = pixel_classes(DET.shape)
+    draws = np.concatenate([AmplifierNoise(DET, seed, threads=2).poisson(level, varying)[None]
+                            for seed in range(6)])
+    assert draws.dtype == np.float64 and np.all(draws == np.rint(draws))
+    for name, where in classes.items():
+        mean = level + max(float(varying[where][0, 0]), 0.0)
+        counts = draws[(slice(None), *where)].ravel()
+        if mean == 0:
+            assert not counts.any()
+            continue
+        n = counts.size
+        assert abs(counts.mean() - mean) < 5 * np.sqrt(mean / n), name
+        # The sample variance of n Poisson draws has a standard error ~ mean * sqrt(2 / n).
+        assert counts.var() == pytest.approx(mean, abs=5 * mean * np.sqrt(2.0 / n) + 0.05)
+        assert chi_square_pvalue(counts, mean) > 1e-4, name
+        # A second, independent check of the shape: KS against a large direct Poisson sample.
+        reference = np.random.default_rng(99).poisson(mean, 200_000)
+        assert stats.ks_2samp(counts, reference).pvalue > 1e-4, name
+
+
+def test_draws_do_not_depend_on_threads_and_differ_by_seed():
+    varying, _ = pixel_classes(DET.shape)
+    one = AmplifierNoise(DET, 5, detector_index=3, threads=1)
+    four = AmplifierNoise(DET, 5, detector_index=3, threads=4)
+    a, b = one.poisson(100.0, varying), four.poisson(100.0, varying)
+    np.testing.assert_array_equal(a, b)
+    as32 = AmplifierNoise(DET, 5, detector_index=3).poisson(100.0, varying, np.float32)
+    np.testing.assert_array_equal(as32, a)  # float32 holds the counts exactly
+    np.testing.assert_array_equal(one.add_read_noise(a), four.add_read_noise(b))
+    other = AmplifierNoise(DET, 5, detector_index=4, threads=1).poisson(100.0, varying)
+    assert not np.array_equal(a, other)
+
+
+def test_variance_and_read_noise_per_amplifier():
+    varying, _ = pixel_classes(DET.shape)
+    noise = AmplifierNoise(DET, 1, threads=2)
+    variance = noise.variance(40.0, varying)
+    assert variance.dtype == np.float32
+    amp = DET.amp_index()
+    rn2 = np.asarray(READ_NOISE)[amp] ** 2
+    np.testing.assert_allclose(variance, 40.0 + np.maximum(varying, 0) + rn2, rtol=1e-6)
+    np.testing.assert_allclose(noise.variance(40.0), 40.0 + rn2, rtol=1e-6)
+    # Read noise alone (no charge): each amplifier's own sigma.
+    read = np.concatenate([AmplifierNoise(DET, s, threads=2).add_read_noise(
+                               np.zeros(DET.shape, np.float32))[None]
+                           for s in range(8)])
+    assert read.dtype == np.float32
+    for k, sigma in enumerate(READ_NOISE):
+        values = read[:, amp == k]
+        assert values.std() == pytest.approx(sigma, rel=5 * np.sqrt(0.5 / values.size))
+        assert abs(values.mean()) < 5 * sigma / np.sqrt(values.size)
+
+
+def scene(*overrides):
+    return parse_scene(apply_overrides(DEFAULT_SCENE, ["detector.nx=300", "detector.ny=260",
+                                                       *overrides]))
+
+
+def test_scene_without_streaks_matches_its_variance():
+    """Sky, stars and noise with no satellite: the image scatters as its VARIANCE says."""
+    res = simulate(scene("satellites=[]", "cosmic_rays=0"))
+    assert res.image.dtype == np.float32 and res.variance.dtype == np.float32
+    pulls = (res.image - (res.variance - ITL.read_noise ** 2)) / np.sqrt(res.variance)
+    assert abs(pulls.mean()) < 5 / np.sqrt(pulls.size)
+    assert pulls.std() == pytest.approx(1.0, abs=0.02)
+
+
+def test_streak_free_model_is_not_allocated_and_reads_back_as_zeros(tmp_path):
+    sc = scene("satellites=[]")
+    res = simulate(sc)
+    assert res.streak_model.shape == sc.detector.shape
+    assert res.streak_model.strides == (0, 0) and not res.streak_model.any()  # no memory
+    path = tmp_path / "ccd.fits"
+    digest = write_exposure(path, sc, res, sc.detector.gain)
+    assert digest == hashlib.sha256(path.read_bytes()).hexdigest()
+    with fits.open(path) as hdus:
+        assert [h.name for h in hdus][1:6] == ["IMAGE", "MASK", "VARIANCE", "STREAK_MODEL",
+                                               "TRUTH"]
+        model = hdus["STREAK_MODEL"]
+        assert type(model) is fits.ImageHDU and model.header["BITPIX"] == -32
+        assert model.data.shape == sc.detector.shape and not model.data.any()
+        assert model.header["BUNIT"] == "electron"
+        np.testing.assert_array_equal(hdus["IMAGE"].data, res.image)
+        np.testing.assert_array_equal(hdus["MASK"].data, res.mask)
+    exposure = read_exposure(str(path))  # inject's own reader
+    np.testing.assert_array_equal(exposure.image, res.image)
+
+
+def test_zero_model_hole_gives_the_bytes_of_a_dense_write(tmp_path):
+    """The file with the zero STREAK_MODEL left as a hole has the same bytes as the same
+    file with a dense zero array (written the ordinary way, through astropy alone); the
+    planes are large enough for the MiB holes (the zero model, most of the mask)."""
+    sc = parse_scene(apply_overrides(DEFAULT_SCENE, ["detector.nx=1200", "detector.ny=1000",
+                                                     "satellites=[]", "stars=false"]))
+    res = simulate(sc)
+    sparse = tmp_path / "sparse.fits"
+    write_exposure(sparse, sc, res, sc.detector.gain)
+    dense = tmp_path / "dense.fits"
+    with fits.open(sparse) as hdus:
+        copy = fits.HDUList([h.copy() for h in hdus])
+        copy["STREAK_MODEL"].data = np.zeros(sc.detector.shape, np.float32)
+        copy.writeto(dense)
+    assert sparse.read_bytes() == dense.read_bytes()
+
+
+def test_with_a_streak_the_model_is_written_and_masked():
+    res = simulate(scene())
+    assert res.streak_model.strides != (0, 0) and res.streak_model.max() > 0
+    assert (res.mask & (1 << 10)).any()
+
+
+@pytest.mark.parametrize("mean", [0.0, 0.3, 7.0, 465.0, 2.5e4])
+def test_poisson_table_is_the_inverse_cdf(mean):
+    """The guide-table draw equals the plain inversion (smallest k with CDF(k) > u) of the
+    same uniforms, the CDF being scipy's; and its sample matches Poisson(mean)."""
+    table = PoissonTable(mean)
+    k = table.draw(np.random.default_rng(4), 300_000)
+    u = np.random.default_rng(4).random(300_000)
+    cdf = stats.poisson.cdf(np.arange(table.cdf.size), mean)
+    np.testing.assert_array_equal(k, np.minimum(np.searchsorted(cdf, u, side="right"),
+                                                table.cdf.size - 1))
+    if mean == 0:
+        assert not k.any()
+        return
+    assert abs(k.mean() - mean) < 5 * np.sqrt(mean / k.size)
+    assert chi_square_pvalue(k, mean) > 1e-4
+
+
+def test_means_beyond_the_table_use_numpys_sampler():
+    mean = 2 * PoissonTable.MAX_MEAN
+    k = draw_poisson(np.random.default_rng(1), mean, 20_000)
+    assert k.dtype == np.int64
+    assert abs(k.mean() - mean) < 5 * np.sqrt(mean / k.size)
+    assert k.var() == pytest.approx(mean, rel=5 * np.sqrt(2 / k.size))
+
+
+def test_digest_stream_holes_keep_the_bytes(tmp_path):
+    """Zero runs of every length and place (one ending the file) are read back as zeros."""
+    from inject.io.fits import _DigestStream
+
+    hole = _DigestStream.HOLE
+    gen = np.random.default_rng(2)
+    pieces = [gen.integers(0, 255, 1000, dtype=np.uint8), np.zeros(3 * hole + 17, np.uint8),
+              gen.integers(0, 255, hole + 5, dtype=np.uint8), np.zeros(hole - 1, np.uint8),
+              np.zeros(2 * hole, np.uint8)]
+    path = tmp_path / "f.bin"
+    with open(path, "wb") as out:
+        stream = _DigestStream(out)
+        for piece in pieces:
+            stream.write(piece.data)
+        out.truncate()
+    data = np.concatenate(pieces).tobytes()
+    assert path.read_bytes() == data
+    assert stream.digest.hexdigest() == hashlib.sha256(data).hexdigest()
