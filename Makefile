@@ -15,6 +15,8 @@ $(STAMP): $(BIN)/python pyproject.toml
 	@echo "==> installing inject and its dependencies into $(VENV) (GalSim, astropy, OpenCV,"
 	@echo "    OpenImageIO, matplotlib, pytest...; a minute or two the first time, quiet meanwhile)"
 	$(BIN)/python -m pip install --quiet -e '.[test]'
+	@echo "==> installing lumos-sat (optional BRDF brightness; --no-deps: it pins numpy 1.24 and astropy 5.2)"
+	$(BIN)/python -m pip install --quiet --no-deps 'lumos-sat==1.0.9'
 	@touch $(STAMP)
 	@echo "==> installed: run .venv/bin/inject, or 'source .venv/bin/activate' and then inject"
 
