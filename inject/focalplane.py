@@ -36,6 +36,7 @@ from .detector import E2V, ITL
 from .errors import InputError
 from .instrument import ARCSEC_PER_RAD
 from .trajectory import _clip_line
+from .validate import check_pointing
 
 #: Pixel pitch, mm.
 PIXEL_MM = 0.010
@@ -249,13 +250,6 @@ def pixel_scale_along(x_mm, y_mm, angle_deg):
 # -------------------------------------------------------------------------------------------
 # Celestial WCS
 
-def _check_pointing(pointing):
-    """``(ra, dec, rotation)`` of a pointing, by :func:`inject.validate.check_pointing`."""
-    from .validate import check_pointing
-
-    return check_pointing(pointing)
-
-
 def rotation_matrix(rotation_deg):
     """Field angle (along focal-plane x, y) -> (east, north) tangent-plane offsets.
 
@@ -291,7 +285,7 @@ def ccd_wcs(ccd_, pointing):
     """
     from astropy.wcs import Sip, WCS
 
-    ra, dec, rotation = _check_pointing(pointing)
+    ra, dec, rotation = check_pointing(pointing)
     crpix = ccd_.boresight_pixel
     scale_deg = PLATE_SCALE_ARCSEC_PER_MM * PIXEL_MM / 3600.0
     wcs = WCS(naxis=2)
@@ -345,7 +339,7 @@ def focal_to_sky(x_mm, y_mm, pointing):
     (by astropy's TAN about the boresight)."""
     from astropy.wcs import WCS
 
-    ra, dec, rotation = _check_pointing(pointing)
+    ra, dec, rotation = check_pointing(pointing)
     ax, ay = field_angle(x_mm, y_mm)
     east, north = rotation_matrix(rotation) @ np.vstack([np.ravel(ax), np.ravel(ay)])
     wcs = WCS(naxis=2)

@@ -30,6 +30,7 @@ from .profile import Seeing
 from .render import Budget, swept_profile
 from .scene import pixel_noise, render_tracks, rng, simulate
 from .streak import StreakModel
+from .validate import check_pointing
 
 FOCAL_KEYS = (_TOP_KEYS - {"detector"}) | {"detectors", "cutout"}
 #: Keys of a satellite's ``orbit:`` (a TLE, or circular-orbit elements).
@@ -163,7 +164,7 @@ def parse_focal_scene(raw):
     scene = parse_scene({**ccd_part, "satellites": placeholders, "detector": {"type": "itl"}},
                         charge_check=False)
     try:
-        fp._check_pointing(scene.pointing)
+        check_pointing(scene.pointing)  # required here (optional in a CCD scene)
         ccds = fp.select(raw.get("detectors"))
     except InjectError as err:
         raise SceneError(str(err)) from None
