@@ -8,7 +8,8 @@ frame (z away from the Earth's centre, the Sun in the y-z plane at +y). Each ver
 pass then gets lumos's AB magnitude at that instant (Sun and satellite alt/az from the site,
 height above lumos's spherical Earth), dimmed by the pass's penumbra; it is turned into the
 ``mag`` the streak model scales with ``cos(theta_N) / r^2`` so that the model's apparent
-magnitude is lumos's.
+magnitude is lumos's. lumos computes that magnitude at one wavelength (532 nm,
+``lumos.constants.WAVELENGTH``), whatever the scene's band: it is taken as the band's.
 
 lumos computes earthshine only with an Earth BRDF (with none it calls ``None``): with
 ``earthshine: true`` the Earth is Lambertian of albedo ``earth_albedo`` (0.3 by default).
@@ -17,7 +18,7 @@ import numpy as np
 
 from .errors import SceneError
 
-#: lumos's magnitude is in V-ish light at 532 nm (lumos.constants.WAVELENGTH).
+#: Parameters of each BRDF type (lumos.brdf.library's LAMBERTIAN, PHONG, ABG).
 BRDF_KEYS = {"lambertian": ("albedo",), "phong": ("Kd", "Ks", "n"), "abg": ("A", "B", "g")}
 #: The faintest magnitude given to a vertex lumos sees dark (surfaces turned away).
 DARK_MAG = 99.0
