@@ -706,16 +706,17 @@ def test_simulate_full_disk(capsys, monkeypatch, scene, tmp_path):
     capsys.readouterr()
     before = digest(out)
 
-    def partial_then_full(self, fileobj, *args, **kwargs):
-        start = b"SIMPLE  =                    T" + b" " * 100
-        if hasattr(fileobj, "write"):  # the FITS writer streams into an open file
-            fileobj.write(start)
-        else:
-            with open(fileobj, "wb") as stream:
-                stream.write(start)
-        enospc()
+    from inject.io.fits import _DigestStream
 
-    monkeypatch.setattr(fits.HDUList, "writeto", partial_then_full)
+    real_write = _DigestStream.write
+
+    def full_in_the_data(self, data):
+        # The disk fills up once the headers and the first piece of data are written.
+        if self._out.tell() > 2 * 2880:
+            enospc()
+        return real_write(self, data)
+
+    monkeypatch.setattr(_DigestStream, "write", full_in_the_data)
     status, err = run(capsys, "simulate", scene, "-o", out, "--overwrite")
     assert status == 2 and "No space left on device" in err and str(out) in err
     assert digest(out) == before and not leftovers(tmp_path)

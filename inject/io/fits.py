@@ -10,6 +10,7 @@ three, and the mask planes of :mod:`inject.maskplanes` (afw's ``MP_`` cards and 
 ``DATE-AVG`` + ``TIMESYS``, ``BORE-RA/DEC``, ``BORE-ROTANG`` + ``ROTTYPE``) and ``FILTER``.
 """
 import hashlib
+import io
 import os
 
 import numpy as np
@@ -107,19 +108,19 @@ def truth_table(rows):
     return hdu
 
 
-def raw_hdu(raw, sections, bias):
-    """The amplifiers' readout (ADU, bias, prescan and overscan) with each amplifier's data
-    section, image section, gain and read noise as header cards."""
-    hdu = fits.ImageHDU(raw, name="RAW")
-    hdu.header["BUNIT"] = "adu"
-    hdu.header["BIAS"] = (bias, "[adu] bias level added to every pixel")
+def raw_header(sections, bias):
+    """Cards of the RAW HDU (the amplifiers' readout in ADU, with bias, prescan and
+    overscan): each amplifier's data section, image section, gain and read noise."""
+    hdr = fits.Header()
+    hdr["BUNIT"] = "adu"
+    hdr["BIAS"] = (bias, "[adu] bias level added to every pixel")
     for sec in sections:
         key = f"A{sec['amp']:02d}"
-        hdu.header[f"HIERARCH {key} DATASEC"] = sec["datasec"]
-        hdu.header[f"HIERARCH {key} IMAGESEC"] = sec["imagesec"]
-        hdu.header[f"HIERARCH {key} GAIN"] = sec["gain"]
-        hdu.header[f"HIERARCH {key} RDNOISE"] = sec["read_noise"]
-    return hdu
+        hdr[f"HIERARCH {key} DATASEC"] = sec["datasec"]
+        hdr[f"HIERARCH {key} IMAGESEC"] = sec["imagesec"]
+        hdr[f"HIERARCH {key} GAIN"] = sec["gain"]
+        hdr[f"HIERARCH {key} RDNOISE"] = sec["read_noise"]
+    return hdr
 
 
 def write_truth_csv(path, rows, overwrite=False):
@@ -160,40 +161,77 @@ class _DigestStream:
                 self._out.write(chunk)
         return view.nbytes
 
-    def tell(self):  # no seek method: astropy writes to it as a stream (mode "ostream")
-        return self._out.tell()
 
-    def flush(self):
-        self._out.flush()
+#: FITS blocks: every header and data unit is padded to a multiple of this many bytes.
+BLOCK = 2880
 
 
-def _is_zero(array):
-    """True when every value is zero (a zero-stride view is checked at one element)."""
+def _stand_in(array, dtype):
+    """An array of ``array``'s shape and the written ``dtype`` for astropy to build an image
+    header from (BITPIX, NAXISn): zero-strided, so it costs no memory; the data themselves go
+    through :func:`_write_image_data`."""
+    return np.broadcast_to(np.zeros((), dtype), np.shape(array))
+
+
+def _write_image_data(stream, array, dtype):
+    """Write ``array`` as FITS image data of ``dtype`` (big-endian), padded to a block.
+
+    A MiB at a time: each piece is converted (byte-swapped) into a buffer that stays in the
+    core's cache, hashed and written from there, instead of astropy's in-place byte swap of
+    the whole array and back (two passes over memory) before the stream hashes it (a third).
+    """
+    written = np.dtype(dtype).newbyteorder(">")
     array = np.asarray(array)
-    if array.size and all(s == 0 for s in array.strides):
-        return not array.flat[0]
-    return not array.any()
+    step = _DigestStream.HOLE // written.itemsize
+    buffer = np.empty(min(step, array.size), written)
+    if array.size and all(s == 0 for s in array.strides):  # one value (a zero model)
+        buffer[...] = array.flat[0]
+        flat = None
+    else:
+        flat = np.ascontiguousarray(array).reshape(-1)
+    for start in range(0, array.size, step):
+        piece = buffer[:min(step, array.size - start)]
+        if flat is not None:
+            piece[...] = flat[start:start + piece.size]
+        stream.write(piece)
+    nbytes = array.size * written.itemsize
+    if nbytes % BLOCK:
+        stream.write(bytes(BLOCK - nbytes % BLOCK))
 
 
-def _big_endian(array, dtype):
-    """``array`` ready for astropy to write as ``dtype``: as it is when it already has that
-    type (astropy byte-swaps a writeable array in place and back, two cheap passes over memory
-    already mapped), else converted to big-endian ``dtype`` in one pass (not converted to the
-    native type first and then swapped)."""
-    array = np.asarray(array)
-    if array.dtype == np.dtype(dtype) and array.flags.writeable:
-        return array
-    return np.asarray(array, dtype=np.dtype(dtype).newbyteorder(">"))
+def _write_hdus(stream, hdus, planes):
+    """Write ``hdus`` to ``stream`` with the bytes astropy's ``HDUList.writeto`` gives.
+
+    Headers are astropy's (verified, ``EXTEND`` set, BITPIX and NAXISn from the data);
+    ``planes`` maps the index of an image HDU to the array whose data it holds (the HDU
+    itself holds a :func:`_stand_in`), streamed by :func:`_write_image_data`. Other HDUs
+    with data (the TRUTH table) are small: astropy writes them after an empty primary HDU,
+    whose block is dropped.
+    """
+    hdus.verify("exception")
+    hdus.update_extend()
+    for index, hdu in enumerate(hdus):
+        if index in planes:
+            hdu.update_header()
+            stream.write(hdu.header.tostring().encode("ascii"))
+            _write_image_data(stream, planes[index], hdu.data.dtype)
+        elif index == 0 and hdu.data is None:
+            stream.write(hdu.header.tostring().encode("ascii"))
+        else:
+            buffer = io.BytesIO()
+            fits.HDUList([fits.PrimaryHDU(), hdu]).writeto(buffer)
+            stream.write(buffer.getbuffer()[len(fits.PrimaryHDU().header.tostring()):])
 
 
 def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
                    primary_cards=None, xy0=(0, 0)):
     """Write a simulated CCD to ``path`` atomically (afw's MaskedImage layout, see above).
 
-    A STREAK_MODEL of zeros (a CCD no streak reaches) is not computed: it is a fresh
-    ``np.zeros`` that the writer leaves as a hole in the file (as it does for any MiB of
-    zeros, most of a MASK), which reads back as the same zero bytes: the file's bytes, and
-    so its digest, are those of a dense write.
+    The planes' data are streamed (see :func:`_write_image_data`); the bytes are those of
+    astropy's ``writeto``. A STREAK_MODEL of zeros (a CCD no streak reaches) is a zero view
+    that the writer leaves as a hole in the file (as it does for any MiB of zeros, most of a
+    MASK), which reads back as the same zero bytes: the file's bytes, and so its digest, are
+    those of a dense write.
 
     Parameters
     ----------
@@ -221,24 +259,22 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
     mask_hdr = mask_header(plane_header("MASK", xy0, wcs_header))
     variance_hdr = plane_header("VARIANCE", xy0, wcs_header)
     variance_hdr["BUNIT"] = (f"{scene.units}**2", "variance of the pixel values")
-    planes = [
-        fits.PrimaryHDU(header=primary_header(scene, primary_cards)),
-        fits.ImageHDU(_big_endian(result.image, np.float32), header=image_hdr, name="IMAGE"),
-        fits.ImageHDU(_big_endian(result.mask, np.int32), header=mask_hdr, name="MASK"),
-        fits.ImageHDU(_big_endian(result.variance, np.float32), header=variance_hdr,
-                      name="VARIANCE"),
-    ]
-    zero_model = _is_zero(result.streak_model)
-    # A zero model is a fresh np.zeros (pages the system maps only when touched).
-    model = fits.ImageHDU(np.zeros(np.shape(result.streak_model), ">f4") if zero_model else
-                          _big_endian(result.streak_model, np.float32), name="STREAK_MODEL")
-    model.header["BUNIT"] = "electron"
-    hdus = fits.HDUList([*planes, model, truth_table(result.truth)])
+    planes = [(result.image, np.float32, image_hdr, "IMAGE"),
+              (result.mask, np.int32, mask_hdr, "MASK"),
+              (result.variance, np.float32, variance_hdr, "VARIANCE"),
+              (result.streak_model, np.float32, None, "STREAK_MODEL")]
+    hdus = fits.HDUList([fits.PrimaryHDU(header=primary_header(scene, primary_cards))])
+    hdus.extend(fits.ImageHDU(_stand_in(a, dtype), header=h, name=n) for a, dtype, h, n in planes)
+    hdus["STREAK_MODEL"].header["BUNIT"] = "electron"
+    hdus.append(truth_table(result.truth))
+    data = {k + 1: plane[0] for k, plane in enumerate(planes)}
     if result.raw is not None:
-        hdus.append(raw_hdu(result.raw, result.raw_sections, scene.detector.bias))
+        data[len(hdus)] = result.raw
+        hdus.append(fits.ImageHDU(_stand_in(result.raw, np.float32), name="RAW"))
+        hdus["RAW"].header.extend(raw_header(result.raw_sections, scene.detector.bias))
     with atomic_path(path, overwrite) as tmp:
-        with open(tmp, "wb") as raw:
-            stream = _DigestStream(raw)
-            hdus.writeto(stream)
-            raw.truncate()  # a hole at the very end still counts in the file's size
+        with open(tmp, "wb") as out:
+            stream = _DigestStream(out)
+            _write_hdus(stream, hdus, data)
+            out.truncate()  # a hole at the very end still counts in the file's size
     return stream.digest.hexdigest()
