@@ -650,16 +650,17 @@ def tile_stars(scene, spec, tile):
     return x, y, mag
 
 
-def add_focal_stars(image, fscene, ccd, wcs=None):
+def add_focal_stars(image, fscene, ccd, wcs=None, noise=None, variance=None):
     """Add the scene's stars that light a CCD (in place): those of every tile its pixels, grown
-    by the bright-star stamp, overlap. A catalog in ra, dec goes through the CCD's WCS."""
+    by the bright-star stamp, overlap. A catalog in ra, dec goes through the CCD's WCS.
+    ``noise`` and ``variance``: see :func:`inject.stars.draw_stars`."""
     from .photometry import electron_rate
     from .stars import add_star_field, draw_stars, psf_stamps, spec_from_scene
 
     scene = fscene.scene
     spec = spec_from_scene(scene)
     if spec.catalog is not None:
-        return add_star_field(image, scene, None, wcs=wcs)
+        return add_star_field(image, scene, None, wcs=wcs, noise=noise, variance=variance)
     if scene.seeing <= 0:
         raise SceneError("stars: need seeing > 0 (stars share the atmospheric PSF)")
     pixel_scale = LSST.pixel_scale_arcsec
@@ -671,7 +672,7 @@ def add_focal_stars(image, fscene, ccd, wcs=None):
     x_mm, y_mm, mag = (np.concatenate(v) for v in zip(*parts))
     x, y = ccd.focal_to_pixel(x_mm, y_mm)
     flux = electron_rate(mag, scene.band) * scene.exptime
-    return draw_stars(image, x, y, flux, stamps, pixel_scale)
+    return draw_stars(image, x, y, flux, stamps, pixel_scale, noise=noise, variance=variance)
 
 
 def simulate_ccd(fscene, ccd, margins=None, budget=Budget()):
@@ -695,5 +696,6 @@ def simulate_ccd(fscene, ccd, margins=None, budget=Budget()):
         row["satellite"] = s.satellite
         row["pixel_scale_arcsec"] = s.pixel_scale
     result = simulate(scene, budget, detector_index=ccd.id, wcs=wcs, rendered=rendered,
-                      add_stars=lambda image: add_focal_stars(image, fscene, ccd, wcs))
+                      add_stars=lambda image, **noise: add_focal_stars(image, fscene, ccd, wcs,
+                                                                       **noise))
     return scene, result, streaks, wcs

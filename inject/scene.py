@@ -24,7 +24,7 @@ from .streak import StreakModel
 from .trajectory import Polyline, Segment
 
 #: Random streams, one per purpose, spawned from the scene seed (numpy SeedSequence).
-STREAMS = {"stars": 0, "noise": 1, "cosmic_rays": 2, "raw": 3}
+STREAMS = {"stars": 0, "noise": 1, "cosmic_rays": 2, "raw": 3, "star_noise": 4}
 
 #: Truth mask threshold: STREAK is set where the noise-free streak exceeds this many sigma of
 #: the per-pixel noise (or this fraction of its peak in a noise-free image).
@@ -335,8 +335,17 @@ class AmplifierNoise:
         with ThreadPoolExecutor(self.threads) as pool:
             list(pool.map(work, self.generators, self.blocks, self.read_noise))
 
-    def poisson(self, level, varying=None, dtype=np.float64):
-        """Collected charge for the expected charge ``level + varying``.
+    #: Pixels of an amplifier drawn at a time: the uniforms, guide indices and counts of a
+    #: chunk (8 bytes a pixel each) stay in the core's cache instead of streaming through
+    #: memory (1.6x faster at sky levels); the uniforms come in the same order.
+    CHUNK_PX = 1 << 16
+
+    def draw(self, level, varying=None, dtype=np.float32):
+        """Collected charge for the expected charge ``level + varying``, and its variance.
+
+        One pass per amplifier: Poisson(level) for every pixel, Poisson(varying) added where
+        ``varying > 0``, and the variance ``level + max(varying, 0) + read_noise**2`` (the
+        Poisson mean drawn plus the amplifier's read noise squared) from the same pixels.
 
         Parameters
         ----------
@@ -346,21 +355,36 @@ class AmplifierNoise:
             Expected charge on top of it, per pixel; values <= 0 add nothing (the streak
             model can dip a few 1e-6 of its peak below zero by interpolation).
         dtype : numpy dtype
-            Of the result: float32 holds every count exactly up to 2**24 e- (100 full wells).
-        """
-        image = np.empty(self.shape if varying is None else varying.shape, dtype)
+            Of the image: float32 holds every count exactly up to 2**24 e- (100 full wells).
 
-        def draw(gen, block, _):
-            out = image[block]
-            counts = draw_poisson(gen, level, out.shape)
-            if varying is not None:
-                part = varying[block]
-                where = np.nonzero(part > 0)
+        Returns
+        -------
+        image : ndarray of ``dtype``
+        variance : ndarray of float32
+        """
+        shape = self.shape if varying is None else varying.shape
+        image = np.empty(shape, dtype)
+        variance = np.empty(shape, np.float32)
+
+        def draw(gen, block, sigma):
+            out, var = image[block], variance[block]
+            rows = max(1, self.CHUNK_PX // max(1, out.shape[1]))
+            for r in range(0, out.shape[0], rows):
+                out[r:r + rows] = draw_poisson(gen, level, out[r:r + rows].shape)
+            var[...] = np.float32(level + sigma ** 2)
+            if varying is None:
+                return
+            part = varying[block]
+            for r in range(0, out.shape[0], rows):
+                chunk = np.s_[r:r + rows]
+                where = np.nonzero(part[chunk] > 0)
                 if where[0].size:
-                    counts[where] += gen.poisson(part[where])
-            out[...] = counts
+                    mean = part[chunk][where]
+                    # Summed in float64 and rounded once: the counts stay exact.
+                    out[chunk][where] += gen.poisson(mean)
+                    var[chunk][where] += mean.astype(np.float32)
         self._each(draw)
-        return image
+        return image, variance
 
     def add_read_noise(self, image):
         """Add Gaussian read noise to ``image`` in place (float32 normals: far finer than
@@ -372,21 +396,6 @@ class AmplifierNoise:
         self._each(draw)
         return image
 
-    def variance(self, level, varying=None, dtype=np.float32):
-        """Variance of each pixel, ``level + max(varying, 0) + read_noise**2`` (the Poisson
-        mean drawn plus the amplifier's read noise squared)."""
-        shape = self.shape if varying is None else varying.shape
-        out = np.empty(shape, dtype)
-
-        def fill(_, block, sigma):
-            constant = level + sigma ** 2
-            if varying is None:
-                out[block] = constant
-            else:
-                np.maximum(varying[block], 0, out=out[block], casting="same_kind")
-                out[block] += dtype(constant)
-        self._each(fill)
-        return out
 
 def sky_level(scene):
     """Sky background in e-/px for the scene (0 when ``sky`` is false).
@@ -421,7 +430,8 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
     """Simulate one CCD of a scene.
 
     ``rendered`` (the ``(image, truth)`` of :func:`render_tracks`) and ``add_stars`` (a
-    function adding the stars' expected charge to an image in place) let a caller that places
+    function ``add_stars(image, noise=None, variance=None)`` adding the stars' charge to an
+    image in place, as :func:`~inject.stars.draw_stars` does) let a caller that places
     streaks and stars itself, such as the focal plane, reuse the rest.
 
     The order follows the charge: streaks, sky, stars and dark current are expected charge;
@@ -444,27 +454,31 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
     det = scene.detector
     streaks, truth = render_streaks(scene, budget) if rendered is None else rendered
     sky = sky_level(scene)
-    # Expected charge = level (uniform: sky, dark current) + varying (streaks, stars).
+    # Expected charge = level (uniform: sky, dark current) + streaks + stars.
     level = sky + scene.dark_current * scene.exptime
     if not truth:
         # No streak: no model to add, keep or write (a read-only zero view costs nothing).
         streaks = np.broadcast_to(np.float32(0), det.shape)
-        varying = np.zeros(det.shape) if scene.stars else None
-    else:
-        varying = np.array(streaks, dtype=np.float64)  # the model stays as rendered
-    if scene.stars and add_stars is not None:
-        add_stars(varying)
-    elif scene.stars:
+    if scene.stars and add_stars is None:
         from .stars import add_star_field
 
-        add_star_field(varying, scene, rng(scene.seed, "stars", detector_index), wcs=wcs)
+        def add_stars(image, **noise):
+            return add_star_field(image, scene, rng(scene.seed, "stars", detector_index),
+                                  wcs=wcs, **noise)
     mask = np.zeros(det.shape, dtype=np.int32)
     noise = AmplifierNoise(det, scene.seed, detector_index) if scene.noise else None
     if noise is not None:
         # float32, as written: the counts are integers, exact in float32 to 2**24 e-.
-        image = noise.poisson(level, varying, np.float32)
+        image, variance = noise.draw(level, streaks if truth else None, np.float32)
+        if scene.stars:
+            # The stars' charge stamp by stamp, from a stream of its own: Poisson draws only
+            # where a star reaches, no image of expected charge (see draw_stars).
+            add_stars(image, noise=rng(scene.seed, "star_noise", detector_index),
+                      variance=variance)
     else:
-        image = np.full(det.shape, level) if varying is None else varying + level
+        image = np.full(det.shape, level) if not truth else streaks + level
+        if scene.stars:
+            add_stars(image)
     saturated = bleed_saturation(image, det.full_well, det.midline)
     if scene.cosmic_rays > 0:
         cr_rng = rng(scene.seed, "cosmic_rays", detector_index)
@@ -475,7 +489,6 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
         raw, sections = raw_layout(image, det, rng(scene.seed, "raw", detector_index), det.bias)
     if noise is not None:
         noise.add_read_noise(image)
-        variance = noise.variance(level, varying)
         noise_sigma = pixel_noise(scene)
     else:
         variance = np.zeros(det.shape)

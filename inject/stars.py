@@ -517,7 +517,8 @@ _BATCH = 16
 
 
 def draw_stars(image, x, y, fluxes_e, psf, pixel_scale, oversample=16, *,
-               faint_tolerance=1e-3, bright_tolerance=1e-4, bright_flux_e=1e6):
+               faint_tolerance=1e-3, bright_tolerance=1e-4, bright_flux_e=1e6,
+               noise=None, variance=None):
     """Add point sources with a shared PSF to ``image`` (in place), without per-star GalSim.
 
     Each star's core stamp is the bilinear interpolation, in sub-pixel position, of the four
@@ -547,19 +548,42 @@ def draw_stars(image, x, y, fluxes_e, psf, pixel_scale, oversample=16, *,
     bright_flux_e : float
         Flux from which a star gets the bright stamp. The default, 1e6 e- (r ~ 17.3 in
         30 s), leaves the faint stamps' lost wings below ~0.1 e- per pixel.
+    noise : numpy.random.Generator, optional
+        Collect the stars' charge instead: each stamp pixel adds Poisson(its expected charge)
+        to ``image`` (a sum of independent Poisson draws is Poisson of the summed mean, so
+        overlapping stars, and a level drawn beforehand, give each pixel exactly Poisson of
+        its total), and its expected charge to ``variance``. Only the stamps are touched:
+        no image-sized buffer of expected charge.
+    variance : ndarray, optional
+        With ``noise``: the variance plane (same shape), modified in place.
 
     Returns
     -------
     ndarray
-        Charge of each star that landed in the image, e- (its flux less what fell outside
-        its stamp or off the image).
+        Expected charge of each star that landed in the image, e- (its flux less what fell
+        outside its stamp or off the image).
     """
     image = _check_image(image)
     x, y, flux = _check_stars(x, y, fluxes_e)
     stamps = psf if isinstance(psf, PsfStamps) else psf_stamps(
         psf, float(pixel_scale), int(oversample), float(faint_tolerance),
         float(bright_tolerance))
-    target = image if image.dtype == np.float64 else np.zeros(image.shape)
+    target = None
+    if noise is not None:
+        if variance is None or np.shape(variance) != image.shape:
+            raise InputError("variance", None if variance is None else np.shape(variance),
+                             f"noise needs a variance plane of the image's shape {image.shape}")
+
+        def add(region, expected):
+            # A stamp's interpolated wings may dip a hair below zero: they collect nothing.
+            expected = np.maximum(expected, 0.0)
+            image[region] += noise.poisson(expected)  # integer counts: exact in float32
+            variance[region] += expected
+    else:
+        target = image if image.dtype == np.float64 else np.zeros(image.shape)
+
+        def add(region, expected):
+            target[region] += expected
     drawn = np.zeros(flux.size)
     ix = np.floor(x).astype(np.intp)
     iy = np.floor(y).astype(np.intp)
@@ -572,7 +596,8 @@ def draw_stars(image, x, y, fluxes_e, psf, pixel_scale, oversample=16, *,
         batch = _interpolate(stamps.core, n_core, fx[idx], fy[idx])
         batch *= flux[idx][:, None, None]
         totals = _interpolate_sums(stamps.core_sums, n_core, fx[idx], fy[idx]) * flux[idx]
-        drawn[idx] += _add_stamps(target, batch, ix[idx], iy[idx], stamps.core_half, totals)
+        drawn[idx] += _add_stamps(add, image.shape, batch, ix[idx], iy[idx],
+                                   stamps.core_half, totals)
 
     # Bright stars: the ring at the nearest half-pixel phase (a view: no interpolation).
     sel = _reaching(image.shape, ix, iy, stamps.bright_half, flux >= bright_flux_e)
@@ -581,9 +606,9 @@ def draw_stars(image, x, y, fluxes_e, psf, pixel_scale, oversample=16, *,
     for k, star in enumerate(sel):
         ring = stamps.ring[j_near[k], i_near[k]]
         total = stamps.ring_sums[j_near[k], i_near[k]] * flux[star]
-        drawn[star] += _add_stamps(target, (ring, flux[star]), ix[star:star + 1],
+        drawn[star] += _add_stamps(add, image.shape, (ring, flux[star]), ix[star:star + 1],
                                    iy[star:star + 1], stamps.bright_half, [total])[0]
-    if target is not image:
+    if target is not None and target is not image:
         image += target
     return drawn
 
@@ -595,8 +620,9 @@ def _reaching(shape, ix, iy, half, wanted):
                           & (iy + half >= 0) & (iy - half < ny))
 
 
-def _add_stamps(image, stamps, ix, iy, half, totals):
-    """Add stamps centred on pixels ``(ix, iy)``, clipped to the image; charge added each.
+def _add_stamps(add, shape, stamps, ix, iy, half, totals):
+    """Add stamps centred on pixels ``(ix, iy)``, clipped to an image of ``shape``, by
+    ``add(region, part)``; return the expected charge added by each.
 
     ``stamps`` is an ``(n, S, S)`` array, or one ``(stamp, scale)`` pair added as
     ``scale * stamp`` (saves copying a large shared stamp). ``totals`` are the stamps' sums,
@@ -604,7 +630,7 @@ def _add_stamps(image, stamps, ix, iy, half, totals):
     contiguous in the image, which beats a scatter with ``np.add.at`` over flattened indices
     ~3x (measured for 91^2 stamps).
     """
-    ny, nx = image.shape
+    ny, nx = shape
     size = 2 * half + 1
     x0, y0 = ix - half, iy - half
     xs, ys = np.maximum(x0, 0), np.maximum(y0, 0)
@@ -618,7 +644,7 @@ def _add_stamps(image, stamps, ix, iy, half, totals):
             part = stamps[0][rows, cols] * stamps[1]
         else:
             part = stamps[k, rows, cols]
-        image[ys[k]:ye[k], xs[k]:xe[k]] += part
+        add(np.s_[ys[k]:ye[k], xs[k]:xe[k]], part)
         if clipped[k]:
             added[k] = part.sum()
     return added
@@ -679,8 +705,9 @@ def spec_from_scene(scene):
     return StarFieldSpec(**entry)
 
 
-def add_star_field(image, scene, rng, wcs=None):
-    """Add a scene's stars to ``image`` (expected charge, e-, in place).
+def add_star_field(image, scene, rng, wcs=None, noise=None, variance=None):
+    """Add a scene's stars to ``image`` (expected charge, e-, in place; with ``noise``, the
+    collected charge, and the expected charge to ``variance``: see :func:`draw_stars`).
 
     Stars are random (:func:`star_field`, with a margin of one core stamp so stars just off
     the CCD still light its edge) or the scene's catalog; the PSF is the scene's Kolmogorov
@@ -697,11 +724,14 @@ def add_star_field(image, scene, rng, wcs=None):
         The scene's ``"stars"`` stream.
     wcs : astropy.wcs.WCS, optional
         For catalogs in ra, dec.
+    noise : numpy.random.Generator, optional
+    variance : ndarray, optional
+        See :func:`draw_stars`.
 
     Returns
     -------
     dict
-        ``x``, ``y``, ``mag``, ``flux_e`` and ``charge_in_image_e`` per star.
+        ``x``, ``y``, ``mag``, ``flux_e`` and ``charge_in_image_e`` (expected) per star.
     """
     from .errors import SceneError
     from .instrument import LSST
@@ -716,5 +746,6 @@ def add_star_field(image, scene, rng, wcs=None):
     field = star_field(spec, image.shape, pixel_scale, scene.band, rng,
                        margin_px=stamps.core_half, wcs=wcs)
     flux = electron_rate(field["mag"], scene.band) * scene.exptime
-    drawn = draw_stars(image, field["x"], field["y"], flux, stamps, pixel_scale)
+    drawn = draw_stars(image, field["x"], field["y"], flux, stamps, pixel_scale, noise=noise,
+                       variance=variance)
     return {**field, "flux_e": flux, "charge_in_image_e": drawn}

@@ -57,7 +57,8 @@ def test_split_draw_is_poisson_of_the_summed_mean(level):
     """Poisson(level) everywhere plus Poisson(varying) where varying > 0 is Poisson(level +
     max(varying, 0)) per pixel: mean, variance and the whole distribution per class."""
     varying, classes = pixel_classes(DET.shape)
-    draws = np.concatenate([AmplifierNoise(DET, seed, threads=2).poisson(level, varying)[None]
+    draws = np.concatenate([AmplifierNoise(DET, seed, threads=2).draw(level, varying,
+                                                                      np.float64)[0][None]
                             for seed in range(6)])
     assert draws.dtype == np.float64 and np.all(draws == np.rint(draws))
     for name, where in classes.items():
@@ -80,24 +81,42 @@ def test_draws_do_not_depend_on_threads_and_differ_by_seed():
     varying, _ = pixel_classes(DET.shape)
     one = AmplifierNoise(DET, 5, detector_index=3, threads=1)
     four = AmplifierNoise(DET, 5, detector_index=3, threads=4)
-    a, b = one.poisson(100.0, varying), four.poisson(100.0, varying)
+    (a, _), (b, _) = one.draw(100.0, varying, np.float64), four.draw(100.0, varying, np.float64)
     np.testing.assert_array_equal(a, b)
-    as32 = AmplifierNoise(DET, 5, detector_index=3).poisson(100.0, varying, np.float32)
+    as32 = AmplifierNoise(DET, 5, detector_index=3).draw(100.0, varying)[0]
     np.testing.assert_array_equal(as32, a)  # float32 holds the counts exactly
     np.testing.assert_array_equal(one.add_read_noise(a), four.add_read_noise(b))
-    other = AmplifierNoise(DET, 5, detector_index=4, threads=1).poisson(100.0, varying)
+    other = AmplifierNoise(DET, 5, detector_index=4, threads=1).draw(100.0, varying)[0]
     assert not np.array_equal(a, other)
+
+
+@pytest.mark.parametrize("chunk", [1, 64, 64 * 7 + 3])
+def test_chunked_draw_takes_the_same_uniforms(monkeypatch, chunk):
+    """Drawing an amplifier a few rows at a time (to keep the temporaries in cache) gives
+    the image of one draw per amplifier: the uniforms are taken in the same order."""
+    varying, _ = pixel_classes(DET.shape)
+    whole, whole_var = AmplifierNoise(DET, 8, threads=1).draw(30.0, varying)
+    monkeypatch.setattr(AmplifierNoise, "CHUNK_PX", chunk)
+    chunked, chunked_var = AmplifierNoise(DET, 8, threads=1).draw(30.0, varying)
+    np.testing.assert_array_equal(chunked, whole)
+    np.testing.assert_array_equal(chunked_var, whole_var)
+    # The reference: every amplifier's Poisson(level) by one table draw of its whole block.
+    noise = AmplifierNoise(DET, 8, threads=1)
+    for gen, block in zip(noise.generators, noise.blocks):
+        expected = draw_poisson(gen, 30.0, whole[block].shape)
+        part = varying[block]
+        np.testing.assert_array_equal(whole[block][part <= 0], expected[part <= 0])
 
 
 def test_variance_and_read_noise_per_amplifier():
     varying, _ = pixel_classes(DET.shape)
     noise = AmplifierNoise(DET, 1, threads=2)
-    variance = noise.variance(40.0, varying)
+    variance = noise.draw(40.0, varying)[1]
     assert variance.dtype == np.float32
     amp = DET.amp_index()
     rn2 = np.asarray(READ_NOISE)[amp] ** 2
     np.testing.assert_allclose(variance, 40.0 + np.maximum(varying, 0) + rn2, rtol=1e-6)
-    np.testing.assert_allclose(noise.variance(40.0), 40.0 + rn2, rtol=1e-6)
+    np.testing.assert_allclose(noise.draw(40.0)[1], 40.0 + rn2, rtol=1e-6)
     # Read noise alone (no charge): each amplifier's own sigma.
     read = np.concatenate([AmplifierNoise(DET, s, threads=2).add_read_noise(
                                np.zeros(DET.shape, np.float32))[None]
@@ -123,6 +142,15 @@ def test_scene_without_streaks_matches_its_variance():
     assert pulls.std() == pytest.approx(1.0, abs=0.02)
 
 
+def test_variance_holds_the_stars_expected_charge():
+    """The stars' charge is drawn stamp by stamp, yet VARIANCE is the whole expected charge:
+    the noise-free image of the same scene (same star field) plus the read noise squared."""
+    noisy = simulate(scene("cosmic_rays=0", "satellites=[]"))
+    clean = simulate(scene("cosmic_rays=0", "satellites=[]", "noise=false"))
+    assert clean.image.max() - clean.image.min() > 1e3  # stars are there
+    np.testing.assert_allclose(noisy.variance, clean.image + ITL.read_noise ** 2, rtol=2e-6)
+
+
 def test_streak_free_model_is_not_allocated_and_reads_back_as_zeros(tmp_path):
     sc = scene("satellites=[]")
     res = simulate(sc)
@@ -144,21 +172,31 @@ def test_streak_free_model_is_not_allocated_and_reads_back_as_zeros(tmp_path):
     np.testing.assert_array_equal(exposure.image, res.image)
 
 
-def test_zero_model_hole_gives_the_bytes_of_a_dense_write(tmp_path):
-    """The file with the zero STREAK_MODEL left as a hole has the same bytes as the same
-    file with a dense zero array (written the ordinary way, through astropy alone); the
-    planes are large enough for the MiB holes (the zero model, most of the mask)."""
+@pytest.mark.parametrize("overrides", [
+    ["satellites=[]", "stars=false"],
+    ["detector.layout=raw", "units=adu"],  # a streak (float64 model), RAW, ADU planes
+])
+def test_streamed_planes_give_the_bytes_of_astropys_write(tmp_path, overrides):
+    """The planes' data streamed a MiB at a time (converted in a small buffer, runs of
+    zeros such as a zero STREAK_MODEL left as holes) give the bytes of the same HDUs written
+    the ordinary way, through astropy alone (dense arrays); the planes are large enough for
+    several MiB pieces and holes."""
     sc = parse_scene(apply_overrides(DEFAULT_SCENE, ["detector.nx=1200", "detector.ny=1000",
-                                                     "satellites=[]", "stars=false"]))
+                                                     *overrides]))
     res = simulate(sc)
-    sparse = tmp_path / "sparse.fits"
-    write_exposure(sparse, sc, res, sc.detector.gain)
+    streamed = tmp_path / "streamed.fits"
+    digest = write_exposure(streamed, sc, res, sc.detector.gain, xy0=(5, 7))
+    assert digest == hashlib.sha256(streamed.read_bytes()).hexdigest()
     dense = tmp_path / "dense.fits"
-    with fits.open(sparse) as hdus:
+    with fits.open(streamed) as hdus:
         copy = fits.HDUList([h.copy() for h in hdus])
-        copy["STREAK_MODEL"].data = np.zeros(sc.detector.shape, np.float32)
+        names = [h.name for h in copy]
+        copy["STREAK_MODEL"].data = np.array(res.streak_model, np.float32)
+        copy["IMAGE"].data = np.array(res.image, np.float32)
         copy.writeto(dense)
-    assert sparse.read_bytes() == dense.read_bytes()
+    assert names[1:6] == ["IMAGE", "MASK", "VARIANCE", "STREAK_MODEL", "TRUTH"]
+    assert ("RAW" in names) == ("detector.layout=raw" in overrides)
+    assert streamed.read_bytes() == dense.read_bytes()
 
 
 def test_with_a_streak_the_model_is_written_and_masked():

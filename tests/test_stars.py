@@ -263,3 +263,55 @@ def test_scene_with_stars():
     assert np.allclose(stars_added["flux_e"], expected)
     with pytest.raises(SceneError, match="unknown key"):
         st.spec_from_scene(parse_scene(apply_overrides(DEFAULT_SCENE, ["stars.density=3"])))
+
+
+# --- collected charge (noise) ---------------------------------------------------------------
+
+def _star_draws(stamps, n, x, y, flux, shape=(40, 50)):
+    """``n`` collected-charge drawings of the same stars (seeds 0..n-1) and the one expected
+    image and variance plane."""
+    expected = np.zeros(shape)
+    st.draw_stars(expected, x, y, flux, stamps, PIXEL)
+    draws, variances = [], []
+    for seed in range(n):
+        image, variance = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+        st.draw_stars(image, x, y, flux, stamps, PIXEL, noise=np.random.default_rng(seed),
+                      variance=variance)
+        draws.append(image)
+        variances.append(variance)
+    return expected, np.array(draws), np.array(variances)
+
+
+def test_collected_star_charge_is_poisson_of_the_expected(stamps):
+    """Stars drawn stamp by stamp with noise: two overlapping faint stars and a bright one
+    (core and ring, cut by the image edge). Each pixel is Poisson of the summed expected
+    charge (mean and variance per pixel over 1500 drawings, the whole distribution where the
+    stars overlap and in a bright one's far ring), and the variance plane is that expected
+    charge."""
+    from test_noise_split import chi_square_pvalue
+
+    x, y, flux = [18.3, 24.8, 47.6], [20.1, 21.7, 12.2], [2500.0, 900.0, 3e6]
+    expected, draws, variances = _star_draws(stamps, 1500, x, y, flux)
+    assert np.all(draws == np.rint(draws)) and draws.min() >= 0
+    np.testing.assert_allclose(variances, np.broadcast_to(expected, variances.shape),
+                               rtol=1e-6, atol=1e-9)
+    n = len(draws)
+    pull = (draws.mean(axis=0) - expected) / np.sqrt(np.maximum(expected, 1e-12) / n)
+    assert np.abs(pull).max() < 5.5  # 2000 pixels: a 5.5-sigma pull has p ~ 1e-4
+    lit = expected > 0.5
+    ratio = draws.var(axis=0)[lit] / expected[lit]
+    assert abs(ratio.mean() - 1) < 0.01
+    for pixel in [(21, 21), (20, 18), (5, 40), (39, 3)]:  # overlap, core, bright ring, wing
+        mean = expected[pixel]
+        assert mean > 0
+        assert chi_square_pvalue(draws[(slice(None), *pixel)], mean) > 1e-4, (pixel, mean)
+
+
+def test_collected_star_charge_is_reproducible_and_needs_a_variance(stamps):
+    _, a, _ = _star_draws(stamps, 2, [10.5], [11.5], [5e3])
+    _, b, _ = _star_draws(stamps, 2, [10.5], [11.5], [5e3])
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a[0], a[1])
+    with pytest.raises(InputError, match="variance"):
+        st.draw_stars(np.zeros((20, 20), np.float32), [5.0], [5.0], [10.0], stamps, PIXEL,
+                      noise=np.random.default_rng(1))
