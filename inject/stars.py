@@ -171,13 +171,23 @@ def sample_stars(spec, area_deg2, band, rng):
     """
     _band(band)
     area = float(positive("area_deg2", area_deg2))
+    grid, cdf = _cumulative_counts_grid(spec)
+    n = rng.poisson(area * cdf[-1])
+    # N(<m) increases strictly with m, so interpolating the inverse is well posed.
+    return np.interp(rng.uniform(0.0, cdf[-1], n), cdf, grid)
+
+
+@functools.lru_cache(maxsize=16)
+def _cumulative_counts_grid(spec):
+    """Magnitudes every 0.001 mag from ``mag_bright`` to ``mag_limit`` and the counts per
+    deg^2 brighter than each, less those brighter than ``mag_bright`` (read-only; once per
+    spec: a focal plane samples its ~100 star tiles from one field's counts)."""
     grid = np.linspace(spec.mag_bright, spec.mag_limit,
                        int(np.ceil((spec.mag_limit - spec.mag_bright) / 1e-3)) + 1)
     cdf = spec.counts(grid)
     cdf = cdf - cdf[0]
-    n = rng.poisson(area * cdf[-1])
-    # N(<m) increases strictly with m, so interpolating the inverse is well posed.
-    return np.interp(rng.uniform(0.0, cdf[-1], n), cdf, grid)
+    grid.flags.writeable = cdf.flags.writeable = False
+    return grid, cdf
 
 
 def star_field(spec, shape, pixel_scale, band, rng, *, margin_px=0.0, wcs=None):
