@@ -706,13 +706,20 @@ def spec_from_scene(scene):
                          f"allowed: {', '.join(SCENE_KEYS)}")
     entry = dict(entry)
     if scene.pointing and not {"galactic_l", "galactic_b"} & set(entry):
-        from astropy import units as u
-        from astropy.coordinates import SkyCoord
-
-        gal = SkyCoord(ra=float(scene.pointing["ra"]) * u.deg,
-                       dec=float(scene.pointing["dec"]) * u.deg).galactic
-        entry.update(galactic_l=float(gal.l.deg), galactic_b=float(gal.b.deg))
+        l_deg, b_deg = _galactic(float(scene.pointing["ra"]), float(scene.pointing["dec"]))
+        entry.update(galactic_l=l_deg, galactic_b=b_deg)
     return StarFieldSpec(**entry)
+
+
+@functools.lru_cache(maxsize=64)
+def _galactic(ra_deg, dec_deg):
+    """Galactic ``(l, b)`` of an ICRS direction, deg (astropy; once per pointing, not once per
+    CCD of a focal plane)."""
+    from astropy import units as u
+    from astropy.coordinates import SkyCoord
+
+    gal = SkyCoord(ra=ra_deg * u.deg, dec=dec_deg * u.deg).galactic
+    return float(gal.l.deg), float(gal.b.deg)
 
 
 def add_star_field(image, scene, rng, wcs=None, noise=None, variance=None):
