@@ -409,9 +409,10 @@ def process_pool(workers=None):
 
 
 #: Memory limit per Dask LocalCluster worker. A full-size CCD (IMAGE, MASK, VARIANCE,
-#: STREAK_MODEL and the planes they come from) peaks near 0.75 GiB in a worker
-#: (scripts/bench_focalplane.py measures it: 714-766 MiB); Dask spills at 60-70% of the
-#: limit, pauses at 80% and restarts the worker at 95%, so 3 GiB leaves room.
+#: STREAK_MODEL and the planes they come from) peaks near 0.9 GiB in a worker
+#: (scripts/bench_focalplane.py measures it: 0.6-0.7 GiB for CCDs without the streak, 0.86
+#: GiB over a whole exposure); Dask spills at 60-70% of the limit, pauses at 80% and
+#: restarts the worker at 95%, so 3 GiB leaves room.
 DASK_MEMORY_LIMIT = "3GiB"
 
 
