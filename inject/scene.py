@@ -325,7 +325,9 @@ class AmplifierNoise:
         self.read_noise = [detector.amp_value("read_noise", b[0].start, b[1].start)
                            for b in self.blocks]
         root = np.random.SeedSequence(seed, spawn_key=(detector_index, STREAMS["noise"]))
-        self.generators = [np.random.default_rng(s) for s in root.spawn(len(self.blocks))]
+        # SFC64: numpy's fastest bit generator here (float32 normals ~15% faster than PCG64's).
+        self.generators = [np.random.Generator(np.random.SFC64(s))
+                           for s in root.spawn(len(self.blocks))]
         self.threads = threads or NOISE_THREADS or min(len(self.blocks), os.cpu_count() or 1)
 
     def _each(self, work):

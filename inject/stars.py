@@ -587,7 +587,7 @@ def draw_stars(image, x, y, fluxes_e, psf, pixel_scale, oversample=16, *,
         def add(region, expected):
             # A stamp's interpolated wings may dip a hair below zero: they collect nothing.
             expected = np.maximum(expected, 0.0)
-            image[region] += noise.poisson(expected)  # integer counts: exact in float32
+            image[region] += _collect(noise, expected)  # integer counts: exact in float32
             variance[region] += expected
     else:
         target = image if image.dtype == np.float64 else np.zeros(image.shape)
@@ -621,6 +621,37 @@ def draw_stars(image, x, y, fluxes_e, psf, pixel_scale, oversample=16, *,
     if target is not None and target is not image:
         image += target
     return drawn
+
+
+#: A stamp whose expected charge is below this many e- per pixel on average collects it
+#: photon by photon (:func:`_collect`); above it, pixel by pixel. The two cost the same at
+#: ~0.2 e- per pixel (measured on 93 x 93 core stamps); faint stars' cores and bright
+#: stars' far rings (~1e-3 of their flux over 359 x 359 pixels) are well below.
+PHOTONS_PER_PIXEL_MAX = 0.1
+
+
+def _collect(gen, expected):
+    """Collected charge of a stamp of expected charge (>= 0): Poisson of each pixel's, as an
+    int64 array of its shape.
+
+    A faint stamp (under :data:`PHOTONS_PER_PIXEL_MAX` e- per pixel) is drawn as photons: a
+    Poisson number with the stamp's total as its mean, each put in pixel ``i`` with
+    probability ``expected_i / total``; a Poisson number of such multinomial photons gives
+    each pixel an independent Poisson count of mean ``expected_i``, exactly the per-pixel
+    draw, at the cost of the few photons instead of every pixel.
+    """
+    flat = expected.ravel()
+    cumulative = np.cumsum(flat)
+    total = cumulative[-1] if flat.size else 0.0
+    if total >= PHOTONS_PER_PIXEL_MAX * flat.size:
+        return gen.poisson(expected)
+    photons = gen.poisson(total)
+    if not photons:
+        return np.zeros(expected.shape, np.int64)
+    pixel = np.searchsorted(cumulative, gen.random(photons) * total, side="right")
+    # u * total can round up to total: such a photon belongs to the last lit pixel.
+    np.minimum(pixel, np.flatnonzero(flat)[-1], out=pixel)
+    return np.bincount(pixel, minlength=flat.size).reshape(expected.shape)
 
 
 def _reaching(shape, ix, iy, half, wanted):

@@ -282,15 +282,23 @@ def _star_draws(stamps, n, x, y, flux, shape=(40, 50)):
     return expected, np.array(draws), np.array(variances)
 
 
-def test_collected_star_charge_is_poisson_of_the_expected(stamps):
-    """Stars drawn stamp by stamp with noise: two overlapping faint stars and a bright one
-    (core and ring, cut by the image edge). Each pixel is Poisson of the summed expected
-    charge (mean and variance per pixel over 1500 drawings, the whole distribution where the
-    stars overlap and in a bright one's far ring), and the variance plane is that expected
-    charge."""
+@pytest.mark.parametrize("photons_per_pixel_max, bright", [
+    (0.0, 3e6),                        # every stamp pixel by pixel
+    (st.PHOTONS_PER_PIXEL_MAX, 3e6),   # as chosen: the faint core and the ring as photons
+    (np.inf, 3e3),                     # every stamp photon by photon (no 3e6-photon core)
+])
+def test_collected_star_charge_is_poisson_of_the_expected(stamps, monkeypatch,
+                                                          photons_per_pixel_max, bright):
+    """Stars drawn stamp by stamp with noise: two overlapping stars, a faint one and one at
+    the image edge (with the ring of a bright star when it is bright); stamps drawn pixel by
+    pixel, photon by photon, and as chosen by default. Each pixel is Poisson of the summed
+    expected charge (mean and variance per pixel over 1500 drawings, the whole distribution
+    where the stars overlap, in a core, a faint star and a bright one's far ring), and the
+    variance plane is that expected charge."""
     from test_noise_split import chi_square_pvalue
 
-    x, y, flux = [18.3, 24.8, 47.6], [20.1, 21.7, 12.2], [2500.0, 900.0, 3e6]
+    monkeypatch.setattr(st, "PHOTONS_PER_PIXEL_MAX", photons_per_pixel_max)
+    x, y, flux = [18.3, 24.8, 47.6, 6.5], [20.1, 21.7, 12.2, 33.4], [2500.0, 900.0, bright, 300.0]
     expected, draws, variances = _star_draws(stamps, 1500, x, y, flux)
     assert np.all(draws == np.rint(draws)) and draws.min() >= 0
     np.testing.assert_allclose(variances, np.broadcast_to(expected, variances.shape),
@@ -301,7 +309,8 @@ def test_collected_star_charge_is_poisson_of_the_expected(stamps):
     lit = expected > 0.5
     ratio = draws.var(axis=0)[lit] / expected[lit]
     assert abs(ratio.mean() - 1) < 0.01
-    for pixel in [(21, 21), (20, 18), (5, 40), (39, 3)]:  # overlap, core, bright ring, wing
+    # overlap, core, edge star's wing (its far ring when bright), wing, faint star
+    for pixel in [(21, 21), (20, 18), (5, 40), (39, 3), (33, 6)]:
         mean = expected[pixel]
         assert mean > 0
         assert chi_square_pvalue(draws[(slice(None), *pixel)], mean) > 1e-4, (pixel, mean)
