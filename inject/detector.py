@@ -167,11 +167,13 @@ def bleed_saturation(image, full_well, midline=None):
 
     Returns
     -------
-    ndarray of bool
-        Pixels at full well (the SAT mask).
+    tuple of ndarray
+        Row and column indices of the pixels at full well (the SAT mask), as ``np.nonzero``
+        gives them: only the columns that reach full well are searched.
     """
     ny = image.shape[0]
-    for x in np.flatnonzero((image > full_well).any(axis=0)):
+    peak = image.max(axis=0) if image.size else np.zeros(image.shape[1])
+    for x in np.flatnonzero(peak > full_well):
         column = image[:, x]
         while True:
             over = np.flatnonzero(column > full_well)
@@ -202,11 +204,14 @@ def bleed_saturation(image, full_well, midline=None):
             if spare > 0:
                 ends = [lo, hi] if n > 1 else [lo]
                 column[ends] -= spare / len(ends)
-    return image >= full_well
+    # Bleeding fills only columns that reached full well: the others cannot hold any.
+    columns = np.flatnonzero(peak >= full_well)
+    rows, where = np.nonzero(image[:, columns] >= full_well)
+    return rows, columns[where]
 
 
 def add_cosmic_rays(image, n_expected, rng, charge_per_px=1500.0, mean_length_px=6.0):
-    """Add cosmic-ray tracks (in place) and return their mask.
+    """Add cosmic-ray tracks (in place) and return their pixels (row and column indices).
 
     A simple model for mask and detection tests, not a physical one: ``Poisson(n_expected)``
     straight tracks at uniform positions and angles, exponential lengths, a log-normal
@@ -214,7 +219,7 @@ def add_cosmic_rays(image, n_expected, rng, charge_per_px=1500.0, mean_length_px
     imSim uses ~0.2 per s per CCD.
     """
     ny, nx = image.shape
-    mask = np.zeros(image.shape, bool)
+    rows, cols = [], []
     for _ in range(rng.poisson(n_expected)):
         x0, y0 = rng.uniform(0, nx), rng.uniform(0, ny)
         angle = rng.uniform(0, np.pi)
@@ -225,8 +230,11 @@ def add_cosmic_rays(image, n_expected, rng, charge_per_px=1500.0, mean_length_px
         y = np.rint(y0 + s * np.sin(angle)).astype(int)
         inside = (x >= 0) & (x < nx) & (y >= 0) & (y < ny)
         np.add.at(image, (y[inside], x[inside]), charge * 0.25)
-        mask[y[inside], x[inside]] = True
-    return mask
+        rows.append(y[inside])
+        cols.append(x[inside])
+    if not rows:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    return np.concatenate(rows), np.concatenate(cols)
 
 
 def raw_layout(image_e, detector, rng, bias=1000.0):

@@ -503,8 +503,7 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
         threshold = STREAK_MASK_FRACTION * max((row["peak_e_per_px"] for row in truth), default=0)
     if truth:
         mask[streaks > threshold] |= 1 << MASK_PLANES["STREAK"]
-    if saturated.any():
-        mask[saturated] |= 1 << MASK_PLANES["SAT"]
+    mask[saturated] |= 1 << MASK_PLANES["SAT"]
     for row in truth:
         if row["peak_e_per_px"] + sky >= det.full_well:
             row["flags"] |= FLAG_SATURATED
