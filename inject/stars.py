@@ -562,8 +562,9 @@ def draw_stars(image, x, y, fluxes_e, psf, pixel_scale, oversample=16, *,
         Collect the stars' charge instead: each stamp pixel adds Poisson(its expected charge)
         to ``image`` (a sum of independent Poisson draws is Poisson of the summed mean, so
         overlapping stars, and a level drawn beforehand, give each pixel exactly Poisson of
-        its total), and its expected charge to ``variance``. Only the stamps are touched:
-        no image-sized buffer of expected charge.
+        its total; a faint stamp is drawn photon by photon, see :func:`_collect`), and its
+        expected charge to ``variance``. Only the stamps are touched: no image-sized buffer
+        of expected charge.
     variance : ndarray, optional
         With ``noise``: the variance plane (same shape), modified in place.
 
