@@ -24,6 +24,32 @@ SCENE = {"seed": 3, "detector": {"type": "itl", "nx": 96, "ny": 64}, "stars": Fa
          "satellites": [{"height": 550, "shape": {"type": "box", "length": 7.25, "width": 2.65},
                          "mag": 8.0, "track": {"x0": 5, "y0": 10, "angle": 20}}]}
 OUTPUTS = ("out.fits", "out.exr", "out.png", "out.csv")
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def _default_handler(signum):
+    return signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL
+
+
+@pytest.fixture(autouse=True)
+def _stop_signals_not_ignored():
+    """A suite started in the background (``make test &``, ``nohup``) inherits SIGINT or
+    SIGHUP ignored, and inject, as Unix tools do, leaves an ignored signal ignored: these
+    tests need the ordinary dispositions, in this process and (see ``_default_signals``) in
+    the commands they start."""
+    saved = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
+    for signum, handler in saved.items():
+        if handler is signal.SIG_IGN:
+            signal.signal(signum, _default_handler(signum))
+    yield
+    for signum, handler in saved.items():
+        signal.signal(signum, handler)
+
+
+def _default_signals():
+    """In a child before it runs the command: the stop signals at their defaults."""
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, signal.SIG_DFL)
 
 
 def _argv(tmp_path, *extra):
@@ -234,7 +260,8 @@ def test_signalled_command(tmp_path, signum, moment):
     (tmp_path / "out.png").write_bytes(b"an earlier quicklook")
     before = {n: (tmp_path / n).read_bytes() for n in os.listdir(tmp_path)}
     process = subprocess.Popen([sys.executable, "-m", "inject", *_argv(tmp_path, "--overwrite")],
-                               cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                               cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                               preexec_fn=_default_signals)
     if moment == "handlers installed":
         _wait_for(lambda: _catches(process.pid, signum), process, moment)
     else:
