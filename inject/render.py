@@ -771,7 +771,8 @@ def _nbytes(value):
 PROFILE_CACHE = ProfileCache()
 
 
-def swept_profile(model, angle_deg, budget=Budget(), length_px=np.inf, cache=PROFILE_CACHE):
+def swept_profile(model, angle_deg, budget=Budget(), length_px=np.inf, cache=PROFILE_CACHE,
+                  snap=True):
     """A :class:`SweptProfile` of a :class:`~inject.streak.StreakModel`, with components
     that cannot matter at this budget dropped, and that decision in its plan.
 
@@ -780,7 +781,9 @@ def swept_profile(model, angle_deg, budget=Budget(), length_px=np.inf, cache=PRO
     orientation nearest to ``angle_deg`` on the profile's grid (:func:`orientation_step`),
     whose snapping error is in the plan as ``"orientation"``; render the segment at its own
     angle. ``cache`` (a :class:`ProfileCache`, or None to build afresh) shares the result
-    between streaks with the same profile, grid orientation and budget.
+    between streaks with the same profile, grid orientation and budget. ``snap=False`` builds
+    the tables at the exact angle, without measuring the grid (for a profile no other streak
+    will share).
     """
     if cache is None:
         cache = ProfileCache()  # a throwaway one: nothing shared with other calls
@@ -798,9 +801,11 @@ def swept_profile(model, angle_deg, budget=Budget(), length_px=np.inf, cache=PRO
                                                           length_px))
     profile, dropped, error = cache.get(("profile", key, budget.tolerance),
                                         lambda: model.render_profile(budget.tolerance))
-    slope = cache.get(("orientation", key, dropped),
-                      lambda: orientation_slope(profile, model.pixel_scale))
-    step, snap_error = orientation_step(slope, budget.tolerance)
+    step, snap_error = 0.0, 0.0
+    if snap:
+        slope = cache.get(("orientation", key, dropped),
+                          lambda: orientation_slope(profile, model.pixel_scale))
+        step, snap_error = orientation_step(slope, budget.tolerance)
     angle_deg = snap_orientation(angle_deg, step)
 
     def build():
@@ -825,7 +830,9 @@ def render_polyline(image, polyline, models, budget=Budget(), cache=PROFILE_CACH
     Each piece between two vertices is split at its middle: the first half is swept with the
     first vertex's profile, the second half with the second's, while the charge per pixel of
     track varies linearly from one vertex's value to the next (exactly, see
-    :meth:`SweptProfile.pixel_values`). Profiles are built once per model and angle.
+    :meth:`SweptProfile.pixel_values`). Profiles are built once per model and angle, at the
+    exact angle unless several vertices share a profile (then on the orientation grid of
+    :func:`swept_profile`, so that pieces at other angles share its tables).
 
     Parameters
     ----------
@@ -846,9 +853,15 @@ def render_polyline(image, polyline, models, budget=Budget(), cache=PROFILE_CACH
     if len(models) != len(polyline.xs):
         raise InputError("models", len(models), f"need one per vertex ({len(polyline.xs)})")
     local = ProfileCache() if cache is None else cache
+    # Tables are shared through snapped orientations only where a vertex profile recurs: one
+    # of its own (an orbit's vertex, a focal-plane CCD's interpolated ends) is built at its
+    # exact angle, without measuring how fast it changes with the orientation.
+    keys = [model.profile_key for model in models]
+    recurring = {key for key in keys if keys.count(key) > 1}
 
     def profile_for(model, angle):
-        return swept_profile(model, angle, budget, cache=local)
+        return swept_profile(model, angle, budget, cache=local,
+                             snap=model.profile_key in recurring)
 
     total, vertex = 0.0, 0
     for seg in polyline.segments():

@@ -215,3 +215,33 @@ def test_along_peak_floor_keeps_short_track_budgets_exact(model):
         cache = ProfileCache()
         swept = swept_profile(model, angle, Budget(), 0.95 * long_enough, cache)
         assert swept.budget == short
+
+
+def test_polyline_snaps_only_profiles_that_recur():
+    """A polyline whose vertices each have a profile of their own (a height per vertex, as
+    an orbit's or a focal-plane CCD's interpolated ends) is rendered at its exact angles, the
+    orientation grid never measured; one whose vertices share a profile (only the magnitude
+    changes) snaps to the grid, as segments do. Both keep the track's charge."""
+    from dataclasses import replace
+
+    from inject.render import render_polyline
+    from inject.trajectory import Polyline
+
+    poly = Polyline((20.0, 150.0, 260.0), (30.0, 90.0, 120.0))
+    own = [StreakModel(h, 70) for h in (540.0, 550.0, 560.0)]
+    shared = [replace(PAPER_550, mag=m) for m in (5.0, 5.5, 6.0)]
+    for models, snapped in ((own, False), (shared, True)):
+        cache = ProfileCache()
+        image = np.zeros((200, 300))
+        charge = render_polyline(image, poly, models, cache=cache)
+        orientation_keys = [k for k in cache._items if k[0] == "orientation"]
+        assert bool(orientation_keys) == snapped
+        swept = [v for v, _ in cache._items.values() if isinstance(v, SweptProfile)]
+        angles = {round(s.angle_deg, 9) for s in swept}
+        exact = {round(seg.angle_deg % 90.0, 9) for seg in poly.segments()}
+        assert (angles == exact) != snapped
+        fluxes = [m.flux_per_px for m in models]
+        track = sum(0.5 * (a + b) * seg.length
+                    for a, b, seg in zip(fluxes[:-1], fluxes[1:], poly.segments()))
+        assert charge == pytest.approx(image.sum(), rel=1e-12)
+        assert charge == pytest.approx(track, rel=2e-3)  # the whole track is on the image
