@@ -642,10 +642,10 @@ def _collect(gen, expected):
     draw, at the cost of the few photons instead of every pixel.
     """
     flat = expected.ravel()
-    cumulative = np.cumsum(flat)
-    total = cumulative[-1] if flat.size else 0.0
-    if total >= PHOTONS_PER_PIXEL_MAX * flat.size:
+    if flat.sum() >= PHOTONS_PER_PIXEL_MAX * flat.size:
         return gen.poisson(expected)
+    cumulative = np.cumsum(flat)  # only faint stamps need it: not on the dense ones' path
+    total = cumulative[-1]
     photons = gen.poisson(total)
     if not photons:
         return np.zeros(expected.shape, np.int64)
