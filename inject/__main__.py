@@ -1,6 +1,6 @@
 """``python -m inject``."""
 import sys
 
-from .cli import main
+from inject.cli.main import main
 
 sys.exit(main())

@@ -12,12 +12,12 @@ import numpy as np
 from astropy.table import Table, vstack
 from astropy.io import fits
 
-from .errors import InputError
-from .io.fits import truth_table
-from .maskplanes import FLAG_SATURATED
-from .render import Budget
-from .scene import STREAK_MASK_SIGMA, render_tracks
-from .validate import positive
+from inject.errors import InputError
+from inject.io.fits import truth_table
+from inject.maskplanes import FLAG_SATURATED
+from inject.render import Budget
+from inject.scene import STREAK_MASK_SIGMA, render_tracks
+from inject.validate import positive
 
 
 def robust_sigma(image):
@@ -116,9 +116,9 @@ def _flag_saturated(truth, models, saturated):
 def _check_arguments(exposure, models, tracks, rng):
     """Raise :class:`InputError` for arguments of the wrong kind (which would otherwise fail
     deep inside the renderer); return ``rng`` as a generator."""
-    from .config import Track
-    from .io.reader import InputExposure
-    from .streak import StreakModel
+    from inject.config import Track
+    from inject.io.reader import InputExposure
+    from inject.streak import StreakModel
 
     if not isinstance(exposure, InputExposure):
         raise InputError("exposure", type(exposure).__name__,

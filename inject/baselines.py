@@ -11,7 +11,7 @@ import galsim
 import numpy as np
 from scipy import special
 
-from .instrument import ARCSEC_PER_RAD
+from inject.instrument import ARCSEC_PER_RAD
 
 #: Width (arcsec) of the thin box in the GalSim idiom.
 BOX_WIDTH_ARCSEC = 1e-6

@@ -11,11 +11,11 @@ import re
 import numpy as np
 import yaml
 
-from .detector import Detector, detector_from_spec
-from .errors import InjectError, InputError, SceneError
-from .photometry import band
-from .satellite import Shape, shape_from_dict
-from .validate import RANGES, check_memory, check_pointing, positive
+from inject.camera.detector import Detector, detector_from_spec
+from inject.errors import InjectError, InputError, SceneError
+from inject.photometry import band
+from inject.satellite import Shape, shape_from_dict
+from inject.validate import RANGES, check_memory, check_pointing, positive
 
 #: The embedded default scene: the paper's 550 km satellite on one full ITL CCD.
 DEFAULT_SCENE = {
@@ -220,10 +220,10 @@ def _ranged(quantity, where, value, kind=float):
 
 def _check_detector(spec):
     """Range checks of a detector mapping's numbers (its keys and types are checked by
-    :func:`inject.detector.detector_from_spec`)."""
+    :func:`inject.camera.detector.detector_from_spec`)."""
     if not isinstance(spec, dict):
         return
-    from .detector import DETECTORS
+    from inject.camera.detector import DETECTORS
 
     sensor = DETECTORS.get(spec.get("type", "itl"))
     for key, size in (("nx", sensor and sensor.nx), ("ny", sensor and sensor.ny)):
@@ -364,7 +364,7 @@ def parse_scene(raw, charge_check=True):
     if not isinstance(satellites, list):
         raise SceneError(f"satellites={satellites!r}: must be a list")
     if any(isinstance(sat, dict) and "orbit" in sat for sat in satellites):
-        from .focalscene import ccd_orbit_satellites  # orbit: -> a polyline in this CCD's pixels
+        from inject.exposure.scene import ccd_orbit_satellites# orbit: -> a polyline in this CCD's pixels
 
         satellites = ccd_orbit_satellites(merged, satellites, detector.shape, pointing)
     _check_sky_and_stars(merged["sky"], merged["stars"])
@@ -390,7 +390,7 @@ def parse_scene(raw, charge_check=True):
 
 def exposure_start(value):
     """A scene's ``time:`` (a YAML timestamp or an ISO 8601 string, UTC) as ISO 8601 UTC."""
-    from .orbits import parse_time
+    from inject.orbits.passes import parse_time
 
     try:
         return parse_time(value, "time").utc.isot
@@ -431,9 +431,9 @@ def check_charge(scene):
     brightest random star's whole flux and each satellite's charge per pixel of track (no
     pixel of a streak gets more than that) at each of its vertices.
     """
-    from .photometry import electron_rate
-    from .scene import sky_level
-    from .streak import StreakModel
+    from inject.photometry import electron_rate
+    from inject.scene import sky_level
+    from inject.streak import StreakModel
 
     base = sky_level(scene) + scene.dark_current * scene.exptime
     if isinstance(scene.stars, dict) or scene.stars is True:

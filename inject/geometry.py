@@ -11,8 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 from astropy import constants
 
-from .instrument import ARCSEC_PER_RAD
-from .validate import in_range, positive
+from inject.instrument import ARCSEC_PER_RAD
+from inject.validate import in_range, positive
 
 #: Equatorial Earth radius, km (astropy's IAU 2015 nominal value).
 R_EARTH_KM = constants.R_earth.to_value("km")
@@ -108,7 +108,7 @@ class Geometry:
 
     Build it with :meth:`from_orbit`. ``range_km`` and ``angular_speed_rad_s`` are the
     paper's spherical-Earth values unless given explicitly (a real pass's exact ones, from
-    :func:`inject.orbits.compute_pass`); then ``t_eff = p / omega`` and the tangential speed
+    :func:`inject.orbits.passes.compute_pass`); then ``t_eff = p / omega`` and the tangential speed
     ``omega r`` follow them.
     """
 

@@ -30,7 +30,7 @@ class Telescope:
     focal_length_m: float = 10.312
 
     def __post_init__(self):
-        from .errors import InputError
+        from inject.errors import InputError
 
         if not self.outer_radius_m > 0:
             raise InputError("outer_radius_m", self.outer_radius_m, "must be > 0")

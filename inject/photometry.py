@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
-from .validate import finite, positive
+from inject.errors import InputError
+from inject.validate import finite, positive
 
 
 @dataclass(frozen=True)

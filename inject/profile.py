@@ -11,9 +11,9 @@ from dataclasses import dataclass
 import galsim
 import numpy as np
 
-from .errors import InputError
-from .instrument import ARCSEC_PER_RAD, LSST
-from .validate import finite, positive
+from inject.errors import InputError
+from inject.instrument import ARCSEC_PER_RAD, LSST
+from inject.validate import finite, positive
 
 #: GalSim accuracy for every profile here. The LSF is exact up to aliasing from the period
 #: 2 pi / stepk (folding 1e-4 leaves ~1e-6 of the peak for Kolmogorov tails) and truncation

@@ -46,8 +46,8 @@ import math
 import galsim
 import numpy as np
 
-from .errors import InputError
-from .validate import finite, positive
+from inject.errors import InputError
+from inject.validate import finite, positive
 
 #: Slack in ``ceil(length / step_px)`` so that a length that is an exact multiple of the step
 #: (up to rounding) is not split into one extra sub-step.

@@ -33,9 +33,9 @@ import galsim
 import numpy as np
 from scipy import fft, integrate, interpolate, ndimage
 
-from .profile import line_spread
-from .errors import InputError
-from .validate import positive
+from inject.profile import line_spread
+from inject.errors import InputError
+from inject.validate import positive
 
 
 #: Finest pixel tolerance the renderer accepts (at 5e-7 it agrees with GalSim's Box FFT of a

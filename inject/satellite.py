@@ -12,9 +12,9 @@ from dataclasses import dataclass, field
 import galsim
 import numpy as np
 
-from .errors import InputError
-from .instrument import ARCSEC_PER_RAD
-from .validate import finite, positive
+from inject.errors import InputError
+from inject.instrument import ARCSEC_PER_RAD
+from inject.validate import finite, positive
 
 
 def _track_frame_jacobian(range_km, nadir_angle_deg, phi_deg):

@@ -11,17 +11,17 @@ from functools import lru_cache
 
 import numpy as np
 
-from .config import Scene
-from .detector import add_cosmic_rays, bleed_saturation, raw_layout
-from .errors import SceneError
-from .instrument import LSST
-from .maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, MASK_PLANES  # noqa: F401
-from .photometry import sky_per_pixel
-from .profile import Seeing
-from .render import (AUTO_MIN_TOLERANCE, PROFILE_CACHE, SHORT_TRACK_CHECK_PX, Budget,
+from inject.config import Scene
+from inject.camera.detector import add_cosmic_rays, bleed_saturation, raw_layout
+from inject.errors import SceneError
+from inject.instrument import LSST
+from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, MASK_PLANES# noqa: F401
+from inject.photometry import sky_per_pixel
+from inject.profile import Seeing
+from inject.render import (AUTO_MIN_TOLERANCE, PROFILE_CACHE, SHORT_TRACK_CHECK_PX, Budget,
                      render_polyline, render_segment, snap_tolerance, swept_profile)
-from .streak import StreakModel
-from .trajectory import Polyline, Segment
+from inject.streak import StreakModel
+from inject.trajectory import Polyline, Segment
 
 #: Random streams, one per purpose, spawned from the scene seed (numpy SeedSequence).
 STREAMS = {"stars": 0, "noise": 1, "cosmic_rays": 2, "raw": 3, "star_noise": 4}
@@ -464,7 +464,7 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
         # No streak: no model to add, keep or write (a read-only zero view costs nothing).
         streaks = np.broadcast_to(np.float32(0), det.shape)
     if scene.stars and add_stars is None:
-        from .stars import add_star_field
+        from inject.stars import add_star_field
 
         def add_stars(image, **noise):
             return add_star_field(image, scene, rng(scene.seed, "stars", detector_index),

@@ -19,10 +19,10 @@ from pathlib import Path
 import galsim
 import numpy as np
 
-from .errors import FileFormatError, InputError
-from .photometry import band as _band
-from .profile import GSPARAMS
-from .validate import finite, positive
+from inject.errors import FileFormatError, InputError
+from inject.photometry import band as _band
+from inject.profile import GSPARAMS
+from inject.validate import finite, positive
 
 # -------------------------------------------------------------------------------------------
 # Bahcall & Soneira (1980) appendix B, eq. B1: cumulative V counts per deg^2.
@@ -726,7 +726,7 @@ def spec_from_scene(scene):
     Galactic coordinates not given in the mapping come from the scene's ``pointing`` (ra,
     dec) when it has one, else from the :class:`StarFieldSpec` defaults.
     """
-    from .errors import SceneError
+    from inject.errors import SceneError
 
     entry = {} if scene.stars is True else scene.stars
     if not isinstance(entry, dict):
@@ -782,10 +782,10 @@ def add_star_field(image, scene, rng, wcs=None, noise=None, variance=None):
     dict
         ``x``, ``y``, ``mag``, ``flux_e`` and ``charge_in_image_e`` (expected) per star.
     """
-    from .errors import SceneError
-    from .instrument import LSST
-    from .photometry import electron_rate
-    from .profile import Seeing
+    from inject.errors import SceneError
+    from inject.instrument import LSST
+    from inject.photometry import electron_rate
+    from inject.profile import Seeing
 
     if scene.seeing <= 0:
         raise SceneError("stars: need seeing > 0 (stars share the atmospheric PSF)")

@@ -10,13 +10,13 @@ from functools import cached_property, lru_cache
 import galsim
 import numpy as np
 
-from .errors import InputError
-from .geometry import Geometry
-from .instrument import LSST, Telescope
-from .photometry import apparent_magnitude, band, electron_rate
-from .profile import Seeing, line_spread, stationary_profile
-from .satellite import Box, Shape
-from .validate import finite, positive
+from inject.errors import InputError
+from inject.geometry import Geometry
+from inject.instrument import LSST, Telescope
+from inject.photometry import apparent_magnitude, band, electron_rate
+from inject.profile import Seeing, line_spread, stationary_profile
+from inject.satellite import Box, Shape
+from inject.validate import finite, positive
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,7 @@ class StreakModel:
         Range at which ``mag`` is given.
     range_km, angular_speed_rad_s : float, optional
         A real pass's exact range and angular speed across the tracked star field
-        (:func:`inject.orbits.compute_pass`), in place of the paper's spherical-Earth values
+        (:func:`inject.orbits.passes.compute_pass`), in place of the paper's spherical-Earth values
         from (height, zenith, phi): ``t_eff``, the charge per pixel, the defocus and the
         shape's angular size then follow the pass. None (the default): the paper's.
 

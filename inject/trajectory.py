@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
-from .validate import finite
+from inject.errors import InputError
+from inject.validate import finite
 
 
 @dataclass(frozen=True)

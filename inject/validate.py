@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError, InputWarning, ResourceError
+from inject.errors import InputError, InputWarning, ResourceError
 
 
 def _has_none(value):

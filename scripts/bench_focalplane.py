@@ -34,10 +34,10 @@ import time
 
 import numpy as np
 
-from inject import focalplane as fp
-from inject import parallel
+from inject.camera import layout as fp
+from inject.exposure import runner as parallel
 from inject.config import load_scene_file
-from inject.focalscene import ccd_scene, ccd_streaks, margins_px, parse_focal_scene
+from inject.exposure.scene import ccd_scene, ccd_streaks, margins_px, parse_focal_scene
 
 SCENE = os.path.join(os.path.dirname(__file__), "..", "sample_fields",
                      "focal_paper_550km.yaml")

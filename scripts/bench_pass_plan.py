@@ -5,8 +5,8 @@ margin from a few sampled vertices vs from every vertex, interleaved, caches cle
 """
 import time
 from inject.config import load_scene_file
-from inject import focalscene
-from inject.focalscene import parse_focal_scene, margins_px, plan
+from inject.exposure import scene as focalscene
+from inject.exposure.scene import parse_focal_scene, margins_px, plan
 from inject.render import PROFILE_CACHE
 raw = load_scene_file("sample_fields/pass_example.yaml")
 f = parse_focal_scene(raw)

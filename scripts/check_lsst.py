@@ -170,7 +170,7 @@ def write_inputs(workdir):
     """The two files to read (simulate's and add-streak's output), written with inject."""
     import yaml
 
-    from inject.cli import main
+    from inject.cli.main import main
 
     workdir = Path(workdir)
     scene = workdir / "scene.yaml"

@@ -16,7 +16,7 @@ import yaml
 from astropy.io import fits
 from astropy.table import Table
 
-from inject.cli import main
+from inject.cli.main import main
 from inject.streak import StreakModel
 
 R_EARTH_M = 6378.1e3        # IAU 2015 nominal equatorial radius

@@ -17,7 +17,7 @@ import pytest
 from astropy.io import fits
 
 import inject.io.atomic
-from inject.cli import main
+from inject.cli.main import main
 from inject.addstreak import add_streaks
 from inject.config import Track, apply_overrides, load_scene_file, parse_scene
 from inject.errors import FileFormatError, InjectError, InputError, OutputError, SceneError
@@ -422,7 +422,7 @@ def test_scene_cannot_name_a_masking_function(capsys, tmp_path, booby_trapped_mo
 
 
 def test_masking_function_imported_only_when_named(booby_trapped_module):
-    from inject.masking import evaluate  # the project's own module: a rename must fail
+    from inject.masking import evaluate# the project's own module: a rename must fail
     load_masker = getattr(evaluate, "load_masker", None)
     if load_masker is None:
         pytest.skip("inject.masking.evaluate has no load_masker")
@@ -813,7 +813,7 @@ def test_evaluate_writes_all_its_files_or_none(capsys, monkeypatch, tmp_path):
     """The campaign's tables are written, then a plot fails: no table is left behind."""
     import matplotlib.figure
 
-    import inject.masking.cli_evaluate as cli_evaluate
+    import inject.cli.evaluate as cli_evaluate
 
     rows = [{"masker": "inject", "height_km": h, "mag": m, "n": 1, "peak_sb": 2.0 / m,
              "int_snr": 50.0 / m, "completeness": 1.0, "fwhm_bias_pct": 1.0, "masked_px": h}
@@ -828,7 +828,7 @@ def test_evaluate_writes_all_its_files_or_none(capsys, monkeypatch, tmp_path):
 
 def test_evaluate_refuses_to_replace_an_earlier_campaign(capsys, monkeypatch, tmp_path):
     """Existing outputs in --out stop the campaign before it runs, unless --overwrite."""
-    import inject.masking.cli_evaluate as cli_evaluate
+    import inject.cli.evaluate as cli_evaluate
 
     out = tmp_path / "ev"
     out.mkdir()

@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from inject.cli import main
+from inject.cli.main import main
 
 PROFILE_KEYS = {"range_km", "nadir_angle_deg", "orbital_speed_m_s", "angular_speed_rad_s",
                 "t_eff_s", "apparent_mag", "zeropoint_mag", "flux_per_px_e", "fwhm_arcsec",

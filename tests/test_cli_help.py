@@ -5,7 +5,7 @@ import re
 import numpy as np
 import pytest
 
-from inject.cli import build_parser, main
+from inject.cli.main import build_parser, main
 
 
 def _help(capsys, *command):

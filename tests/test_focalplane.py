@@ -3,7 +3,7 @@ computations."""
 import numpy as np
 import pytest
 
-from inject import focalplane as fp
+from inject.camera import layout as fp
 from inject.errors import InputError
 
 POINTING = {"ra": 52.0, "dec": -28.0, "rotation": 35.0}

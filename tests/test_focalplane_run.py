@@ -13,10 +13,10 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from inject import focalplane as fp
-from inject import parallel
+from inject.camera import layout as fp
+from inject.exposure import runner as parallel
 from inject.errors import OutputError
-from inject.focalscene import parse_focal_scene
+from inject.exposure.scene import parse_focal_scene
 
 SAT = {"height": 550, "shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0}
 RAW = {"seed": 11, "band": "g", "zenith": 70, "exptime": 30,
@@ -151,7 +151,7 @@ def _scene_file(tmp_path, **changes):
 
 def _main(*args):
     """The CLI in this process (its pool forks from it: quicker than a new interpreter)."""
-    from inject.cli import main
+    from inject.cli.main import main
 
     return main(["focalplane", *map(str, args)])
 
@@ -262,7 +262,7 @@ def test_mosaic_bins_each_ccd_and_draws_the_track(fscene, tmp_path):
     from astropy.io import fits
     from matplotlib.image import imread
 
-    from inject.io.mosaic import binned_ccds, track_paths, write_mosaic
+    from inject.exposure.mosaic import binned_ccds, track_paths, write_mosaic
     from inject.io.quicklook import block_mean
 
     out = str(tmp_path)

@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from inject import focalplane as fp
+from inject.camera import layout as fp
 from inject.errors import SceneError
-from inject.focalscene import (ccd_streaks, margins_px, parse_focal_scene, plan,
+from inject.exposure.scene import (ccd_streaks, margins_px, parse_focal_scene, plan,
                                simulate_ccd, vertex_model)
 
 SAT = {"height": 550, "shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0}
@@ -159,7 +159,7 @@ def test_stars_are_where_the_scene_puts_them_whatever_is_rendered():
 
 
 def test_cli_plan_json(tmp_path, capsys):
-    from inject.cli import main
+    from inject.cli.main import main
 
     scene = tmp_path / "focal.yaml"
     scene.write_text(json.dumps({"pointing": {"ra": 10, "dec": -5}, "stars": False,

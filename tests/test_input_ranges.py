@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import inject.validate as validate
-from inject.cli import main
+from inject.cli.main import main
 from inject.config import DEFAULT_SCENE, apply_overrides, load_scene_file, parse_scene
 from inject.errors import InputError, InputWarning, ResourceError, SceneError
 from inject.validate import RANGES, check
@@ -197,7 +197,7 @@ def test_memory_estimate_covers_the_measured_peak(tmp_path):
     growth per pixel is below the estimate's bytes per pixel."""
     from inject.config import SIMULATE_BYTES_PER_PIXEL
 
-    code = ("import resource, sys; from inject.cli import main; main(sys.argv[1:]); "
+    code = ("import resource, sys; from inject.cli.main import main; main(sys.argv[1:]); "
             "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
 
     def peak(n):
@@ -346,7 +346,7 @@ def test_evaluate_keeps_a_folder_it_did_not_make(capsys, tmp_path):
 
 
 def test_evaluate_checks_optional_maskers_before_simulating(capsys, tmp_path, monkeypatch):
-    import inject.masking.cli_evaluate as cli_evaluate
+    import inject.cli.evaluate as cli_evaluate
     import inject.masking.external as external
     from inject.masking import MaskingError
 
@@ -372,7 +372,7 @@ def test_masker_returning_a_wrong_shape_is_one_line(capsys, tmp_path):
 
 def test_evaluate_seeds_stay_clear_of_the_streak_free_seeds(capsys, tmp_path):
     """The streak-free images use seeds 1001 on: a campaign of more seeds would reuse them."""
-    from inject.masking.cli_evaluate import STREAK_FREE_SEED0
+    from inject.cli.evaluate import STREAK_FREE_SEED0
 
     out = tmp_path / "campaign"
     status, err = run(capsys, "evaluate", "-o", out, "--seeds", STREAK_FREE_SEED0 + 1,

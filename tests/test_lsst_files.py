@@ -19,7 +19,7 @@ from astropy.table import Table
 from astropy.wcs import WCS
 
 from inject.addstreak import add_streaks
-from inject.cli import main
+from inject.cli.main import main
 from inject.config import Track
 from inject.io.reader import read_exposure
 from inject.maskplanes import MASK_PLANES, PLANE_DESCRIPTIONS, header_planes, plane_bit

@@ -27,8 +27,8 @@ def test_vertices_take_lumos_magnitudes():
     import lumos.brdf.library
     import lumos.conversions
     import lumos.geometry
-    from inject.focalscene import parse_focal_scene, vertex_model
-    from inject.orbits import TRACK_STEP_S, Exposure, Orbit, Pointing, compute_pass
+    from inject.exposure.scene import parse_focal_scene, vertex_model
+    from inject.orbits.passes import TRACK_STEP_S, Exposure, Orbit, Pointing, compute_pass
 
     fscene = parse_focal_scene(_raw(PLATE))
     track = fscene.tracks[0]
@@ -56,7 +56,7 @@ def test_vertices_take_lumos_magnitudes():
 def test_lumos_inputs_are_checked():
     pytest.importorskip("lumos")
     from inject.errors import SceneError
-    from inject.focalscene import parse_focal_scene
+    from inject.exposure.scene import parse_focal_scene
 
     bad = {"surfaces": [{"area": 1, "normal": [0, 0, 0], "brdf": {"type": "lambertian",
                                                                   "albedo": 0.5}}]}
@@ -76,7 +76,7 @@ def test_without_lumos_a_clear_error(monkeypatch):
     import builtins
 
     from inject.errors import SceneError
-    from inject.focalscene import parse_focal_scene
+    from inject.exposure.scene import parse_focal_scene
 
     real = builtins.__import__
 

@@ -1,5 +1,5 @@
 """Scoring maskers against injected truth (inject.masking.evaluate), the ``inject evaluate``
-command (inject.masking.cli_evaluate) and the acstools findsat_mrt adapter."""
+command (inject.cli.evaluate) and the acstools findsat_mrt adapter."""
 import argparse
 import csv
 import json
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from inject.errors import InputError
-from inject.masking.cli_evaluate import (add_evaluate_parser, bad_pixels, campaign_images,
+from inject.cli.evaluate import (add_evaluate_parser, bad_pixels, campaign_images,
                                          false_positive_summary, markdown_table, pixel_loss,
                                          streak_free_images)
 from inject.masking.evaluate import (Masker, MaskerOutput, completeness_point, evaluate,

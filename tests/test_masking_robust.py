@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from inject.cli import main
+from inject.cli.main import main
 from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
 from inject.errors import InputError
 from inject.io.fits import write_exposure

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from inject import focalplane as fp
-from inject.io.mosaic import block_extent
+from inject.camera import layout as fp
+from inject.exposure.mosaic import block_extent
 from inject.io.quicklook import block_mean
 
 

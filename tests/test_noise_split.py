@@ -10,7 +10,7 @@ from astropy.io import fits
 from scipy import stats
 
 from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
-from inject.detector import ITL
+from inject.camera.detector import ITL
 from inject.io.fits import write_exposure
 from inject.io.reader import read_exposure
 from inject.scene import AmplifierNoise, PoissonTable, draw_poisson, simulate

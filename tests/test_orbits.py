@@ -4,7 +4,7 @@ skyfield is the independent code path (its own TEME -> GCRS -> ITRS chain, site 
 scales); it is given the same finals2000A.all that astropy-iers-data ships, as the issue explains
 (its built-in timescale has no polar motion and its own UT1: ~5" apart at 600 km). The orbits are
 synthetic example TLEs (Starlink-like 550 km, 53 deg shell orbits) built by
-:func:`inject.orbits.aimed_orbit` to be at a chosen alt/az over Rubin at a chosen time.
+:func:`inject.orbits.passes.aimed_orbit` to be at a chosen alt/az over Rubin at a chosen time.
 """
 import json
 import math
@@ -21,7 +21,7 @@ from astropy.time import Time
 
 from inject import geometry
 from inject.errors import InjectError, InputError, OrbitError, OrbitWarning
-from inject.orbits import (
+from inject.orbits.passes import (
     RUBIN, Exposure, Orbit, Pointing, aimed_orbit, compute_pass, crossing_candidates,
     find_passes, focal_to_sky, illumination, propagate_teme, sky_to_focal, sunlight,
     walker_shell)
@@ -441,7 +441,7 @@ def test_prefilter_keeps_every_crossing(centred, exposure):
 
 def test_shared_rotations_are_astropys(exposure):
     """The per-exposure matrices reproduce astropy's own transforms (and the retarded time's)."""
-    from inject.orbits import EARTH_ROTATION_RAD_S, FieldFrame, _rot_z, altaz_basis, teme_to_itrs
+    from inject.orbits.passes import EARTH_ROTATION_RAD_S, FieldFrame, _rot_z, altaz_basis, teme_to_itrs
     times = exposure.start + exposure.sample_times(5.0) * u.s
     frame = FieldFrame.build(times, Pointing(10.0, -20.0), RUBIN)
     r = np.tile([5000.0, -3000.0, 3500.0], (len(times), 1))
@@ -475,7 +475,7 @@ def test_in_field_pass_to_json(centred):
 
 
 def test_a_shared_frame_must_match(centred):
-    from inject.orbits import FieldFrame
+    from inject.orbits.passes import FieldFrame
     p = centred
     frame = FieldFrame.build(p.utc, p.pointing, RUBIN)
     again = compute_pass(p.orbit, p.exposure, p.pointing, frame=frame)

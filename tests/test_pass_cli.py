@@ -8,9 +8,9 @@ import pytest
 from astropy import units as u
 from astropy.coordinates import ICRS, AltAz, SkyCoord
 
-from inject import focalplane as fp
-from inject.cli import main
-from inject.orbits import (RUBIN, TRACK_STEP_S, Exposure, Orbit, Pointing, compute_pass,
+from inject.camera import layout as fp
+from inject.cli.main import main
+from inject.orbits.passes import (RUBIN, TRACK_STEP_S, Exposure, Orbit, Pointing, compute_pass,
                            track_runs)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -258,8 +258,8 @@ def test_plan_of_the_orbit_scene_matches_inject_pass(capsys, monkeypatch):
 
 
 def test_orbit_track_vertices_carry_the_pass():
-    from inject.focalscene import parse_focal_scene
-    from inject.orbits import Pass
+    from inject.exposure.scene import parse_focal_scene
+    from inject.orbits.passes import Pass
 
     fscene = parse_focal_scene(_scene(exptime=4, time="2026-06-15T23:29:58"))
     track = fscene.tracks[0]
@@ -277,7 +277,7 @@ def test_orbit_track_vertices_carry_the_pass():
         # The vertex carries the pass's exact range and angular speed (the spherical Earth's
         # would be 0.5% and 3.5% off), so the model's brightness is Pass.magnitude's (the
         # nadir angle is still the spherical Earth's: < 0.01 mag).
-        from inject.focalscene import vertex_model
+        from inject.exposure.scene import vertex_model
         model = vertex_model(fscene, 0, values)
         assert model.geometry.range_km == pytest.approx(dense.range_km[i], rel=1e-12)
         assert model.geometry.angular_speed_rad_s == pytest.approx(
@@ -291,8 +291,8 @@ def test_orbit_track_vertices_carry_the_pass():
 ])
 def test_orbit_scene_without_a_streak_says_why(changes, why, capsys):
     from inject.errors import OrbitWarning
-    from inject.focalscene import parse_focal_scene, plan
-    from inject.orbits import aimed_orbit
+    from inject.exposure.scene import parse_focal_scene, plan
+    from inject.orbits.passes import aimed_orbit
 
     if changes == "shadow":  # the same shell, aimed east at the same time: in Earth's shadow
         orbit = aimed_orbit("2026-06-15T23:30:00", 60.0, 90.0)
@@ -337,7 +337,7 @@ def test_orbit_scene_without_a_streak_says_why(changes, why, capsys):
 ])
 def test_bad_orbit_scene(change, named):
     from inject.errors import SceneError
-    from inject.focalscene import parse_focal_scene
+    from inject.exposure.scene import parse_focal_scene
 
     with pytest.raises(SceneError, match=named):
         parse_focal_scene(_scene(**change))
@@ -349,8 +349,8 @@ def test_shadow_entry_ends_the_streak_and_the_penumbra_fades_it():
     each vertex's mag is the reference dimmed by -2.5 log10 of the visible Sun."""
     from astropy.time import Time
 
-    from inject.focalscene import parse_focal_scene
-    from inject.orbits import aimed_orbit
+    from inject.exposure.scene import parse_focal_scene
+    from inject.orbits.passes import aimed_orbit
 
     t_aim = Time("2026-06-15T23:27:00")
     orbit = aimed_orbit(t_aim, 60.0, 90.0)
@@ -388,11 +388,11 @@ def _ccd_scene_raw(start="2026-06-15T23:29:58", exptime=4.0, **changes):
 
 def test_orbit_in_a_ccd_scene_lands_where_the_wcs_says():
     """`inject simulate`'s scene: the orbit's vertices in the CCD's pixels, through the scene's
-    WCS (inject.wcs.pointing_wcs), are the satellite's apparent place (ICRS as a star) to
+    WCS (inject.camera.wcs.pointing_wcs), are the satellite's apparent place (ICRS as a star) to
     < 0.1"; the middle of the exposure is near the image centre."""
     from inject.config import parse_scene
     from inject.instrument import LSST
-    from inject.wcs import pointing_wcs
+    from inject.camera.wcs import pointing_wcs
 
     scene = parse_scene(_ccd_scene_raw(pointing={"ra": RA, "dec": DEC, "rotation": 25.0}))
     vertices = scene.satellites[0].track.vertices
@@ -455,7 +455,7 @@ def _terminator_pass(aim_s=5.0):
     the start. Returns the orbit, exposure and pointing."""
     from astropy.time import Time
 
-    from inject.orbits import aimed_orbit
+    from inject.orbits.passes import aimed_orbit
 
     t_aim = Time("2026-06-15T23:27:00")
     orbit = aimed_orbit(t_aim, 60.0, 90.0)
@@ -477,7 +477,7 @@ def _pass_args(orbit, exposure, pointing, tmp_path):
 def test_pass_lists_only_the_sunlit_ccds_as_focalplane_renders(capsys, tmp_path):
     """`inject pass`'s detectors are the CCDs the focal-plane scene's (sunlit) track crosses;
     those crossed only in the umbra are listed apart, with no streak."""
-    from inject.focalscene import parse_focal_scene
+    from inject.exposure.scene import parse_focal_scene
 
     orbit, exposure, pointing = _terminator_pass(aim_s=8.0)  # umbra entry in the field
     report, _ = run_json(capsys, *_pass_args(orbit, exposure, pointing, tmp_path))
@@ -497,7 +497,7 @@ def test_pass_lists_only_the_sunlit_ccds_as_focalplane_renders(capsys, tmp_path)
 def test_pass_in_shadow_crosses_ccds_but_lists_none(capsys, tmp_path):
     from astropy.time import Time
 
-    from inject.orbits import aimed_orbit
+    from inject.orbits.passes import aimed_orbit
 
     t = Time("2026-06-15T23:30:00")
     orbit = aimed_orbit(t, 60.0, 90.0)  # east at this time: in Earth's shadow
@@ -514,8 +514,8 @@ def test_every_sunlit_part_is_rendered(monkeypatch):
     """A pass that leaves Earth's shadow and re-enters it in one exposure (made here by
     darkening the middle of the example pass) renders both sunlit parts, with the gap
     between them dark: no CCD streak covers the shadowed stretch."""
-    from inject import focalscene
-    from inject.focalscene import ccd_streaks, margins_px, parse_focal_scene
+    from inject.exposure import scene as focalscene
+    from inject.exposure.scene import ccd_streaks, margins_px, parse_focal_scene
 
     real = focalscene._orbit_pass
 

@@ -8,7 +8,7 @@ import pytest
 from inject.config import load_scene_file, parse_scene
 from inject.geometry import Geometry
 from inject.instrument import ARCSEC_PER_RAD
-from inject.orbits import TRACK_STEP_S, Exposure, Orbit, Pointing, compute_pass
+from inject.orbits.passes import TRACK_STEP_S, Exposure, Orbit, Pointing, compute_pass
 from inject.photometry import band
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,8 +64,8 @@ def test_focal_plane_ccd_truth_is_the_pass(dense):
     """R22_S12's corner (a 400 x 400 cut-out) is crossed in this second; the TRUTH row
     describes where the clipped track enters the CCD's reach: the pass there, interpolated
     between its 0.1 s samples in focal-plane mm."""
-    from inject import focalplane as fp
-    from inject.focalscene import parse_focal_scene, simulate_ccd
+    from inject.camera import layout as fp
+    from inject.exposure.scene import parse_focal_scene, simulate_ccd
 
     fscene = parse_focal_scene(_raw(cutout={"nx": 400, "ny": 400}))
     ccd = fp.BY_NAME["R22_S12"]
@@ -92,7 +92,7 @@ def test_focal_charge_check_uses_the_pass():
     import warnings
 
     from inject.errors import SceneError
-    from inject.focalscene import parse_focal_scene
+    from inject.exposure.scene import parse_focal_scene
     from inject.profile import Seeing
     from inject.streak import StreakModel
 
@@ -128,7 +128,7 @@ def test_scene_time_reaches_the_headers(tmp_path):
 
     from astropy.io import fits
 
-    from inject.cli import main
+    from inject.cli.main import main
 
     start_utc = datetime.fromisoformat(START)
 
@@ -154,8 +154,8 @@ def test_scene_time_reaches_the_headers(tmp_path):
     assert main(["simulate", str(path), "-o", str(tmp_path / "none.fits")]) == 0
     assert "DATE-OBS" not in fits.getheader(tmp_path / "none.fits", 0)
 
-    from inject.focalscene import margins_px, parse_focal_scene
-    from inject.parallel import Task, render_ccd
+    from inject.exposure.scene import margins_px, parse_focal_scene
+    from inject.exposure.runner import Task, render_ccd
 
     fscene = parse_focal_scene(_raw(cutout={"nx": 64, "ny": 64}))
     row = render_ccd(Task(fscene, "R22_S12", str(tmp_path), margins_px(fscene)))
@@ -167,7 +167,7 @@ def test_sampled_margin_bounds_every_vertex(case):
     """The footprint margin from a few vertices (focalscene._sampled, + REACH_ALLOWANCE) is
     at least the largest reach over every vertex, and not much more: for the example pass
     and a pass fading in the penumbra (its brightness, so its tolerance, changes)."""
-    from inject.focalscene import REACH_ALLOWANCE, margins_px, parse_focal_scene
+    from inject.exposure.scene import REACH_ALLOWANCE, margins_px, parse_focal_scene
 
     if case == "pass":
         raw = _raw(exptime=3.0, time="2026-06-15T23:29:58.5", noise=True, sky=True)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from inject.cli import main
+from inject.cli.main import main
 from inject.maskplanes import FLAG_OFF_IMAGE
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -63,7 +63,7 @@ def test_every_satellite_has_a_record(tmp_path, capsys):
 
 
 def test_plan_json_carries_the_same_records(capsys):
-    from inject.focalscene import parse_focal_scene, plan, satellite_records
+    from inject.exposure.scene import parse_focal_scene, plan, satellite_records
 
     from inject.errors import OrbitWarning
 

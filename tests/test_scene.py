@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
-from inject.detector import ITL, bleed_saturation, detector_from_spec
+from inject.camera.detector import ITL, bleed_saturation, detector_from_spec
 from inject.errors import InputError, SceneError
 from inject.photometry import sky_per_pixel
 from inject.maskplanes import MASK_PLANES

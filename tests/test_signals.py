@@ -18,7 +18,7 @@ import yaml
 from astropy.io import fits
 
 import inject.io.atomic as atomic
-from inject.cli import main
+from inject.cli.main import main
 
 SCENE = {"seed": 3, "detector": {"type": "itl", "nx": 96, "ny": 64}, "stars": False,
          "satellites": [{"height": 550, "shape": {"type": "box", "length": 7.25, "width": 2.65},
@@ -208,7 +208,7 @@ def test_add_streak_stopped_while_writing(tmp_path, monkeypatch):
 
 
 def test_evaluate_stopped_leaves_no_folder(tmp_path, monkeypatch):
-    import inject.masking.cli_evaluate as cli_evaluate
+    import inject.cli.evaluate as cli_evaluate
 
     def campaign(*args, **kwargs):
         os.kill(os.getpid(), signal.SIGHUP)

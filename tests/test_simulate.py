@@ -5,7 +5,7 @@ import yaml
 from astropy.io import fits
 from astropy.table import Table
 
-from inject.cli import main
+from inject.cli.main import main
 from inject.streak import StreakModel
 
 SCENE = {

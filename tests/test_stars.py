@@ -9,7 +9,7 @@ from scipy import stats
 from inject import stars as st
 from inject.errors import FileFormatError, InputError, SceneError
 from inject.scene import rng
-from inject.wcs import pointing_wcs
+from inject.camera.wcs import pointing_wcs
 
 PIXEL = 0.2
 PSF = galsim.Kolmogorov(fwhm=0.67)

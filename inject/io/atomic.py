@@ -19,8 +19,8 @@ import shutil
 import tempfile
 import time
 
-from ..errors import OutputError
-from ..signals import deferred
+from inject.errors import OutputError
+from inject.signals import deferred
 
 #: Prefix of every temporary file.
 PREFIX = ".inject-"

@@ -34,10 +34,10 @@ import json
 import numpy as np
 from astropy.io import fits
 
-from ..errors import FileFormatError, OutputError
-from ..maskplanes import MASK_PLANES
-from .atomic import atomic_path
-from .fits import primary_header
+from inject.errors import FileFormatError, OutputError
+from inject.maskplanes import MASK_PLANES
+from inject.io.atomic import atomic_path
+from inject.io.fits import primary_header
 
 #: Float channels of the ``image`` part, in the order written (EXR files store channels
 #: sorted by name, so readers must look them up by name, not position).

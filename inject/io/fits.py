@@ -17,9 +17,9 @@ import numpy as np
 from astropy.io import fits
 from astropy.table import Table
 
-from .. import __version__
-from ..maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, mask_header
-from .atomic import atomic_path
+from inject import __version__
+from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, mask_header
+from inject.io.atomic import atomic_path
 
 #: Extension types of afw's MaskedImage HDUs 1-3, in that order.
 MASKED_IMAGE_TYPES = ("IMAGE", "MASK", "VARIANCE")
@@ -41,7 +41,7 @@ def primary_header(scene, primary_cards=None):
     hdr["BAND"] = (scene.band, "LSST filter")
     hdr["FILTER"] = (scene.band, "band (afw FilterLabel band)")
     hdr["EXPTIME"] = (scene.exptime, "[s] exposure time")
-    from ..config import time_cards
+    from inject.config import time_cards
 
     for key, card in time_cards(scene).items():  # a scene with an exposure start (time:)
         hdr[key] = card

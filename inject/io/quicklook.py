@@ -5,9 +5,9 @@ import os
 
 import numpy as np
 
-from ..errors import OutputError
-from ..trajectory import clip_segment
-from .atomic import atomic_path
+from inject.errors import OutputError
+from inject.trajectory import clip_segment
+from inject.io.atomic import atomic_path
 
 #: Longest side, in plotted (binned) pixels, of the quicklook image.
 MAX_SIDE = 1000

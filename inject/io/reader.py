@@ -24,8 +24,8 @@ from astropy.io import fits
 from astropy.utils.exceptions import AstropyUserWarning
 from astropy.wcs import WCS, FITSFixedWarning
 
-from ..errors import FileFormatError
-from .atomic import atomic_path
+from inject.errors import FileFormatError
+from inject.io.atomic import atomic_path
 
 #: numpy type of each FITS BITPIX (big-endian, as stored).
 _BITPIX = {8: ">u1", 16: ">i2", 32: ">i4", 64: ">i8", -32: ">f4", -64: ">f8"}
@@ -240,7 +240,7 @@ class InputExposure:
         FileFormatError
             Every bit of the mask's pixel type is taken.
         """
-        from ..maskplanes import plane_bit
+        from inject.maskplanes import plane_bit
 
         header = self.file_header(index)
         before = set(header.keys())

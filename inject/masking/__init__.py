@@ -10,14 +10,14 @@
 - :mod:`~inject.masking.run`: :func:`mask_image`, :func:`write_masked` and the ``inject mask``
   command.
 - :mod:`~inject.masking.evaluate`: scoring any masking function against injected truth;
-  :mod:`~inject.masking.cli_evaluate`: the ``inject evaluate`` campaign;
+  :mod:`~inject.cli.evaluate`: the ``inject evaluate`` campaign;
   :mod:`~inject.masking.external`: the acstools ``findsat_mrt`` adapter (optional).
 
 Submodules are imported on first use, so that building the command-line parser stays cheap.
 """
 import importlib
 
-from ..errors import InjectError
+from inject.errors import InjectError
 
 
 class MaskingError(InjectError):

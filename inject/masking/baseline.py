@@ -6,7 +6,7 @@ transform; a trail is a group of segments at a common angle. Its defaults are ke
 """
 import numpy as np
 
-from .geometry import Line, angle_difference
+from inject.masking.geometry import Line, angle_difference
 
 #: acstools ``satdet`` defaults.
 SATDET = {"sigma": 2.0, "low_thresh": 0.1, "h_thresh": 0.5, "small_edge": 60,

@@ -39,10 +39,10 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from ..errors import InputError
-from . import MaskingError
-from .geometry import Line, angle_difference, band_pixels
-from .measure import DIP_LEVEL, profile_fwhm, stack_samples, trace_streak, wing_reach
+from inject.errors import InputError
+from inject.masking import MaskingError
+from inject.masking.geometry import Line, angle_difference, band_pixels
+from inject.masking.measure import DIP_LEVEL, profile_fwhm, stack_samples, trace_streak, wing_reach
 
 #: Binning factor of the search image (4: a 7-10 px wide LSSTCam streak is ~2 binned px).
 BIN = 4

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..trajectory import Segment
-from .geometry import Line, angle_difference, band_pixels
+from inject.trajectory import Segment
+from inject.masking.geometry import Line, angle_difference, band_pixels
 
 
 def truth_line(row, shape):
@@ -146,7 +146,7 @@ class Masker:
             out = MaskerOutput(np.asarray(out))
         mask = np.asarray(out.mask, dtype=bool)
         if mask.shape != np.shape(image):
-            from . import MaskingError
+            from inject.masking import MaskingError
 
             raise MaskingError(f"masker {self.name} returned a mask of shape {mask.shape} for "
                                f"an image of shape {np.shape(image)}")
@@ -162,8 +162,8 @@ def inject_masker(image, bad=None, pixel_scale=0.2, n_boot=0):
     ``n_boot`` is 0 by default: the bootstrap only gives the FWHM's error bar, which scoring
     against truth does not need.
     """
-    from .mask import mask_spans, paint
-    from .run import analyse
+    from inject.masking.mask import mask_spans, paint
+    from inject.masking.run import analyse
 
     res = analyse(image, bad=bad, pixel_scale=pixel_scale, n_boot=n_boot)
     mask = np.zeros(np.shape(image), dtype=bool)
@@ -185,7 +185,7 @@ def load_masker(spec):
     InputError
         For a spec that is neither, or a function that cannot be imported.
     """
-    from ..errors import InputError
+    from inject.errors import InputError
 
     if isinstance(spec, Masker):
         return spec
@@ -194,7 +194,7 @@ def load_masker(spec):
     if spec == "inject":
         return Masker(inject_masker, "inject")
     if spec == "findsat_mrt":
-        from .external import _trail_finder, findsat_mrt_trails
+        from inject.masking.external import _trail_finder, findsat_mrt_trails
 
         _trail_finder()  # acstools is optional: say it is missing now, not after the first image
         return Masker(findsat_mrt_trails, "findsat_mrt")
@@ -370,8 +370,8 @@ def evaluate(images, maskers, truth_sigma=TRUTH_SIGMA, pixel_scale=0.2, bad=None
             try:
                 out, seconds = masker(sim.image, flags)
             except Exception as err:  # a user's function may raise anything: say whose, where
-                from ..errors import InjectError
-                from . import MaskingError
+                from inject.errors import InjectError
+                from inject.masking import MaskingError
 
                 what = err if isinstance(err, InjectError) else f"{type(err).__name__}: {err}"
                 raise MaskingError(f"masker {masker.name} failed on {_describe(index, labels)}: "

@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 
-from . import MaskingError
+from inject.masking import MaskingError
 
 #: Binning before the transform: the acstools documentation recommends binning WFC images
 #: (4k x 2k) so the median Radon transform runs in reasonable time; 4 x 4 turns a 7-10 px
@@ -96,7 +96,7 @@ def findsat_mrt_trails(image, bad=None, binning=FINDSAT_BIN, threshold=5.0, proc
     TrailFinder = _trail_finder()
     from astropy.nddata import block_reduce
 
-    from .evaluate import MaskerOutput
+    from inject.masking.evaluate import MaskerOutput
 
     img = np.array(image, dtype=np.float64)
     if bad is not None:

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..trajectory import Segment
+from inject.trajectory import Segment
 
 #: Slack on the rectangle test so that centres exactly on the boundary count despite rounding.
 _EDGE_EPS = 1e-9

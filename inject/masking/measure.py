@@ -25,7 +25,7 @@ import numpy as np
 from scipy.optimize import curve_fit
 from scipy.signal import savgol_coeffs, savgol_filter
 
-from .geometry import Line, band_pixels
+from inject.masking.geometry import Line, band_pixels
 
 #: The median of N Gaussian values scatters by sqrt(pi / 2) sigma / sqrt(N).
 MEDIAN_NOISE = float(np.sqrt(np.pi / 2))

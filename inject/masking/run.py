@@ -11,8 +11,8 @@ import os
 import sys
 from dataclasses import dataclass
 
-from ..errors import InputError
-from . import MaskingError
+from inject.errors import InputError
+from inject.masking import MaskingError
 
 #: Defaults of the command (the engine's own defaults, repeated here so the parser needs no
 #: NumPy or OpenCV; tests check they agree).
@@ -78,7 +78,7 @@ def _json_safe(value):
 def _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold=None, max_streaks=None):
     import numpy as np
 
-    from ..validate import positive
+    from inject.validate import positive
 
     if pixel_scale is not None:
         positive("--pixel-scale", pixel_scale, scalar=True)
@@ -107,7 +107,7 @@ def streak_record(measurement, detection, widths, rule, counts, pixel_scale, sky
     The direction of motion cannot be seen in an image: ``angle_deg`` is the line's orientation
     in ``(-90, 90]`` and ``(x0, y0) -> (x1, y1)`` runs that way.
     """
-    from .mask import fitted_fwhm
+    from inject.masking.mask import fitted_fwhm
 
     line = measurement.line
     at_edge = measurement.at_edge
@@ -166,10 +166,10 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
     """
     import numpy as np
 
-    from .detect import FALSE_ALARM_Z, MAX_STREAKS, detect_streaks, prepare
-    from .geometry import span_indices
-    from .mask import lost_pixels, mask_spans, mask_widths, sb_width
-    from .measure import measure_streak
+    from inject.masking.detect import FALSE_ALARM_Z, MAX_STREAKS, detect_streaks, prepare
+    from inject.masking.geometry import span_indices
+    from inject.masking.mask import lost_pixels, mask_spans, mask_widths, sb_width
+    from inject.masking.measure import measure_streak
 
     _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold, max_streaks)
     prep = prepare(image, bad)
@@ -207,7 +207,7 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
 def _mask_bits(exposure):
     """``{plane: bit}`` of an exposure's MASK header (``MSKN`` and ``MP_`` cards); afw's
     default bits if it names none."""
-    from ..maskplanes import MASK_PLANES, header_planes
+    from inject.maskplanes import MASK_PLANES, header_planes
 
     if exposure.mask_index is None:
         return dict(MASK_PLANES)
@@ -218,7 +218,7 @@ def _exposure_arrays(exposure):
     """Image, bad-pixel mask (or None) and pixel scale from WCS (or None) of an exposure."""
     import numpy as np
 
-    from .detect import BAD_PLANES
+    from inject.masking.detect import BAD_PLANES
 
     image = exposure.image
     bad = None
@@ -263,7 +263,7 @@ def mask_image(source, *, mask=None, pixel_scale=None, **options):
 
 
 def _analyse_source(source, mask=None, pixel_scale=None, **options):
-    from ..io.reader import InputExposure, read_exposure
+    from inject.io.reader import InputExposure, read_exposure
 
     name = None
     if isinstance(source, (str, os.PathLike)):
@@ -289,9 +289,9 @@ def _set_streak_plane(exposure, streaks):
     import numpy as np
     from astropy.io import fits
 
-    from ..maskplanes import mask_header
-    from .geometry import Line
-    from .mask import mask_spans, paint
+    from inject.maskplanes import mask_header
+    from inject.masking.geometry import Line
+    from inject.masking.mask import mask_spans, paint
 
     shape = exposure.image_hdu.data.shape
     if exposure.mask_index is None:
@@ -330,7 +330,7 @@ def write_masked(in_path, out_path, streaks, overwrite=False):
     int
         Pixels in the STREAK plane.
     """
-    from ..io.reader import read_exposure
+    from inject.io.reader import read_exposure
 
     _check_distinct(in_path, out_path)
     return _write_exposure(read_exposure(in_path), out_path, streaks, overwrite)
@@ -383,8 +383,8 @@ def add_mask_parser(sub):
 
 def run_mask(args):
     """The ``inject mask`` command (``args`` from :func:`add_mask_parser`)."""
-    from ..io.atomic import check_writable
-    from ..io.reader import read_exposure
+    from inject.io.atomic import check_writable
+    from inject.io.reader import read_exposure
 
     _check_options(args.pixel_scale, args.mask_rule, args.sb_sigma, args.fwhm_factor,
                    args.threshold, args.max_streaks)

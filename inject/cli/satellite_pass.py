@@ -6,7 +6,7 @@ import sys
 
 import numpy as np
 
-from .errors import InputError
+from inject.errors import InputError
 
 
 def add_pass_parser(sub):
@@ -42,9 +42,9 @@ def add_pass_parser(sub):
 
 
 def parse_orbit_option(text, time):
-    """An :class:`~inject.orbits.Orbit` from ``--orbit`` text ``key=value,...`` (through
-    :func:`inject.orbits.orbit_from_spec`, as a scene's ``orbit:``)."""
-    from .orbits import CIRCULAR_ORBIT_KEYS, orbit_from_spec
+    """An :class:`~inject.orbits.passes.Orbit` from ``--orbit`` text ``key=value,...`` (through
+    :func:`inject.orbits.passes.orbit_from_spec`, as a scene's ``orbit:``)."""
+    from inject.orbits.passes import CIRCULAR_ORBIT_KEYS, orbit_from_spec
 
     values = {}
     for item in text.split(","):
@@ -68,15 +68,15 @@ def pass_report(orbit, exposure, pointing, site):
         CONTRACT.md's keys (``in_field``, ``message``, ``detectors``: the CCDs the track
         crosses while sunlit, those with a streak, ``samples``) and more
         (``detectors_in_shadow``: CCDs crossed only in Earth's shadow).
-    p : inject.orbits.Pass
+    p : inject.orbits.passes.Pass
         The pass at the report's samples (1 s apart, with the middle).
     track : tuple
-        ``(dense, x_mm, y_mm, runs)``: the pass every :data:`~inject.orbits.TRACK_STEP_S` and
-        its focal-plane polylines (:func:`inject.orbits.track_runs`), what ``detectors`` is
+        ``(dense, x_mm, y_mm, runs)``: the pass every :data:`~inject.orbits.passes.TRACK_STEP_S` and
+        its focal-plane polylines (:func:`inject.orbits.passes.track_runs`), what ``detectors`` is
         computed from.
     """
-    from . import focalplane as fp
-    from .orbits import TRACK_STEP_S, compute_pass, track_runs
+    from inject.camera import layout as fp
+    from inject.orbits.passes import TRACK_STEP_S, compute_pass, track_runs
 
     p = compute_pass(orbit, exposure, pointing, site)
     dense = compute_pass(orbit, exposure, pointing, site, step_s=TRACK_STEP_S,
@@ -114,8 +114,8 @@ def pass_report(orbit, exposure, pointing, site):
 
 
 def run_pass(args):
-    from .orbits import Exposure, Pointing, orbit_from_spec, parse_time, site_from_spec
-    from .validate import RANGES, check_pointing
+    from inject.orbits.passes import Exposure, Pointing, orbit_from_spec, parse_time, site_from_spec
+    from inject.validate import RANGES, check_pointing
 
     time = parse_time(args.time, "--time")
     orbit = (orbit_from_spec({"tle": args.tle}, time, "--tle") if args.tle is not None
@@ -126,7 +126,7 @@ def run_pass(args):
                                          "rotation": args.rotation},
                                         {"ra": "--ra", "dec": "--dec", "rotation": "--rotation"}))
     if args.plot:
-        from .io.atomic import check_writable
+        from inject.io.atomic import check_writable
 
         check_writable(args.plot, args.overwrite)  # fail before the work
     report, p, track = pass_report(orbit, exposure, pointing, site)
@@ -158,7 +158,7 @@ def streak_along(p, idx, mag_ref=5.0):
     (:class:`~inject.streak.StreakModel` defaults: 7.25 m x 2.65 m box, ``mag_ref`` g at 550 km)
     at samples ``idx`` of a pass: each sample's height, zenith (90 - alt) and phi, with the
     pass's exact range and angular speed."""
-    from .streak import StreakModel
+    from inject.streak import StreakModel
 
     fwhm, peak = [], []
     for i in idx:
@@ -182,8 +182,8 @@ def write_plot(path, report, p, track, overwrite=False):
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle
 
-    from . import focalplane as fp
-    from .io.atomic import atomic_path
+    from inject.camera import layout as fp
+    from inject.io.atomic import atomic_path
 
     dense, xd, yd, runs = track
     fig = Figure(figsize=(11, 6))

@@ -3,7 +3,7 @@ import json
 import os
 import sys
 
-from .errors import InputError, OutputError
+from inject.errors import InputError, OutputError
 
 
 def add_focalplane_parser(sub):
@@ -42,9 +42,9 @@ def add_focalplane_parser(sub):
 
 
 def _selected(fscene, args, margins):
-    from . import focalplane as fp
-    from .focalscene import ccd_streaks
-    from .parallel import slice_ccds
+    from inject.camera import layout as fp
+    from inject.exposure.scene import ccd_streaks
+    from inject.exposure.runner import slice_ccds
 
     ccds = fscene.ccds
     if args.detectors is not None:
@@ -60,8 +60,8 @@ def _selected(fscene, args, margins):
 
 
 def run_focalplane(args):
-    from .config import apply_overrides, load_scene_file
-    from .focalscene import margins_px, parse_focal_scene, plan
+    from inject.config import apply_overrides, load_scene_file
+    from inject.exposure.scene import margins_px, parse_focal_scene, plan
 
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers", args.workers, "must be >= 1")
@@ -94,7 +94,7 @@ def run_focalplane(args):
     records = _check_satellites_file(fscene, args, margins)
     mosaic = os.path.join(args.output, "mosaic.png")
     if not args.no_mosaic and os.path.exists(mosaic) and not args.overwrite:
-        from .parallel import read_manifest
+        from inject.exposure.runner import read_manifest
 
         rows = read_manifest(args.output).values()
         if not any(r.get("scene_sha256") == fscene.digest for r in rows):
@@ -112,7 +112,7 @@ def _check_satellites_file(fscene, args, margins):
     satellites.csv without --overwrite."""
     import csv
 
-    from .focalscene import satellite_records
+    from inject.exposure.scene import satellite_records
 
     path = os.path.join(args.output, SATELLITES_CSV)
     if os.path.exists(path) and not args.overwrite:
@@ -126,13 +126,13 @@ def _check_satellites_file(fscene, args, margins):
 
 def write_satellites(outdir, records):
     """Write OUTDIR/satellites.csv atomically: one row per satellite of the scene (see
-    :func:`inject.focalscene.satellite_records`), so a satellite that renders nowhere still
+    :func:`inject.exposure.scene.satellite_records`), so a satellite that renders nowhere still
     says why. Its content depends on the scene alone (every ``--job`` slice writes the same)."""
     import csv
     import io
 
-    from .focalscene import SATELLITE_FIELDS
-    from .io.atomic import atomic_path
+    from inject.exposure.scene import SATELLITE_FIELDS
+    from inject.io.atomic import atomic_path
 
     text = io.StringIO()
     writer = csv.DictWriter(text, SATELLITE_FIELDS)
@@ -148,7 +148,7 @@ def write_satellites(outdir, records):
 
 
 def _render(fscene, ccds, margins, args, records):
-    from .parallel import DASK_MEMORY_LIMIT, dask_executor, process_pool, run
+    from inject.exposure.runner import DASK_MEMORY_LIMIT, dask_executor, process_pool, run
 
     if args.scheduler:
         executor = dask_executor(args.scheduler, args.workers,
@@ -168,7 +168,7 @@ def _render(fscene, ccds, margins, args, records):
             print(f"satellites[{row['satellite']}]: renders on no CCD (why: "
                   f"{os.path.join(args.output, SATELLITES_CSV)})", file=sys.stderr)
     if not args.no_mosaic:
-        from .io.mosaic import write_mosaic
+        from inject.exposure.mosaic import write_mosaic
 
         path = os.path.join(args.output, "mosaic.png")
         write_mosaic(path, fscene, args.output, margins=margins)

@@ -16,7 +16,7 @@ lumos computes earthshine only with an Earth BRDF (with none it calls ``None``):
 """
 import numpy as np
 
-from .errors import SceneError
+from inject.errors import SceneError
 
 #: Parameters of each BRDF type (lumos.brdf.library's LAMBERTIAN, PHONG, ABG).
 BRDF_KEYS = {"lambertian": ("albedo",), "phong": ("Kd", "Ks", "n"), "abg": ("A", "B", "g")}
@@ -44,7 +44,7 @@ def surfaces(where, spec):
     earth_brdf : callable or None
         None: no earthshine.
     """
-    from .config import _check_keys, _number
+    from inject.config import _check_keys, _number
 
     lumos = _lumos()
     _check_keys(where, spec, {"surfaces", "earthshine", "earth_albedo"}, {"surfaces"})

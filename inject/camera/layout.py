@@ -24,7 +24,7 @@ Sky orientation (``rotation``, as LSST's ``rotSkyPos``): the position angle of t
 plane's +y axis, measured from north through east, as afw's ``makeCdMatrix(orientation=
 rotSkyPos, flipX=False)`` (obs_lsst's LSSTCam raw formatter keeps ``wcsFlipX = False``). At
 rotation 0, +y points north and +x west (east is to the left, as the sky is seen); at
-rotation 90 deg, +y points east. :mod:`inject.wcs` uses the same convention for single CCDs.
+rotation 90 deg, +y points east. :mod:`inject.camera.wcs` uses the same convention for single CCDs.
 """
 import math
 import re
@@ -32,11 +32,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .detector import E2V, ITL
-from .errors import InputError
-from .instrument import ARCSEC_PER_RAD
-from .trajectory import _clip_line
-from .validate import check_pointing
+from inject.camera.detector import E2V, ITL
+from inject.errors import InputError
+from inject.instrument import ARCSEC_PER_RAD
+from inject.trajectory import _clip_line
+from inject.validate import check_pointing
 
 #: Pixel pitch, mm.
 PIXEL_MM = 0.010
@@ -95,7 +95,7 @@ class CCD:
 
     @property
     def detector(self):
-        """The full-size :class:`~inject.detector.Detector` of this CCD's vendor."""
+        """The full-size :class:`~inject.camera.detector.Detector` of this CCD's vendor."""
         return SENSORS[self.vendor]
 
     @property

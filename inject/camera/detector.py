@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .errors import InputError
+from inject.errors import InputError
 
 
 @dataclass(frozen=True)

@@ -41,11 +41,11 @@ from sgp4.earth_gravity import wgs72
 from sgp4.exporter import export_tle
 from sgp4.io import compute_checksum
 
-from .errors import InputError, OrbitError, OrbitWarning
-from .focalplane import focal_of_field_angle, rotation_matrix
-from .geometry import R_EARTH_KM
-from .photometry import apparent_magnitude
-from .validate import RANGES, check_pointing, finite, in_range, positive
+from inject.errors import InputError, OrbitError, OrbitWarning
+from inject.camera.layout import focal_of_field_angle, rotation_matrix
+from inject.geometry import R_EARTH_KM
+from inject.photometry import apparent_magnitude
+from inject.validate import RANGES, check_pointing, finite, in_range, positive
 
 # Offline: never download Earth-orientation data; past the bundled table, warn and extrapolate.
 iers.conf.auto_download = False
@@ -149,7 +149,7 @@ class Pointing:
     ``rotation_deg`` is the position angle of the focal plane's +y axis on the sky, measured from
     North through East (the ``orientation`` of afw's ``makeSkyWcs`` with ``flipX=False``, as
     LSSTCam's raw WCS); at 0, +y points North and +x West: the convention of
-    :mod:`inject.focalplane`, whose CCD WCSs therefore agree with the field angles here.
+    :mod:`inject.camera.layout`, whose CCD WCSs therefore agree with the field angles here.
     """
 
     ra_deg: float
@@ -167,7 +167,7 @@ class Pointing:
 def sky_to_focal(xi, eta, rotation_deg):
     """Rotate standard coordinates (xi East, eta North) into the focal-plane axes (x, y).
 
-    The inverse of :func:`inject.focalplane.rotation_matrix` (a reflection, its own inverse):
+    The inverse of :func:`inject.camera.layout.rotation_matrix` (a reflection, its own inverse):
     +y at position angle ``rotation_deg``, +x at ``rotation_deg - 90`` (West at 0). Inverse of
     :func:`focal_to_sky`; see :class:`Pointing`.
     """
@@ -844,7 +844,7 @@ class Pass:
 
     def focal_mm(self):
         """Focal-plane position (mm) where the satellite appears, per sample: the field angles
-        through :func:`inject.focalplane.focal_of_field_angle` (the distortion), the mapping
+        through :func:`inject.camera.layout.focal_of_field_angle` (the distortion), the mapping
         every CCD's WCS uses. NaN where the field angle is undefined (behind the boresight) or
         beyond :data:`TRACK_RADIUS_DEG` (outside the camera, where the distortion polynomial
         does not apply)."""
@@ -1082,7 +1082,7 @@ def track_runs(p, tol_px=0.05, max_gap_s=1.0, lit_only=False,
     runs : list of ndarray
         Sample indices of each run's vertices, in time order.
     """
-    from .focalplane import PIXEL_MM
+    from inject.camera.layout import PIXEL_MM
 
     x, y = p.focal_mm()
     keep = np.isfinite(x) & (p.apparent_alt_deg > 0.0) & (

@@ -10,8 +10,8 @@ import os
 
 import numpy as np
 
-from .atomic import atomic_path
-from .quicklook import _zscale_limits, block_mean
+from inject.io.atomic import atomic_path
+from inject.io.quicklook import _zscale_limits, block_mean
 
 #: Default binning: a full focal plane (63 400 px across) about 1600 plotted pixels wide.
 DEFAULT_BIN = 40
@@ -43,8 +43,8 @@ def block_extent(bounds, shape, binned_shape, factor):
 
 def track_paths(fscene):
     """Each satellite's track in focal-plane mm, a line clipped to the focal plane."""
-    from ..focalplane import extent_mm
-    from ..trajectory import clip_segment
+    from inject.camera.layout import extent_mm
+    from inject.trajectory import clip_segment
 
     xmin, xmax, ymin, ymax = extent_mm()
     out = []
@@ -65,7 +65,7 @@ def write_mosaic(path, fscene, outdir, factor=DEFAULT_BIN, overwrite=True, margi
     Parameters
     ----------
     path : str
-    fscene : inject.focalscene.FocalScene
+    fscene : inject.exposure.scene.FocalScene
     outdir : str
         Where the CCD files are (``<detector>.fits``).
     factor : int
@@ -79,8 +79,8 @@ def write_mosaic(path, fscene, outdir, factor=DEFAULT_BIN, overwrite=True, margi
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle
 
-    from ..focalplane import PIXEL_MM, extent_mm
-    from ..focalscene import ccd_shape
+    from inject.camera.layout import PIXEL_MM, extent_mm
+    from inject.exposure.scene import ccd_shape
 
     binned = binned_ccds(fscene, outdir, factor)
     sample = np.concatenate([b[np.isfinite(b)].ravel()[::7] for b in binned.values()]) \

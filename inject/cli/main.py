@@ -15,9 +15,9 @@ import os
 import sys
 import warnings
 
-from . import __version__
-from .errors import InjectError, InputError, InputWarning, OrbitWarning
-from .validate import check
+from inject import __version__
+from inject.errors import InjectError, InputError, InputWarning, OrbitWarning
+from inject.validate import check
 
 
 def _one_line(text):
@@ -102,9 +102,9 @@ def _add_profile_parser(sub):
 def _model_from_args(args, pixel_scale=None, pixel_scale_name="--pixel-scale"):
     """The :class:`~inject.streak.StreakModel` of the satellite options, their ranges checked
     (:data:`inject.validate.RANGES`) before any profile is built."""
-    from .instrument import LSST
-    from .profile import Seeing
-    from .streak import StreakModel
+    from inject.instrument import LSST
+    from inject.profile import Seeing
+    from inject.streak import StreakModel
 
     model = StreakModel(  # its own domain checks first (NaN, <= 0, zenith >= 90, band)
         height_km=args.height, zenith_deg=args.zenith, phi_deg=args.phi,
@@ -123,7 +123,7 @@ def _model_from_args(args, pixel_scale=None, pixel_scale_name="--pixel-scale"):
 
 
 def _shape_from_args(args):
-    from .satellite import Box, Disk
+    from inject.satellite import Box, Disk
 
     if args.shape == "box":
         if args.radius is not None:
@@ -197,13 +197,13 @@ def run_simulate(args):
     """The ``inject simulate`` command: every output is written, or none (all-or-nothing)."""
     import os
 
-    from .config import apply_overrides, load_scene_file, parse_scene
-    from .io.atomic import output_group
-    from .io.fits import write_exposure
-    from .scene import simulate
+    from inject.config import apply_overrides, load_scene_file, parse_scene
+    from inject.io.atomic import output_group
+    from inject.io.fits import write_exposure
+    from inject.scene import simulate
 
     if args.png:
-        from .io.quicklook import quicklook_format
+        from inject.io.quicklook import quicklook_format
 
         quicklook_format(args.png)  # before the work
     scene = parse_scene(apply_overrides(load_scene_file(args.scene), args.overrides))
@@ -218,8 +218,8 @@ def run_simulate(args):
     with output_group(outputs.values(), args.overwrite):
         wcs = None
         if scene.pointing is not None:
-            from .instrument import LSST
-            from .wcs import pointing_wcs
+            from inject.instrument import LSST
+            from inject.camera.wcs import pointing_wcs
 
             wcs = pointing_wcs(scene.pointing, scene.detector.shape, LSST.pixel_scale_arcsec)
         result = simulate(scene, wcs=wcs)
@@ -227,15 +227,15 @@ def run_simulate(args):
                        wcs_header=None if wcs is None else wcs.to_header(relax=True),
                        overwrite=args.overwrite)
         if args.exr:
-            from .io.exr import write_exr
+            from inject.io.exr import write_exr
 
             write_exr(args.exr, scene, result, overwrite=args.overwrite)
         if args.png:
-            from .io.quicklook import write_quicklook
+            from inject.io.quicklook import write_quicklook
 
             write_quicklook(args.png, result, overwrite=args.overwrite)
         if args.truth:
-            from .io.fits import write_truth_csv
+            from inject.io.fits import write_truth_csv
 
             write_truth_csv(args.truth, result.truth, overwrite=args.overwrite)
     for path in outputs.values():
@@ -282,11 +282,11 @@ def run_add_streak(args):
 
     import numpy as np
 
-    from .addstreak import add_streaks
-    from .config import Track
-    from .io.atomic import check_writable
-    from .io.reader import read_exposure
-    from .maskplanes import FLAG_OFF_IMAGE, FLAG_SATURATED
+    from inject.addstreak import add_streaks
+    from inject.config import Track
+    from inject.io.atomic import check_writable
+    from inject.io.reader import read_exposure
+    from inject.maskplanes import FLAG_OFF_IMAGE, FLAG_SATURATED
 
     if os.path.exists(args.output) and os.path.samefile(args.input, args.output):
         raise InputError("-o", args.output, "must differ from the input (it is never modified)")
@@ -356,15 +356,15 @@ def build_parser():
     _add_profile_parser(sub)
     _add_simulate_parser(sub)
     _add_add_streak_parser(sub)
-    from .masking.cli_evaluate import add_evaluate_parser
-    from .masking.run import add_mask_parser
+    from inject.cli.evaluate import add_evaluate_parser
+    from inject.masking.run import add_mask_parser
 
     add_mask_parser(sub)
     add_evaluate_parser(sub)
-    from .cli_focalplane import add_focalplane_parser
+    from inject.cli.focalplane import add_focalplane_parser
 
     add_focalplane_parser(sub)
-    from .cli_pass import add_pass_parser
+    from inject.cli.satellite_pass import add_pass_parser
 
     add_pass_parser(sub)
     for command in sub.choices.values():
@@ -400,7 +400,7 @@ def main(argv=None):
     """Entry point of the ``inject`` console script; returns the exit status."""
     import signal
 
-    from .signals import Stopped, handling
+    from inject.signals import Stopped, handling
 
     command = "inject"
     try:

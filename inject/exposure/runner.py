@@ -28,8 +28,8 @@ import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 
-from . import __version__
-from .errors import InputError, OutputError
+from inject import __version__
+from inject.errors import InputError, OutputError
 
 MANIFEST = "manifest.csv"
 FIELDS = ("detector", "id", "vendor", "file", "sha256", "streaks", "seconds", "status",
@@ -62,7 +62,7 @@ def limit_threads():
         import OpenImageIO
 
         OpenImageIO.attribute("threads", 1)
-    from . import scene
+    from inject import scene
 
     scene.NOISE_THREADS = 1  # the amplifiers' noise draws (bytes do not depend on it)
     _LIMITED = True
@@ -97,9 +97,9 @@ def render_ccd(task):
     """
     if multiprocessing.parent_process() is not None:
         limit_threads()
-    from . import focalplane as fp
-    from .focalscene import simulate_ccd
-    from .io.fits import write_exposure
+    from inject.camera import layout as fp
+    from inject.exposure.scene import simulate_ccd
+    from inject.io.fits import write_exposure
 
     start = time.perf_counter()
     ccd = fp.ccd(task.detector)
@@ -151,7 +151,7 @@ def read_manifest(outdir):
 
 
 def _write_manifest(outdir, rows):
-    from .io.atomic import atomic_path
+    from inject.io.atomic import atomic_path
 
     text = io.StringIO()
     writer = csv.DictWriter(text, FIELDS, extrasaction="ignore")
@@ -274,7 +274,7 @@ def run(fscene, outdir, executor, ccds=None, overwrite=False, retries=2, progres
 
     Parameters
     ----------
-    fscene : inject.focalscene.FocalScene
+    fscene : inject.exposure.scene.FocalScene
     outdir : str
         Created if missing.
     executor : concurrent.futures.Executor
@@ -294,14 +294,14 @@ def run(fscene, outdir, executor, ccds=None, overwrite=False, retries=2, progres
     -------
     RunResult
     """
-    from .focalscene import margins_px
+    from inject.exposure.scene import margins_px
 
     ccds = fscene.ccds if ccds is None else tuple(ccds)
     os.makedirs(outdir, exist_ok=True)
     if margins is None:
         margins = margins_px(fscene)
     with _manifest_lock(outdir):
-        from .io.atomic import remove_stale_temporaries
+        from inject.io.atomic import remove_stale_temporaries
 
         stale = remove_stale_temporaries(outdir)  # left by a killed run
         if stale:
@@ -368,7 +368,7 @@ def run(fscene, outdir, executor, ccds=None, overwrite=False, retries=2, progres
 
 #: Modules every worker needs, imported once by the fork server the workers come from: a
 #: worker then starts in milliseconds instead of importing GalSim, astropy and SciPy (~1.5 s).
-WORKER_MODULES = ("inject.focalscene", "inject.io.fits", "inject.parallel", "scipy.stats")
+WORKER_MODULES = ("inject.exposure.scene", "inject.io.fits", "inject.exposure.runner", "scipy.stats")
 
 
 def start_fork_server():

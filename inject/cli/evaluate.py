@@ -17,7 +17,7 @@ import math
 import os
 import sys
 
-from ..errors import InputError
+from inject.errors import InputError
 
 #: Defaults of the campaign: magnitudes spanning peak S/N per pixel ~1.7 to ~0.03 at 550 km.
 DEFAULT_MAGS = (11.0, 12.0, 13.0, 13.5, 14.0, 14.5, 15.0, 15.5)
@@ -74,8 +74,8 @@ def campaign_images(heights, mags, seeds, size, progress=None):
     """
     import numpy as np
 
-    from ..config import DEFAULT_SCENE, apply_overrides, parse_scene
-    from ..scene import simulate
+    from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
+    from inject.scene import simulate
 
     total = len(heights) * len(mags) * len(seeds)
     k = 0
@@ -98,8 +98,8 @@ def campaign_images(heights, mags, seeds, size, progress=None):
 def streak_free_images(count, size, progress=None, seed0=STREAK_FREE_SEED0):
     """``count`` streak-free images of the campaign's field (seeds ``seed0 + 1`` on), with
     labels ``{height_km: None, mag: None, seed, streak_free: True}``, generated lazily."""
-    from ..config import DEFAULT_SCENE, apply_overrides, parse_scene
-    from ..scene import simulate
+    from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
+    from inject.scene import simulate
 
     for k in range(1, count + 1):
         seed = seed0 + k
@@ -130,8 +130,8 @@ def false_positive_summary(records, size):
 
 def bad_pixels(sim):
     """Unusable pixels of a simulated image (the LSST bad planes of its mask)."""
-    from ..maskplanes import MASK_PLANES
-    from .detect import BAD_PLANES
+    from inject.maskplanes import MASK_PLANES
+    from inject.masking.detect import BAD_PLANES
 
     bits = sum(1 << MASK_PLANES[p] for p in BAD_PLANES if p in MASK_PLANES)
     return (sim.mask & bits) != 0
@@ -154,7 +154,7 @@ def pixel_loss(summary, masker, heights=(550.0, 350.0)):
 
 def fifty_percent_points(summary):
     """Peak surface brightness (sky sigma) of 50% completeness per masker and height."""
-    from .evaluate import completeness_point
+    from inject.masking.evaluate import completeness_point
 
     out = {}
     for key in sorted({(r["masker"], r["height_km"]) for r in summary
@@ -186,7 +186,7 @@ OUTPUT_FILES = ("records.csv", "summary.csv", "summary.md", "pixel_loss.csv",
 
 
 def _write_text(path, text, overwrite=False):
-    from ..io.atomic import atomic_path
+    from inject.io.atomic import atomic_path
 
     with atomic_path(path, overwrite) as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as f:
@@ -210,7 +210,7 @@ def write_plots(summary, loss, outdir, masker, overwrite=False):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..io.atomic import atomic_path
+    from inject.io.atomic import atomic_path
 
     paths = []
 
@@ -270,7 +270,7 @@ def run_campaign(maskers, heights=DEFAULT_HEIGHTS, mags=DEFAULT_MAGS, seeds=DEFA
     :func:`~inject.masking.evaluate.summarise`)."""
     import itertools
 
-    from .evaluate import TRUTH_SIGMA, evaluate, load_masker, summarise
+    from inject.masking.evaluate import TRUTH_SIGMA, evaluate, load_masker, summarise
 
     maskers = [load_masker(m) for m in maskers]  # fail on a bad name before simulating
     images = itertools.chain(
@@ -314,7 +314,7 @@ def add_evaluate_parser(sub):
 
 
 def _check(args):
-    from ..validate import check
+    from inject.validate import check
 
     if args.seeds < 1:
         raise InputError("--seeds", args.seeds, "must be >= 1")
@@ -343,8 +343,8 @@ def _output_directory(path):
     """Make ``path`` (and missing parents) for the block; remove the directories it made if
     the block fails or is stopped and they are still empty (the outputs appear only at the
     block's end, so on failure they are)."""
-    from ..errors import OutputError
-    from ..signals import deferred
+    from inject.errors import OutputError
+    from inject.signals import deferred
 
     missing, head = [], os.path.abspath(path)
     while not os.path.isdir(head) and head != os.path.dirname(head):
@@ -369,11 +369,11 @@ def _output_directory(path):
 
 def run_evaluate(args):
     """The ``inject evaluate`` command (``args`` from :func:`add_evaluate_parser`)."""
-    from ..errors import OutputError
-    from ..io.atomic import output_group
-    from .run import _json_safe as json_rows
+    from inject.errors import OutputError
+    from inject.io.atomic import output_group
+    from inject.masking.run import _json_safe as json_rows
 
-    from .evaluate import load_masker
+    from inject.masking.evaluate import load_masker
 
     _check(args)
     maskers = args.masker or ["inject"]

@@ -22,15 +22,15 @@ from functools import lru_cache
 
 import numpy as np
 
-from . import focalplane as fp
-from .config import Track, _check_keys, _number, _polyline_track, _TOP_KEYS, parse_scene
-from .errors import InjectError, SceneError
-from .instrument import LSST
-from .profile import Seeing
-from .render import Budget, swept_profile
-from .scene import pixel_noise, render_tracks, rng, simulate
-from .streak import StreakModel
-from .validate import check_pointing
+from inject.camera import layout as fp
+from inject.config import Track, _check_keys, _number, _polyline_track, _TOP_KEYS, parse_scene
+from inject.errors import InjectError, SceneError
+from inject.instrument import LSST
+from inject.profile import Seeing
+from inject.render import Budget, swept_profile
+from inject.scene import pixel_noise, render_tracks, rng, simulate
+from inject.streak import StreakModel
+from inject.validate import check_pointing
 
 FOCAL_KEYS = (_TOP_KEYS - {"detector"}) | {"detectors", "cutout"}
 #: Keys of a satellite's ``orbit:`` (a TLE, or circular-orbit elements).
@@ -96,7 +96,7 @@ class FocalScene:
         The CCD-scene part (its ``detector`` and satellites' pixel tracks are placeholders).
     tracks : tuple of FocalTrack
         One per satellite.
-    ccds : tuple of inject.focalplane.CCD
+    ccds : tuple of inject.camera.layout.CCD
         The CCDs of the exposure (``detectors:``, default the 189 science CCDs).
     cutout : tuple or None
         ``(ny, nx)``: simulate only pixels ``[0, ny) x [0, nx)`` of each CCD (tests, quick
@@ -184,7 +184,7 @@ def _check_track_charge(scene, tracks):
     """:func:`inject.config.check_charge` on every satellite's own vertex values (an orbit's
     pass, a polyline's overrides; the satellite's for a line or segment), at the nominal
     plate scale; a pass with no streak has no charge."""
-    from .config import check_charge
+    from inject.config import check_charge
 
     sats = tuple(replace(spec, track=Track(0.0, 0.0, 0.0, None, tuple(
         v for v in track.values if v is not None) if track.kind == "polyline" else None))
@@ -241,11 +241,11 @@ def _focal_track(where, track, spec, scene):
 
 def _orbit_track(where, spec, sat, scene, raw, lumos=None):
     """A satellite's track from its orbit during the exposure: the apparent, sunlit parts of
-    the pass inside the field (all of them, in time order) as a polyline in mm (:func:`inject.orbits.track_runs` on a pass
+    the pass inside the field (all of them, in time order) as a polyline in mm (:func:`inject.orbits.passes.track_runs` on a pass
     sampled every 0.1 s: a vertex at least every second and wherever the path bends by more
     than 0.05 px), each vertex with the orbit's height, zenith (90 - alt), phi and the
     satellite's ``mag`` dimmed by the penumbra (the streak model scales it with range and
-    nadir angle itself, as :meth:`inject.orbits.Pass.magnitude` does), and the pass's exact
+    nadir angle itself, as :meth:`inject.orbits.passes.Pass.magnitude` does), and the pass's exact
     ``range`` and ``angular_speed`` (so t_eff, the charge per pixel and the defocus are the
     pass's, not those of the paper's spherical Earth at that height and zenith). A pass that never
     enters the field or is in shadow there has no vertices, and says why (OrbitWarning)."""
@@ -269,7 +269,7 @@ def _orbit_track(where, spec, sat, scene, raw, lumos=None):
 
 def _orbit_pass(where, spec, raw, exptime, pointing):
     """The pass (every 0.1 s) of a satellite's ``orbit:`` in a scene, errors as SceneError."""
-    from .orbits import (TRACK_STEP_S, Exposure, Pointing, compute_pass, orbit_from_spec,
+    from inject.orbits.passes import (TRACK_STEP_S, Exposure, Pointing, compute_pass, orbit_from_spec,
                          parse_time, site_from_spec)
 
     if raw.get("time") is None:
@@ -292,7 +292,7 @@ def _no_streak(where, dense):
     """Why a pass renders no streak (the message, also warned as an OrbitWarning)."""
     import warnings
 
-    from .errors import OrbitWarning
+    from inject.errors import OrbitWarning
 
     if not dense.in_field:
         why = dense.message
@@ -310,8 +310,8 @@ def _orbit_vertices(where, dense, mag, lumos=None, ref_range=550.0):
     values), and a message; no runs when there is no streak (the message says why).
 
     ``lumos`` (a satellite's ``lumos:`` mapping): each vertex's brightness from lumos-sat
-    (:mod:`inject.lumos_brightness`) instead of ``mag`` scaled by the paper's law."""
-    from .orbits import track_runs
+    (:mod:`inject.orbits.lumos`) instead of ``mag`` scaled by the paper's law."""
+    from inject.orbits.passes import track_runs
 
     xd, yd, runs = track_runs(dense, lit_only=True)
     if not runs:
@@ -326,9 +326,9 @@ def _orbit_vertices(where, dense, mag, lumos=None, ref_range=550.0):
         dim = -2.5 * np.log10(dense.sun_fraction[run])
         base = np.full(len(run), float(mag))
         if lumos is not None:
-            from .geometry import nadir_angle
-            from .lumos_brightness import magnitudes
-            from .photometry import apparent_magnitude
+            from inject.geometry import nadir_angle
+            from inject.orbits.passes.lumos import magnitudes
+            from inject.photometry import apparent_magnitude
 
             # The mag at ref_range, face-on, that the streak model's cos/r^2 scaling turns
             # into lumos's apparent magnitude here.
@@ -349,12 +349,12 @@ def _orbit_vertices(where, dense, mag, lumos=None, ref_range=550.0):
 def ccd_orbit_satellites(raw, satellites, shape, pointing):
     """A CCD scene's satellites with each ``orbit:`` replaced by its track in the CCD's pixels.
 
-    The CCD scene's WCS (:func:`inject.wcs.pointing_wcs`: TAN about the pointing at the image
+    The CCD scene's WCS (:func:`inject.camera.wcs.pointing_wcs`: TAN about the pointing at the image
     centre, LSST's plate scale, no distortion) maps the pass's field angles (ICRS gnomonic
     offsets, rotated as the WCS's CD matrix) linearly to pixels. A pass with no streak gets a
     track far off the image (its TRUTH row is flagged off-image) and a warning saying why.
     """
-    from .instrument import LSST
+    from inject.instrument import LSST
 
     if pointing is None:
         raise SceneError("pointing: required with an orbit ({ra, dec, rotation})")
@@ -436,7 +436,7 @@ def margins_px(fscene, exhaustive=False):
     vertices (:func:`_sampled`) and allowed :data:`REACH_ALLOWANCE` more, instead of at
     every vertex (``exhaustive=True``, ~0.25 s a vertex).
     """
-    from .scene import _own_budget
+    from inject.scene import _own_budget
 
     noise = min(pixel_noise(replace(fscene.scene, detector=det)) for det in fp.SENSORS.values())
     out = []
@@ -592,7 +592,7 @@ def satellite_records(fscene, margins=None):
     ``n_ccds``, ``flags`` (TRUTH's bits: ``FLAG_OFF_IMAGE`` when no CCD is reached),
     ``message`` (why there is no streak, or how the pass goes) and the scene digest.
     """
-    from .maskplanes import FLAG_OFF_IMAGE
+    from inject.maskplanes import FLAG_OFF_IMAGE
 
     margins = margins_px(fscene) if margins is None else margins
     reached = [[] for _ in fscene.tracks]
@@ -638,7 +638,7 @@ def _star_tiles(box):
 
 def tile_stars(scene, spec, tile):
     """The stars of one focal-plane tile: ``x_mm, y_mm, mag`` (its own random stream)."""
-    from .stars import sample_stars
+    from inject.stars import sample_stars
 
     i, j = tile
     lo = -_TILE_GRID / 2 * STAR_TILE_MM
@@ -654,8 +654,8 @@ def add_focal_stars(image, fscene, ccd, wcs=None, noise=None, variance=None):
     """Add the scene's stars that light a CCD (in place): those of every tile its pixels, grown
     by the bright-star stamp, overlap. A catalog in ra, dec goes through the CCD's WCS.
     ``noise`` and ``variance``: see :func:`inject.stars.draw_stars`."""
-    from .photometry import electron_rate
-    from .stars import add_star_field, draw_stars, psf_stamps, spec_from_scene
+    from inject.photometry import electron_rate
+    from inject.stars import add_star_field, draw_stars, psf_stamps, spec_from_scene
 
     scene = fscene.scene
     spec = spec_from_scene(scene)

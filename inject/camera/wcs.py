@@ -1,9 +1,9 @@
 """Celestial WCS of a CCD from a pointing (TAN projection)."""
 from astropy.wcs import WCS
 
-from .errors import InputError, SceneError
-from .focalplane import rotation_matrix
-from .validate import check_pointing
+from inject.errors import InputError, SceneError
+from inject.camera.layout import rotation_matrix
+from inject.validate import check_pointing
 
 
 def pointing_wcs(pointing, shape, pixel_scale_arcsec, crpix=None):

@@ -1,0 +1,1 @@
+"""LSSTCam: sensors, the focal-plane layout and its distortion, and every celestial WCS."""

@@ -1,0 +1,1 @@
+"""Real passes: orbits seen from a site during an exposure, and the tracks they leave."""
