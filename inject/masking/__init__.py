@@ -20,8 +20,10 @@ import importlib
 from inject.errors import InjectError
 
 
-class MaskingError(InjectError):
-    """An image cannot be searched for streaks (not 2-D, too small, no usable pixels...)."""
+class MaskingError(InjectError, ValueError):
+    """An image cannot be searched for streaks (not 2-D, too small, no usable pixels...).
+
+    Also a :class:`ValueError`, as the input errors of :mod:`inject.errors` are."""
 
 
 _LAZY = {"mask_image": "run", "analyse": "run", "write_masked": "run", "run_mask": "run",
