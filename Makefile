@@ -2,8 +2,9 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+DOCS_STAMP := $(VENV)/.docs-installed
 
-.PHONY: install test slow demo focalplane figures bench clean
+.PHONY: install test slow demo focalplane figures bench docs clean
 
 $(BIN)/python:
 	@echo "==> creating the virtual environment $(VENV) with $(PYTHON)"
@@ -51,6 +52,17 @@ bench: $(STAMP)
 	$(BIN)/python scripts/bench_render.py --out out/bench
 	$(BIN)/python scripts/bench_scene.py --repeat 3
 	$(BIN)/python scripts/bench_mask.py --sections timing
+
+$(DOCS_STAMP): $(STAMP)
+	@echo "==> installing the documentation tools (MkDocs, Material, mkdocstrings) into $(VENV)"
+	$(BIN)/python -m pip install --quiet -e '.[docs]'
+	@touch $(DOCS_STAMP)
+
+# The site goes to out/site; --strict turns every warning (a broken link, a missing page,
+# an unreadable docstring) into an error.
+docs: $(DOCS_STAMP)
+	NO_MKDOCS_2_WARNING=1 DISABLE_MKDOCS_2_WARNING=true $(BIN)/mkdocs build --strict -d out/site
+	@echo "docs: out/site/index.html"
 
 clean:
 	rm -rf $(VENV) out build *.egg-info

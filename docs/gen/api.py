@@ -1,0 +1,118 @@
+"""Write the API reference pages (reference/api/*.md) at build time: one page per part of the
+package, with a mkdocstrings block for each of its modules that exists in this checkout.
+
+Each module is listed by its name in the package's folder layout first and by its earlier
+flat name after it, so the pages follow the code whichever layout it has.
+"""
+import sys
+from pathlib import Path
+
+import mkdocs_gen_files
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import first_existing  # noqa: E402
+
+#: (page, title, introduction, [(module, earlier name or None), ...])
+PAGES = [
+    ("physics", "Physics",
+     "From an orbit, a line of sight and a satellite to the streak's profile and charge.",
+     [("inject.instrument", None), ("inject.geometry", None), ("inject.satellite", None),
+      ("inject.photometry", None), ("inject.profile", None), ("inject.streak", None)]),
+    ("rendering", "Rendering",
+     "Tracks on the pixel grid and the renderer that sweeps a profile along them, with the "
+     "brute-force reference and the baselines it is measured against.",
+     [("inject.trajectory", None), ("inject.render", None), ("inject.reference", None),
+      ("inject.baselines", None)]),
+    ("scenes", "CCD scenes and add-streak",
+     "Scene files, star fields, one simulated CCD, and injection into an existing image.",
+     [("inject.config", None), ("inject.stars", None),
+      ("inject.scene", None), ("inject.addstreak", None)]),
+    ("camera", "Camera",
+     "LSSTCam: the focal-plane layout and distortion, the two sensor types, and every WCS "
+     "builder.",
+     [("inject.camera.layout", "inject.focalplane"), ("inject.camera.detector", "inject.detector"),
+      ("inject.camera.wcs", "inject.wcs")]),
+    ("orbits", "Orbits",
+     "Real passes from TLEs or circular orbits, their conversion into tracks, and the "
+     "optional lumos-sat brightness.",
+     [("inject.orbits.passes", "inject.orbits"), ("inject.orbits.tracks", None),
+      ("inject.orbits.lumos", "inject.lumos_brightness")]),
+    ("exposure", "Whole exposure",
+     "Focal-plane scenes, the plan of which CCD gets which streak, one CCD of the exposure, "
+     "the runner (process pool or Dask) and the mosaic.",
+     [("inject.exposure.scene", "inject.focalscene"), ("inject.exposure.plan", None),
+      ("inject.exposure.ccd", None), ("inject.exposure.runner", "inject.parallel"),
+      ("inject.exposure.mosaic", "inject.io.mosaic")]),
+    ("io", "Files",
+     "FITS, OpenEXR and quicklook writers, the reader of users' files, and atomic output.",
+     [("inject.io", None), ("inject.io.atomic", None), ("inject.io.fits", None),
+      ("inject.io.exr", None), ("inject.io.quicklook", None), ("inject.io.reader", None)]),
+    ("masking", "Masking",
+     "Detection, measurement and masking of streaks, and the scoring of maskers against "
+     "injected truth.",
+     [("inject.masking", None), ("inject.masking.run", None), ("inject.masking.detect", None),
+      ("inject.masking.measure", None), ("inject.masking.mask", None),
+      ("inject.masking.geometry", None), ("inject.masking.evaluate", None),
+      ("inject.masking.external", None), ("inject.masking.baseline", None)]),
+    ("cli", "Command line",
+     "The parser and entry point of the `inject` command; every command's options are in "
+     "[Command line](../cli.md).",
+     [("inject.cli.main", "inject.cli")]),
+    ("foundations", "Foundations",
+     "Errors, the input ranges, the scene-schema helpers every parser uses, clean stops on "
+     "signals, and the mask planes: the modules every other part builds on.",
+     [("inject.errors", None), ("inject.validate", None), ("inject.schema", None),
+      ("inject.signals", None), ("inject.maskplanes", None)]),
+]
+
+#: The layers, top to bottom.
+LAYERS = """\
+cli
+addstreak | exposure | masking
+orbits | io
+scene
+config | stars
+camera | render
+streak
+physics: geometry, satellite, photometry, profile
+trajectory | instrument
+schema
+validate
+signals | maskplanes
+errors"""
+
+#: Per-module options (the command line's module holds one private helper per command).
+OPTIONS = {"inject.cli.main": "members: [build_parser, main]",
+           "inject.cli": "members: [build_parser, main]"}
+
+for page, title, intro, modules in PAGES:
+    lines = [f"# {title}", "", intro, ""]
+    found = [first_existing(*(m for m in pair if m)) for pair in modules]
+    found = [m for m in found if m]
+    for module in found:
+        lines.append(f"::: {module}")
+        if module in OPTIONS:
+            lines += ["    options:", f"      {OPTIONS[module]}"]
+        lines.append("")
+    if not found:
+        lines.append("(No module of this part exists in this checkout.)")
+    with mkdocs_gen_files.open(f"reference/api/{page}.md", "w") as f:
+        f.write("\n".join(lines))
+
+# The index: the parts, and the one direction imports run in.
+index = ["# API", "",
+         "The package is a flat core for one CCD (physics, rendering, scenes) with wings in "
+         "folders: the camera, orbits, the whole exposure, masking, files and the command "
+         "line. Each page documents the modules of one part.", "",
+         "| part | modules |", "|---|---|"]
+for page, title, _, modules in PAGES:
+    found = [first_existing(*(m for m in pair if m)) for pair in modules]
+    names = ", ".join(f"`{m}`" for m in found if m)
+    index.append(f"| [{title}]({page}.md) | {names} |")
+index += ["", "Imports run one way, from the command line down to the errors: a module imports "
+          "from the layers below its own; `|` separates parts of one layer that do not import "
+          "each other, and the four physics modules may import one another:", "",
+          "```text", LAYERS, "```", "",
+          "`make lint` checks this with import-linter (the contracts are in `pyproject.toml`)."]
+with mkdocs_gen_files.open("reference/api/index.md", "w") as f:
+    f.write("\n".join(index) + "\n")
