@@ -16,7 +16,8 @@ from inject.errors import InputError
 from inject.io.fits import truth_table
 from inject.maskplanes import FLAG_SATURATED
 from inject.render import Budget
-from inject.scene import STREAK_MASK_SIGMA, render_tracks
+from inject.maskplanes import STREAK_MASK_SIGMA
+from inject.scene import render_tracks
 from inject.validate import positive
 
 
@@ -116,7 +117,7 @@ def _flag_saturated(truth, models, saturated):
 def _check_arguments(exposure, models, tracks, rng):
     """Raise :class:`InputError` for arguments of the wrong kind (which would otherwise fail
     deep inside the renderer); return ``rng`` as a generator."""
-    from inject.config import Track
+    from inject.trajectory import Track
     from inject.io.reader import InputExposure
     from inject.streak import StreakModel
 

@@ -1,21 +1,26 @@
-"""Scene files: YAML parsed safely, dotted overrides, validation into a :class:`Scene`.
+"""CCD scenes: a scene mapping validated into a :class:`Scene`.
 
-Every problem is reported as a :class:`~inject.errors.SceneError` naming the key path
-(``satellites[0].height``) and the bad value.
+The parsing is made of parts that the focal-plane scene (:mod:`inject.exposure.scene`) composes
+with its own tracks: :func:`parse_common` (seed, band, exposure, seeing, sky, stars, noise,
+pointing, time), :func:`parse_satellite` (a satellite's shape and brightness), and the pixel
+track parsers. Every problem is reported as a :class:`~inject.errors.SceneError` naming the key
+path (``satellites[0].height``) and the bad value.
 """
-from dataclasses import dataclass, field
-
-import numbers
-import re
+from dataclasses import dataclass, field, replace
 
 import numpy as np
-import yaml
 
-from inject.camera.detector import Detector, detector_from_spec
+from inject.camera.detector import DETECTORS, Detector, detector_from_spec
+from inject.camera.wcs import Pointing
 from inject.errors import InjectError, InputError, SceneError
-from inject.photometry import band
+from inject.instrument import LSST
+from inject.photometry import band, electron_rate, sky_per_pixel
 from inject.satellite import Shape, shape_from_dict
-from inject.validate import RANGES, check_memory, check_pointing, positive
+from inject.schema import check_keys, number, ranged
+from inject.stars import StarFieldSpec, star_field_spec
+from inject.streak import StreakModel
+from inject.trajectory import Track
+from inject.validate import RANGES, check_memory, check_pointing, parse_time, positive
 
 #: The embedded default scene: the paper's 550 km satellite on one full ITL CCD.
 DEFAULT_SCENE = {
@@ -31,58 +36,72 @@ DEFAULT_SCENE = {
 #: FITS + EXR + PNG), with a margin for the raw layout and ADU conversion.
 SIMULATE_BYTES_PER_PIXEL = 64
 
-_TOP_KEYS = {"seed", "band", "exptime", "seeing", "zenith", "detector", "sky", "stars", "noise",
-             "satellites", "pointing", "dark_current", "cosmic_rays", "units", "time", "site"}
-_SATELLITE_KEYS = {"height", "phi", "shape", "mag", "ref_range", "track"}
-_TRACK_KEYS = {"x0", "y0", "angle", "length"}
-_VERTEX_KEYS = {"x", "y", "height", "zenith", "phi", "mag", "range", "angular_speed"}
-
-
-@dataclass(frozen=True)
-class Track:
-    """Where a streak goes on the pixel grid; ``length=None`` crosses the whole image.
-
-    ``vertices`` makes it a polyline: a tuple of mappings with ``x``, ``y`` (pixels) and
-    optionally ``height``, ``zenith``, ``phi``, ``mag`` overriding the satellite's values at
-    that vertex (so width, speed and brightness can change along the track), and ``range``
-    (km), ``angular_speed`` (rad/s) replacing the spherical-Earth range and angular speed of
-    (height, zenith, phi) there (an orbit's vertices carry the pass's exact values).
-    """
-
-    x0: float
-    y0: float
-    angle: float
-    length: float | None = None
-    vertices: tuple | None = None
+#: Keys every scene shares (a CCD scene adds ``detector``, a focal-plane scene ``detectors``
+#: and ``cutout``).
+COMMON_KEYS = frozenset({"seed", "band", "exptime", "seeing", "zenith", "sky", "stars", "noise",
+                         "satellites", "pointing", "dark_current", "cosmic_rays", "units", "time",
+                         "site"})
+SCENE_KEYS = COMMON_KEYS | {"detector"}
+#: A satellite's model keys, whatever its track is given as.
+SATELLITE_MODEL_KEYS = frozenset({"height", "phi", "shape", "mag", "ref_range"})
+#: Keys of a straight pixel track.
+TRACK_KEYS = frozenset({"x0", "y0", "angle", "length"})
+#: Keys of a polyline vertex that vary the streak model along it.
+VERTEX_MODEL_KEYS = ("height", "zenith", "phi", "mag")
+#: Vertex keys of an orbit's track only: the pass's exact range (km) and angular speed across
+#: the star field (rad/s), in place of the spherical-Earth ones of (height, zenith, phi).
+PASS_KEYS = ("range", "angular_speed")
+#: ``sky:`` mapping keys.
+SKY_KEYS = ("level", "mag", "airmass_scaling")
 
 
 @dataclass(frozen=True)
 class SatelliteSpec:
-    """One satellite of a scene."""
+    """One satellite of a scene: its model and, in a CCD scene, its track in pixels.
 
-    height: float
+    ``height`` is None for a satellite whose height comes from its orbit, vertex by vertex;
+    ``track`` is None in a focal-plane scene, which keeps its tracks in focal-plane mm.
+    """
+
+    height: float | None
     shape: Shape
     mag: float
-    track: Track
+    track: Track | None = None
     phi: float = 90.0
     ref_range: float = 550.0
 
 
 @dataclass(frozen=True)
+class SkySpec:
+    """The sky background: ``level`` (e-/px) or the band's dark sky at zenith, optionally
+    ``mag`` (mag/arcsec^2) instead, brighter by the airmass with ``airmass_scaling``."""
+
+    level: float | None = None
+    mag: float | None = None
+    airmass_scaling: bool = False
+
+
+@dataclass(frozen=True)
 class Scene:
-    """A validated single-CCD scene."""
+    """A validated scene.
+
+    ``sky`` and ``stars`` are None when the scene turns them off. In a CCD scene ``detector``
+    is the sensor (or its cut-out) and each satellite has its pixel track; the common part of
+    a focal-plane scene (:class:`inject.exposure.scene.FocalScene`) has no detector, and its
+    satellites no track.
+    """
 
     seed: int
     band: str
     exptime: float
     seeing: float
     zenith: float
-    detector: Detector
-    sky: object
-    stars: object
+    detector: Detector | None
+    sky: SkySpec | None
+    stars: StarFieldSpec | None
     noise: bool
     satellites: tuple = field(default_factory=tuple)
-    pointing: dict | None = None
+    pointing: Pointing | None = None
     dark_current: float = 0.0
     cosmic_rays: float = 0.0
     units: str = "electron"
@@ -91,144 +110,15 @@ class Scene:
     time: str | None = None
 
 
-class _SceneLoader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` reading floats as YAML 1.2 does: ``1e3`` and ``5e-1`` are numbers
-    (YAML 1.1, PyYAML's default, needs a dot and an exponent sign), and refusing a key given
-    twice in one mapping (YAML 1.2 forbids it; PyYAML keeps the last silently)."""
-
-    def construct_mapping(self, node, deep=False):
-        if isinstance(node, yaml.MappingNode):
-            seen = {}
-            for key_node, _ in node.value:  # the mapping's own keys: a merge (<<) may override
-                if key_node.tag == "tag:yaml.org,2002:merge":
-                    continue
-                key = self.construct_object(key_node, deep=True)
-                try:
-                    first = seen.setdefault(key, key_node.start_mark)
-                except TypeError:  # an unhashable key: the base class says so
-                    continue
-                if first is not key_node.start_mark:
-                    raise _DuplicateKey(key, key_node.start_mark.line + 1, first.line + 1)
-        return super().construct_mapping(node, deep)
-
-
-class _DuplicateKey(yaml.YAMLError):
-    def __init__(self, key, line, first):
-        super().__init__(f"line {line}: key {key!r} given twice (first at line {first}); "
-                         "keys must be unique")
-
-
-_SceneLoader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:[0-9][0-9_]*)?(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
-    list("-+0123456789."))
-
-
-def load_scene_file(path):
-    """Read a YAML scene file into a mapping (``yaml.safe_load``: no code runs).
-
-    Raises
-    ------
-    SceneError
-        ``path`` is not a file path, cannot be read, is not UTF-8 text or valid YAML, or does
-        not hold a mapping.
-    """
-    try:
-        with open(path, encoding="utf-8") as stream:
-            raw = yaml.load(stream, Loader=_SceneLoader)  # safe: no Python tags
-    except TypeError:  # open() says only "expected str, bytes or os.PathLike object"
-        raise SceneError(f"scene file {path!r}: not a file path") from None
-    except OSError as err:
-        raise SceneError(f"{path}: cannot read scene file ({err.strerror})") from None
-    except UnicodeDecodeError:
-        raise SceneError(f"{path}: not a text (UTF-8) scene file") from None
-    except _DuplicateKey as err:
-        raise SceneError(f"{path}: {err}") from None
-    except yaml.YAMLError as err:
-        raise SceneError(f"{path}: not valid YAML ({err})") from None
-    if not isinstance(raw, dict):
-        raise SceneError(f"{path}: a scene file must be a mapping of keys to values")
-    return raw
-
-
-def apply_overrides(raw, overrides):
-    """Apply ``key.path=value`` strings to a scene mapping (values parsed as YAML scalars).
-
-    List items are addressed by index: ``satellites.0.mag=6``. Values are read as in scene
-    files (``1e3`` is a number).
-
-    Raises
-    ------
-    SceneError
-        An override is not a ``key.path=value`` string, its value is not valid YAML, or its
-        path does not fit the scene.
-    """
-    if isinstance(overrides, str):  # would be taken one character at a time
-        raise SceneError(f"overrides={overrides!r}: must be a list of key.path=value strings")
-    try:
-        raw = yaml.safe_load(yaml.safe_dump(raw))  # a deep copy of plain data
-    except yaml.YAMLError as err:
-        raise SceneError(f"scene: not plain data ({err})") from None
-    for item in overrides:
-        if not isinstance(item, str):
-            raise SceneError(f"override {item!r}: expected a key.path=value string")
-        path, sep, text = item.partition("=")
-        if not sep or not path:
-            raise SceneError(f"override {item!r}: expected key.path=value")
-        try:
-            value = yaml.load(text, Loader=_SceneLoader)  # safe, as load_scene_file
-        except yaml.YAMLError as err:
-            raise SceneError(f"override {item!r}: value is not valid YAML ({err})") from None
-        node, keys = raw, path.split(".")
-        for depth, key in enumerate(keys):
-            last = depth == len(keys) - 1
-            where = ".".join(keys[: depth + 1])
-            if isinstance(node, list):
-                if not key.isdigit() or int(key) >= len(node):
-                    raise SceneError(f"override {item!r}: no list item {where}")
-                key = int(key)
-            elif not isinstance(node, dict):
-                raise SceneError(f"override {item!r}: {'.'.join(keys[:depth])} is not a mapping")
-            if last:
-                node[key] = value
-            else:
-                if isinstance(node, dict) and not isinstance(node.get(key), (dict, list)):
-                    node[key] = {}
-                node = node[key]
-    return raw
-
-
-def _number(where, value, kind=float):
-    # numbers.Real: NumPy scalars from Python callers are numbers too; bools are not.
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise SceneError(f"{where}={value!r}: must be a number")
-    if value != value or value in (float("inf"), float("-inf")):
-        raise SceneError(f"{where}={value!r}: must be finite")
-    if kind is int and value != int(value):
-        raise SceneError(f"{where}={value!r}: must be an integer")
-    return kind(value)
-
-
-def _ranged(quantity, where, value, kind=float):
-    """``value`` as a number inside :data:`inject.validate.RANGES` ``[quantity]``."""
-    value = _number(where, value, kind)
-    try:
-        return RANGES[quantity].check(value, where)
-    except InputError as err:
-        raise SceneError(str(err)) from None
-
-
 def _check_detector(spec):
     """Range checks of a detector mapping's numbers (its keys and types are checked by
     :func:`inject.camera.detector.detector_from_spec`)."""
     if not isinstance(spec, dict):
         return
-    from inject.camera.detector import DETECTORS
-
     sensor = DETECTORS.get(spec.get("type", "itl"))
     for key, size in (("nx", sensor and sensor.nx), ("ny", sensor and sensor.ny)):
         if key in spec:
-            n = _ranged(f"detector.{key}", f"detector.{key}", spec[key], int)
+            n = ranged(f"detector.{key}", f"detector.{key}", spec[key], int)
             if sensor is not None and n > size:
                 raise SceneError(f"detector.{key}={n}: must be <= {size} px (the {sensor.kind} "
                                  f"sensor's size; a scene is one CCD or a cut-out of it)")
@@ -236,70 +126,132 @@ def _check_detector(spec):
         values = spec.get(key)
         if isinstance(values, list):
             for j, v in enumerate(values):
-                _ranged(f"detector.{key}", f"detector.{key}[{j}]", v)
+                ranged(f"detector.{key}", f"detector.{key}[{j}]", v)
         elif values is not None:
-            _ranged(f"detector.{key}", f"detector.{key}", values)
+            ranged(f"detector.{key}", f"detector.{key}", values)
     for key in ("full_well", "bias"):
         if key in spec:
-            _ranged(f"detector.{key}", f"detector.{key}", spec[key])
+            ranged(f"detector.{key}", f"detector.{key}", spec[key])
 
 
-def _check_sky_and_stars(sky, stars):
-    if isinstance(sky, dict):
-        for key in ("level", "mag"):
-            if key in sky:
-                _ranged(f"sky.{key}", f"sky.{key}", sky[key])
-    if isinstance(stars, dict):
-        for key in ("galactic_l", "galactic_b", "mag_limit", "mag_bright", "density_per_deg2"):
-            if key in stars:
-                _ranged(f"stars.{key}", f"stars.{key}", stars[key])
-
-
-def _check_keys(where, mapping, allowed, required=()):
-    if not isinstance(mapping, dict):
-        raise SceneError(f"{where}={mapping!r}: must be a mapping")
-    unknown = set(mapping) - set(allowed)
+def parse_sky(value):
+    """The :class:`SkySpec` of a scene's ``sky:`` (``true``, ``false`` or a mapping); None
+    when off."""
+    if value is False:
+        return None
+    if value is True:
+        return SkySpec()
+    if not isinstance(value, dict):
+        raise SceneError(f"sky={value!r}: must be true, false or a mapping")
+    unknown = set(value) - set(SKY_KEYS)
     if unknown:
-        raise SceneError(f"{where}: unknown keys {sorted(unknown)} (allowed: {sorted(allowed)})")
-    missing = set(required) - set(mapping)
-    if missing:
-        raise SceneError(f"{where}: missing keys {sorted(missing)}")
+        raise SceneError(f"sky: unknown keys {sorted(unknown)} (allowed: level, mag, "
+                         f"airmass_scaling)")
+    level = value.get("level")
+    if level is not None:
+        level = ranged("sky.level", "sky.level", level)
+        if not level >= 0:
+            raise SceneError(f"sky.level={level!r}: must be a number >= 0 (e-/px)")
+    mag = value.get("mag")
+    if mag is not None:
+        mag = ranged("sky.mag", "sky.mag", mag)
+    scaling = value.get("airmass_scaling", False)
+    if not isinstance(scaling, bool):  # "no" or "maybe" would count as true
+        raise SceneError(f"sky.airmass_scaling={scaling!r}: must be true or false")
+    return SkySpec(level=level, mag=mag, airmass_scaling=scaling)
 
 
-def _satellite(i, spec):
-    where = f"satellites[{i}]"
-    _check_keys(where, spec, _SATELLITE_KEYS, {"height", "shape", "mag", "track"})
-    track = spec["track"]
-    if isinstance(track, dict) and "vertices" in track:
-        track = _polyline_track(f"{where}.track", track)
-    _check_keys(f"{where}.track", track, _TRACK_KEYS | {"vertices"}, {"x0", "y0", "angle"})
-    length = track.get("length")
-    ref_range = _number(f"{where}.ref_range", spec.get("ref_range", 550.0))
-    if not ref_range > 0:
-        raise SceneError(f"{where}.ref_range={ref_range}: must be > 0 (km)")
-    if length is not None and not _number(f"{where}.track.length", length) >= 0:
-        raise SceneError(f"{where}.track.length={length}: must be >= 0 (px)")
+def parse_stars(value, pointing=None):
+    """The :class:`~inject.stars.StarFieldSpec` of a scene's ``stars:`` (``true``, ``false`` or
+    a mapping); None when off. Galactic coordinates not given come from the pointing."""
+    if value is False:
+        return None
+    if not isinstance(value, (bool, dict)):
+        raise SceneError(f"stars={value!r}: must be true, false or a mapping")
+    if isinstance(value, dict):
+        for key in ("galactic_l", "galactic_b", "mag_limit", "mag_bright", "density_per_deg2"):
+            if key in value:
+                ranged(f"stars.{key}", f"stars.{key}", value[key])
+    radec = None if pointing is None else (pointing.ra_deg, pointing.dec_deg)
     try:
-        height = _number(f"{where}.height", spec["height"])
-        positive("height_km", height)
+        return star_field_spec({} if value is True else value, radec)
+    except SceneError:
+        raise
+    except InjectError as err:
+        raise SceneError(f"stars: {err}") from None
+
+
+def parse_pointing(value):
+    """A scene's ``pointing: {ra, dec, rotation}`` as a :class:`~inject.camera.wcs.Pointing`
+    (None when absent)."""
+    if value is None:
+        return None
+    check_keys("pointing", value, {"ra", "dec", "rotation"}, {"ra", "dec"})
+    try:
+        return Pointing(*check_pointing(value))
+    except InjectError as err:
+        raise SceneError(str(err)) from None
+
+
+def parse_common(raw):
+    """The keys every scene shares, checked: a mapping of :class:`Scene`'s fields but
+    ``detector`` and ``satellites`` (defaults from :data:`DEFAULT_SCENE`)."""
+    merged = {k: v for k, v in DEFAULT_SCENE.items() if k not in ("satellites", "detector")} | raw
+    try:
+        band(merged["band"])
+    except InjectError as err:
+        raise SceneError(str(err)) from None
+    if not isinstance(merged["noise"], bool):
+        raise SceneError(f"noise={merged['noise']!r}: must be true or false")
+    if not isinstance(merged["sky"], (bool, dict)):
+        raise SceneError(f"sky={merged['sky']!r}: must be true, false or a mapping")
+    pointing = parse_pointing(merged.get("pointing"))
+    sky = parse_sky(merged["sky"])
+    stars = parse_stars(merged["stars"], pointing)
+    units = merged.get("units", "electron")
+    if units not in ("electron", "adu"):
+        raise SceneError(f"units={units!r}: choose electron or adu")
+    return dict(
+        seed=ranged("seed", "seed", merged["seed"], int), band=merged["band"],
+        **{k: ranged(k, k, merged[k]) for k in ("exptime", "seeing", "zenith")},
+        sky=sky, stars=stars, noise=merged["noise"], pointing=pointing, units=units,
+        **{k: ranged(k, k, merged.get(k, 0.0)) for k in ("dark_current", "cosmic_rays")},
+        time=None if merged.get("time") is None else exposure_start(merged["time"]), raw=raw)
+
+
+def satellite_list(raw):
+    """A scene's ``satellites:`` list (empty when absent)."""
+    satellites = raw.get("satellites", [])
+    if not isinstance(satellites, list):
+        raise SceneError(f"satellites={satellites!r}: must be a list")
+    return satellites
+
+
+def parse_satellite(where, spec, track=None, height_from_orbit=False):
+    """A satellite's model (shape, brightness, height, phi, reference range) and ``track``.
+
+    With ``height_from_orbit`` the satellite has no ``height`` or ``phi`` of its own (its
+    orbit gives them, vertex by vertex)."""
+    try:
         shape = shape_from_dict(spec["shape"])
+        height = None
+        if not height_from_orbit:
+            height = number(f"{where}.height", spec["height"])
+            positive("height_km", height)
     except SceneError:
         raise
     except InjectError as err:
         raise SceneError(f"{where}: {err}") from None
-    _ranged("size", f"{where}.shape size", round(shape.size_m, 3))
+    ref_range = number(f"{where}.ref_range", spec.get("ref_range", 550.0))
+    if not ref_range > 0:
+        raise SceneError(f"{where}.ref_range={ref_range}: must be > 0 (km)")
+    ranged("size", f"{where}.shape size", round(shape.size_m, 3))
     _check_parts(f"{where}.shape", spec["shape"])
     return SatelliteSpec(
-        height=_ranged("height", f"{where}.height", height),
-        shape=shape,
-        mag=_ranged("mag", f"{where}.mag", spec["mag"]),
-        phi=_ranged("phi", f"{where}.phi", spec.get("phi", 90.0)),
-        ref_range=_ranged("ref_range", f"{where}.ref_range", ref_range),
-        track=Track(*(_ranged(f"track.{k}", f"{where}.track.{k}", track[k])
-                      for k in ("x0", "y0", "angle")),
-                    None if length is None else _ranged("track.length", f"{where}.track.length",
-                                                        length),
-                    track.get("vertices")))
+        height=None if height is None else ranged("height", f"{where}.height", height),
+        shape=shape, mag=ranged("mag", f"{where}.mag", spec["mag"]),
+        phi=ranged("phi", f"{where}.phi", spec.get("phi", 90.0)),
+        ref_range=ranged("ref_range", f"{where}.ref_range", ref_range), track=track)
 
 
 def _check_parts(where, shape):
@@ -307,80 +259,81 @@ def _check_parts(where, shape):
     for j, part in enumerate(shape.get("parts", ()) if isinstance(shape, dict) else ()):
         if isinstance(part, dict):
             if "reflectance" in part:
-                _ranged("reflectance", f"{where}.parts[{j}].reflectance", part["reflectance"])
+                ranged("reflectance", f"{where}.parts[{j}].reflectance", part["reflectance"])
             _check_parts(f"{where}.parts[{j}]", part)
 
 
-def _polyline_track(where, track):
-    """Validate a ``{vertices: [...]}`` track; return it with x0, y0, angle of its first piece."""
-    _check_keys(where, track, {"vertices"}, {"vertices"})
-    vertices = track["vertices"]
+def parse_vertices(where, vertices, position=("x", "y"), extra=PASS_KEYS):
+    """Check a polyline's ``vertices``: each a mapping with the ``position`` keys and optional
+    :data:`VERTEX_MODEL_KEYS` (and ``extra``) overriding the satellite's values there.
+
+    Returns
+    -------
+    tuple of dict
+        The vertices with their numbers checked (the position keys as ``track.x0``/``y0``).
+    """
     if not isinstance(vertices, list) or len(vertices) < 2:
         raise SceneError(f"{where}.vertices: needs a list of at least two vertices")
+    quantity = dict(zip(position, ("track.x0", "track.y0")))
     checked = []
     for j, vertex in enumerate(vertices):
         here = f"{where}.vertices[{j}]"
-        _check_keys(here, vertex, _VERTEX_KEYS, {"x", "y"})
-        values = {k: _number(f"{here}.{k}", v) for k, v in vertex.items()}
+        check_keys(here, vertex, {*position, *VERTEX_MODEL_KEYS, *extra}, set(position))
+        values = {k: number(f"{here}.{k}", v) for k, v in vertex.items()}
         if "height" in values and not values["height"] > 0:
             raise SceneError(f"{here}.height={values['height']}: must be > 0 (km)")
         if "zenith" in values and not 0 <= values["zenith"] < 90:
             raise SceneError(f"{here}.zenith={values['zenith']}: must be >= 0 and < 90")
-        quantity = {"x": "track.x0", "y": "track.y0"}
-        values = {k: _ranged(quantity.get(k, k), f"{here}.{k}", v) for k, v in values.items()}
-        checked.append(values)
-    first, second = checked[0], checked[1]
-    angle = float(np.degrees(np.arctan2(second["y"] - first["y"], second["x"] - first["x"])))
-    return {"x0": first["x"], "y0": first["y"], "angle": angle, "vertices": tuple(checked)}
+        checked.append({k: ranged(quantity.get(k, k), f"{here}.{k}", v)
+                        for k, v in values.items()})
+    return tuple(checked)
+
+
+def parse_track(where, track):
+    """A pixel track: ``{x0, y0, angle[, length]}`` or ``{vertices: [{x, y, ...}, ...]}``."""
+    if isinstance(track, dict) and "vertices" in track:
+        check_keys(where, track, {"vertices"}, {"vertices"})
+        vertices = parse_vertices(where, track["vertices"])
+        first, second = vertices[0], vertices[1]
+        angle = float(np.degrees(np.arctan2(second["y"] - first["y"], second["x"] - first["x"])))
+        return Track(first["x"], first["y"], angle, None, vertices)
+    check_keys(where, track, TRACK_KEYS, {"x0", "y0", "angle"})
+    length = track.get("length")
+    if length is not None:
+        if not number(f"{where}.length", length) >= 0:
+            raise SceneError(f"{where}.length={length}: must be >= 0 (px)")
+        length = ranged("track.length", f"{where}.length", length)
+    return Track(*(ranged(f"track.{k}", f"{where}.{k}", track[k]) for k in ("x0", "y0", "angle")),
+                 length)
 
 
 def parse_scene(raw, charge_check=True):
-    """Validate a scene mapping (defaults filled from :data:`DEFAULT_SCENE`).
+    """Validate a CCD scene mapping (defaults filled from :data:`DEFAULT_SCENE`).
 
-    ``charge_check=False`` leaves out :func:`check_charge` (a focal-plane scene checks its
-    tracks' own vertex values once they are known, not its placeholder satellites')."""
-    _check_keys("scene", raw, _TOP_KEYS)
-    merged = {k: v for k, v in DEFAULT_SCENE.items() if k != "satellites"} | raw
-    _check_detector(merged["detector"])
+    A satellite given by an ``orbit:`` is turned into a pixel track by
+    :func:`inject.orbits.tracks.resolve_ccd_orbits` first (``inject simulate`` does so).
+    ``charge_check=False`` leaves out :func:`check_charge`.
+    """
+    check_keys("scene", raw, SCENE_KEYS)
+    detector_spec = raw.get("detector", DEFAULT_SCENE["detector"])
+    _check_detector(detector_spec)
     try:
-        band(merged["band"])
-        detector = detector_from_spec(merged["detector"])
+        detector = detector_from_spec(detector_spec)
     except InjectError as err:
         raise SceneError(str(err)) from None
-    for flag in ("noise",):
-        if not isinstance(merged[flag], bool):
-            raise SceneError(f"{flag}={merged[flag]!r}: must be true or false")
-    for flag in ("sky", "stars"):
-        if not isinstance(merged[flag], (bool, dict)):
-            raise SceneError(f"{flag}={merged[flag]!r}: must be true, false or a mapping")
-    pointing = merged.get("pointing")
-    if pointing is not None:  # validate.check_pointing: the one check of a pointing
-        _check_keys("pointing", pointing, {"ra", "dec", "rotation"}, {"ra", "dec"})
-        try:
-            pointing = dict(zip(("ra", "dec", "rotation"), check_pointing(pointing)))
-        except InjectError as err:
-            raise SceneError(str(err)) from None
-    satellites = merged.get("satellites", [])
-    if not isinstance(satellites, list):
-        raise SceneError(f"satellites={satellites!r}: must be a list")
-    if any(isinstance(sat, dict) and "orbit" in sat for sat in satellites):
-        from inject.exposure.scene import ccd_orbit_satellites# orbit: -> a polyline in this CCD's pixels
-
-        satellites = ccd_orbit_satellites(merged, satellites, detector.shape, pointing)
-    _check_sky_and_stars(merged["sky"], merged["stars"])
-    seed = _ranged("seed", "seed", merged["seed"], int)
-    exptime, seeing, zenith = (_ranged(k, k, merged[k]) for k in ("exptime", "seeing", "zenith"))
-    rates = {key: _ranged(key, key, merged.get(key, 0.0))
-             for key in ("dark_current", "cosmic_rays")}
-    units = merged.get("units", "electron")
-    if units not in ("electron", "adu"):
-        raise SceneError(f"units={units!r}: choose electron or adu")
-    start = None if merged.get("time") is None else exposure_start(merged["time"])
-    scene = Scene(seed=seed, band=merged["band"], exptime=exptime, seeing=seeing, zenith=zenith,
-                  detector=detector, sky=merged["sky"], stars=merged["stars"],
-                  noise=merged["noise"],
-                  satellites=tuple(_satellite(i, s) for i, s in enumerate(satellites)),
-                  pointing=pointing, units=units, raw=raw, time=start, **rates)
+    satellites = satellite_list(raw)
+    common = parse_common(raw)
+    parsed = []
+    for i, spec in enumerate(satellites):
+        where = f"satellites[{i}]"
+        if isinstance(spec, dict) and "orbit" in spec:
+            raise SceneError(f"{where}.orbit: resolve orbits into tracks first "
+                             "(inject.orbits.tracks.resolve_ccd_orbits; inject simulate does)")
+        check_keys(where, spec, SATELLITE_MODEL_KEYS | {"track"},
+                   {"height", "shape", "mag", "track"})
+        track = parse_track(f"{where}.track", spec["track"])
+        parsed.append(parse_satellite(where, spec, track))
+    scene = Scene(detector=detector, satellites=tuple(parsed), **common)
     if charge_check:
         check_charge(scene)
     ny, nx = detector.shape
@@ -390,59 +343,52 @@ def parse_scene(raw, charge_check=True):
 
 def exposure_start(value):
     """A scene's ``time:`` (a YAML timestamp or an ISO 8601 string, UTC) as ISO 8601 UTC."""
-    from inject.orbits.passes import parse_time
-
     try:
         return parse_time(value, "time").utc.isot
     except InjectError as err:
         raise SceneError(str(err)) from None
 
 
-def time_cards(scene):
-    """FITS cards of the exposure's time, when the scene has one (``{}`` otherwise).
+def sky_level(scene):
+    """Sky background in e-/px for the scene (0 when ``sky`` is off).
 
-    As LSSTCam's headers and afw's VisitInfo have them: ``TIMESYS = 'TAI'`` and the dates in
-    TAI (the FITS standard reads DATE-* and MJD-* in TIMESYS's scale; TAI - UTC is 37 s in
-    2026): ``DATE-OBS``/``MJD-OBS`` the exposure start (the UTC start in the comment),
-    ``DATE-AVG``/``MJD-AVG`` its middle (what afw takes as the VisitInfo date), ``DATE-END``
-    /``MJD-END`` its end.
+    ``sky: true`` is the band's dark sky at zenith (SMTN-002); a mapping may give ``level``
+    (e-/px), ``mag`` (mag/arcsec^2) and ``airmass_scaling: true`` (brighter by the
+    plane-parallel airmass ``sec z``, as the sky glow comes from a longer path).
     """
-    if scene.time is None:
-        return {}
-    from astropy.time import Time, TimeDelta
-
-    start = Time(scene.time, scale="utc")
-    cards = {"TIMESYS": ("TAI", "time scale of DATE-* and MJD-*")}
-    for key, t, what in (("OBS", start, "exposure start"),
-                         ("AVG", start + TimeDelta(scene.exptime / 2, format="sec"),
-                          "middle of the exposure"),
-                         ("END", start + TimeDelta(scene.exptime, format="sec"),
-                          "exposure end")):
-        tai = t.tai
-        cards[f"DATE-{key}"] = (tai.isot, f"{what} (TAI)")
-        cards[f"MJD-{key}"] = (float(tai.mjd), f"[d] {what}, MJD (TAI)")
-    return cards
+    sky = scene.sky
+    if sky is None:
+        return 0.0
+    if sky.level is not None:
+        return float(sky.level)
+    level = sky_per_pixel(scene.band, scene.exptime, LSST.pixel_scale_arcsec, sky.mag)
+    if sky.airmass_scaling:
+        level /= np.cos(np.radians(scene.zenith))
+    return float(level)
 
 
-def check_charge(scene):
+def check_charge(scene, vertex_values=None):
     """Refuse a scene whose brightest pixel would hold more charge than can be drawn.
 
     An upper bound, from numbers alone (no profile is built): the sky, the dark current, the
     brightest random star's whole flux and each satellite's charge per pixel of track (no
     pixel of a streak gets more than that) at each of its vertices.
-    """
-    from inject.photometry import electron_rate
-    from inject.scene import sky_level
-    from inject.streak import StreakModel
 
+    Parameters
+    ----------
+    scene : Scene
+    vertex_values : sequence of sequence of mapping, optional
+        Per satellite, the values along its track that override its own (a focal-plane
+        scene's tracks, an orbit's pass); default: each CCD track's vertices.
+    """
     base = sky_level(scene) + scene.dark_current * scene.exptime
-    if isinstance(scene.stars, dict) or scene.stars is True:
-        bright = (scene.stars if isinstance(scene.stars, dict) else {}).get("mag_bright", 12.0)
-        if not (isinstance(scene.stars, dict) and "catalog" in scene.stars):
-            base += float(electron_rate(bright, scene.band)) * scene.exptime
+    if scene.stars is not None and scene.stars.catalog is None:
+        base += float(electron_rate(scene.stars.mag_bright, scene.band)) * scene.exptime
     worst, where = base, "the sky, dark current and stars"
-    for i, sat in enumerate(scene.satellites):
-        for vertex in sat.track.vertices or ({},):
+    if vertex_values is None:
+        vertex_values = [sat.track.vertices or ({},) for sat in scene.satellites]
+    for i, (sat, values) in enumerate(zip(scene.satellites, vertex_values)):
+        for vertex in values:
             model = StreakModel(vertex.get("height", sat.height), vertex.get("zenith", scene.zenith),
                                 vertex.get("phi", sat.phi), sat.shape, vertex.get("mag", sat.mag),
                                 scene.band, ref_range_km=sat.ref_range,
@@ -455,3 +401,8 @@ def check_charge(scene):
                                       f"expected charge per pixel from {where}")
     except InputError as err:
         raise SceneError(str(err)) from None
+
+
+def with_detector(scene, detector, satellites=()):
+    """A CCD scene from a scene's common part: its sensor and satellites with pixel tracks."""
+    return replace(scene, detector=detector, satellites=tuple(satellites))

@@ -10,6 +10,12 @@ The planes sit on LSST afw's default bits (``Mask::addMaskPlane`` order: BAD 0 .
   guesses a visit-image map that has no STREAK plane and refuses a file that sets it).
 """
 
+#: Truth mask threshold: STREAK is set where the noise-free streak exceeds this many sigma of
+#: the per-pixel noise (or this fraction of its peak in a noise-free image). The masker's
+#: default surface-brightness rule masks to the same level.
+STREAK_MASK_SIGMA = 1.0
+STREAK_MASK_FRACTION = 1e-3
+
 #: Mask planes and their bits (afw's default bits and names; STREAK on bit 10).
 MASK_PLANES = {"BAD": 0, "SAT": 1, "INTRP": 2, "CR": 3, "EDGE": 4, "DETECTED": 5,
                "DETECTED_NEGATIVE": 6, "SUSPECT": 7, "NO_DATA": 8, "VIGNETTED": 9,

@@ -11,26 +11,22 @@ from functools import lru_cache
 
 import numpy as np
 
-from inject.config import Scene
 from inject.camera.detector import add_cosmic_rays, bleed_saturation, raw_layout
+from inject.config import Scene, sky_level
 from inject.errors import SceneError
 from inject.instrument import LSST
-from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, MASK_PLANES# noqa: F401
+from inject.maskplanes import (FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, MASK_PLANES,
+                               STREAK_MASK_FRACTION, STREAK_MASK_SIGMA)
 from inject.photometry import sky_per_pixel
 from inject.profile import Seeing
 from inject.render import (AUTO_MIN_TOLERANCE, PROFILE_CACHE, SHORT_TRACK_CHECK_PX, Budget,
                      render_polyline, render_segment, snap_tolerance, swept_profile)
+from inject.stars import add_star_field
 from inject.streak import StreakModel
 from inject.trajectory import Polyline, Segment
 
 #: Random streams, one per purpose, spawned from the scene seed (numpy SeedSequence).
 STREAMS = {"stars": 0, "noise": 1, "cosmic_rays": 2, "raw": 3, "star_noise": 4}
-
-#: Truth mask threshold: STREAK is set where the noise-free streak exceeds this many sigma of
-#: the per-pixel noise (or this fraction of its peak in a noise-free image).
-STREAK_MASK_SIGMA = 1.0
-STREAK_MASK_FRACTION = 1e-3
-
 
 def rng(seed, purpose, detector_index=0):
     """Independent generator for one purpose of one detector of a scene seed."""
@@ -145,7 +141,7 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0,
         One row per streak.
     """
     model_image = np.zeros(shape)
-    budgets = [_own_budget(budget, model, noise_sigma) for model in models]
+    budgets = [own_budget(budget, model, noise_sigma) for model in models]
     truth = [None] * len(tracks)
     counter = _Progress(len(tracks), progress)
     # Streaks that share tables are rendered one after the other, so a bounded cache builds
@@ -176,7 +172,7 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0,
     return model_image, truth
 
 
-def _own_budget(budget, model, noise_sigma):
+def own_budget(budget, model, noise_sigma):
     """The budget tightened for a bright streak in noise (see :func:`render_tracks`)."""
     if noise_sigma > 0:
         tolerance = max(AUTO_MIN_TOLERANCE,
@@ -401,34 +397,6 @@ class AmplifierNoise:
         return image
 
 
-def sky_level(scene):
-    """Sky background in e-/px for the scene (0 when ``sky`` is false).
-
-    ``sky: true`` is the band's dark sky at zenith (SMTN-002); a mapping may give ``level``
-    (e-/px), ``mag`` (mag/arcsec^2) and ``airmass_scaling: true`` (brighter by the
-    plane-parallel airmass ``sec z``, as the sky glow comes from a longer path).
-    """
-    if scene.sky is False:
-        return 0.0
-    spec = scene.sky if isinstance(scene.sky, dict) else {}
-    unknown = set(spec) - {"level", "mag", "airmass_scaling"}
-    if unknown:
-        raise SceneError(f"sky: unknown keys {sorted(unknown)} (allowed: level, mag, "
-                         f"airmass_scaling)")
-    if "level" in spec:
-        level = spec["level"]
-        if isinstance(level, bool) or not isinstance(level, (int, float)) or not level >= 0:
-            raise SceneError(f"sky.level={level!r}: must be a number >= 0 (e-/px)")
-        return float(level)
-    scaling = spec.get("airmass_scaling", False)
-    if not isinstance(scaling, bool):  # "no" or "maybe" would count as true
-        raise SceneError(f"sky.airmass_scaling={scaling!r}: must be true or false")
-    level = sky_per_pixel(scene.band, scene.exptime, LSST.pixel_scale_arcsec, spec.get("mag"))
-    if scaling:
-        level /= np.cos(np.radians(scene.zenith))
-    return float(level)
-
-
 def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
              add_stars=None):
     """Simulate one CCD of a scene.
@@ -464,8 +432,6 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
         # No streak: no model to add, keep or write (a read-only zero view costs nothing).
         streaks = np.broadcast_to(np.float32(0), det.shape)
     if scene.stars and add_stars is None:
-        from inject.stars import add_star_field
-
         def add_stars(image, **noise):
             return add_star_field(image, scene, rng(scene.seed, "stars", detector_index),
                                   wcs=wcs, **noise)

@@ -19,9 +19,11 @@ from pathlib import Path
 import galsim
 import numpy as np
 
-from inject.errors import FileFormatError, InputError
+from inject.errors import FileFormatError, InputError, SceneError
+from inject.instrument import LSST
 from inject.photometry import band as _band
-from inject.profile import GSPARAMS
+from inject.photometry import electron_rate
+from inject.profile import GSPARAMS, Seeing
 from inject.validate import finite, positive
 
 # -------------------------------------------------------------------------------------------
@@ -720,25 +722,26 @@ SCENE_KEYS = ("galactic_l", "galactic_b", "mag_limit", "mag_bright", "density_pe
               "catalog")
 
 
-def spec_from_scene(scene):
-    """The :class:`StarFieldSpec` of a scene's ``stars:`` entry (``true`` or a mapping).
+def star_field_spec(entry, radec=None):
+    """The :class:`StarFieldSpec` of a scene's ``stars:`` mapping (``{}`` for ``stars: true``).
 
-    Galactic coordinates not given in the mapping come from the scene's ``pointing`` (ra,
-    dec) when it has one, else from the :class:`StarFieldSpec` defaults.
+    Galactic coordinates not given in the mapping come from ``radec`` (the scene's pointing,
+    ICRS deg) when there is one, else from the :class:`StarFieldSpec` defaults.
+
+    Raises
+    ------
+    SceneError
+        An unknown key.
+    InputError
+        A value :class:`StarFieldSpec` refuses.
     """
-    from inject.errors import SceneError
-
-    entry = {} if scene.stars is True else scene.stars
-    if not isinstance(entry, dict):
-        raise SceneError(f"stars={scene.stars!r}: must be true, false or a mapping with keys "
-                         f"{', '.join(SCENE_KEYS)}")
     unknown = set(entry) - set(SCENE_KEYS)
     if unknown:
         raise SceneError(f"stars: unknown key(s) {', '.join(sorted(unknown))}; "
                          f"allowed: {', '.join(SCENE_KEYS)}")
     entry = dict(entry)
-    if scene.pointing and not {"galactic_l", "galactic_b"} & set(entry):
-        l_deg, b_deg = _galactic(float(scene.pointing["ra"]), float(scene.pointing["dec"]))
+    if radec is not None and not {"galactic_l", "galactic_b"} & set(entry):
+        l_deg, b_deg = _galactic(float(radec[0]), float(radec[1]))
         entry.update(galactic_l=l_deg, galactic_b=b_deg)
     return StarFieldSpec(**entry)
 
@@ -782,14 +785,9 @@ def add_star_field(image, scene, rng, wcs=None, noise=None, variance=None):
     dict
         ``x``, ``y``, ``mag``, ``flux_e`` and ``charge_in_image_e`` (expected) per star.
     """
-    from inject.errors import SceneError
-    from inject.instrument import LSST
-    from inject.photometry import electron_rate
-    from inject.profile import Seeing
-
     if scene.seeing <= 0:
         raise SceneError("stars: need seeing > 0 (stars share the atmospheric PSF)")
-    spec = spec_from_scene(scene)
+    spec = scene.stars
     pixel_scale = LSST.pixel_scale_arcsec
     stamps = psf_stamps(Seeing(scene.seeing).profile(), pixel_scale)
     field = star_field(spec, image.shape, pixel_scale, scene.band, rng,

@@ -4,7 +4,7 @@ Pixel (0, 0) is the centre of the first pixel; x runs along columns, y along row
 ``[y, x]``); angles are degrees counter-clockwise from +x. An image of shape ``(ny, nx)`` covers
 ``-0.5 <= x < nx - 0.5`` and ``-0.5 <= y < ny - 0.5``.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -55,7 +55,7 @@ class Segment:
         x0, y0 = finite("x0", x0, scalar=True), finite("y0", y0, scalar=True)
         angle_deg = finite("angle_deg", angle_deg, scalar=True)
         margin = finite("margin", margin, scalar=True)
-        chord = _clip_line(x0, y0, angle_deg, (-0.5 - margin, nx - 0.5 + margin),
+        chord = clip_line(x0, y0, angle_deg, (-0.5 - margin, nx - 0.5 + margin),
                            (-0.5 - margin, ny - 0.5 + margin))
         if chord is None:
             return None
@@ -67,7 +67,7 @@ class Segment:
         """Part of the segment inside an image of ``shape = (ny, nx)`` as ``(t0, t1)`` distances
         along the track from ``(x0, y0)``, or None if it misses the image."""
         ny, nx = _image_shape(shape)
-        chord = _clip_line(self.x0, self.y0, self.angle_deg, (-0.5, nx - 0.5), (-0.5, ny - 0.5))
+        chord = clip_line(self.x0, self.y0, self.angle_deg, (-0.5, nx - 0.5), (-0.5, ny - 0.5))
         if chord is None:
             return None
         t0, t1 = max(chord[0], 0.0), min(chord[1], self.length)
@@ -84,7 +84,7 @@ def _image_shape(shape):
     return ny, nx
 
 
-def _clip_line(x0, y0, angle_deg, xlim, ylim):
+def clip_line(x0, y0, angle_deg, xlim, ylim):
     """Parameter interval ``(t0, t1)`` of the infinite line inside a rectangle (Liang-Barsky)."""
     a = np.radians(angle_deg)
     return _chord((x0, y0), (np.cos(a), np.sin(a)), xlim, ylim)
@@ -150,3 +150,87 @@ def _coordinates(name, values):
     if arr.ndim != 1:  # a single number, or a 2-D array
         raise InputError(name, values, "must be a sequence of numbers")
     return tuple(float(v) for v in arr)
+
+
+@dataclass(frozen=True)
+class Track:
+    """Where a scene puts a streak on the pixel grid; ``length=None`` crosses the whole image.
+
+    ``vertices`` makes it a polyline: a tuple of mappings with ``x``, ``y`` (pixels) and
+    optionally ``height``, ``zenith``, ``phi``, ``mag`` overriding the satellite's values at
+    that vertex (so width, speed and brightness can change along the track), and ``range``
+    (km), ``angular_speed`` (rad/s) replacing the spherical-Earth range and angular speed of
+    (height, zenith, phi) there (an orbit's vertices carry the pass's exact values).
+    """
+
+    x0: float
+    y0: float
+    angle: float
+    length: float | None = None
+    vertices: tuple | None = None
+
+
+def clip_path(xs, ys, box):
+    """The parts of a polyline (focal-plane mm) inside a box ``(xmin, xmax, ymin, ymax)``.
+
+    Returns
+    -------
+    list of tuple
+        ``(piece, t0, t1)``: the index of the polyline piece and the fractions ``0 <= t0 <
+        t1 <= 1`` along it that lie inside, in order along the path.
+    """
+    xmin, xmax, ymin, ymax = box
+    out = []
+    for k in range(len(xs) - 1):
+        dx, dy = xs[k + 1] - xs[k], ys[k + 1] - ys[k]
+        length = float(np.hypot(dx, dy))
+        if length == 0:
+            continue
+        angle = float(np.degrees(np.arctan2(dy, dx)))
+        chord = clip_line(xs[k], ys[k], angle, (xmin, xmax), (ymin, ymax))
+        if chord is None:
+            continue
+        t0, t1 = max(chord[0] / length, 0.0), min(chord[1] / length, 1.0)
+        if t1 > t0:
+            out.append((k, t0, t1))
+    return out
+
+
+@dataclass(frozen=True)
+class FocalTrack:
+    """A satellite's track across the focal plane (mm), as a polyline with the streak model's
+    values at each vertex.
+
+    ``kind`` is ``"line"`` (crossing the focal plane: the vertices are far outside it),
+    ``"segment"`` or ``"polyline"``; ``values`` holds, per vertex, the model values
+    (``height, zenith, phi, mag``) in effect there. A track from an ``orbit:`` is a polyline
+    (or has no vertices when the pass renders no streak); ``message`` says how it went. An
+    orbit's pass may be sunlit in several parts (it leaves Earth's shadow and re-enters it):
+    the parts follow one another, separated by a NaN vertex (value None), so that a plot of
+    ``xs, ys`` shows the gaps; :meth:`parts` gives them one by one.
+    """
+
+    kind: str
+    xs: tuple
+    ys: tuple
+    values: tuple
+    angle: float
+    message: str = ""
+    #: An orbit's pass: its name, whether it enters the field and is sunlit there (None for
+    #: a hand-placed track).
+    name: str = ""
+    in_field: bool | None = None
+    sunlit: bool | None = None
+
+    def parts(self):
+        """The track's continuous parts, each a :class:`FocalTrack` of at least two vertices."""
+        if all(v is not None for v in self.values):
+            return [self] if self.xs else []
+        out, start = [], 0
+        for k, v in enumerate((*self.values, None)):
+            if v is None:
+                if k - start >= 2:
+                    out.append(replace(self, xs=self.xs[start:k], ys=self.ys[start:k],
+                                       values=self.values[start:k]))
+                start = k + 1
+        return out

@@ -280,7 +280,7 @@ def check_pointing(pointing, names=None):
 
     Parameters
     ----------
-    pointing : mapping
+    pointing : mapping or inject.camera.wcs.Pointing
     names : mapping, optional
         How the user wrote each key (``{"ra": "--ra", ...}``); default ``pointing.<key>``.
 
@@ -294,6 +294,9 @@ def check_pointing(pointing, names=None):
         Not a mapping with numeric ``ra`` and ``dec``, or a value out of its range.
     """
     names = names or {}
+    if hasattr(pointing, "ra_deg"):  # an inject.camera.wcs.Pointing
+        pointing = {"ra": pointing.ra_deg, "dec": pointing.dec_deg,
+                    "rotation": pointing.rotation_deg}
     if not hasattr(pointing, "get") or pointing.get("ra") is None or \
             pointing.get("dec") is None:
         raise InputError("pointing", pointing, "needs numeric ra and dec (deg), optional "
@@ -352,3 +355,21 @@ def check_memory(needed, what):
     if free is not None and needed > free:
         raise ResourceError(f"{what}: needs about {needed / 2**30:.3g} GiB of memory, "
                             f"{free / 2**30:.3g} GiB available")
+
+
+def parse_time(value, name="time"):
+    """An astropy :class:`~astropy.time.Time` (UTC) from an ISO 8601 string or a Time.
+
+    Raises
+    ------
+    InputError
+        If ``value`` is not a readable time.
+    """
+    from astropy.time import Time
+
+    if isinstance(value, Time):
+        return value.utc
+    try:
+        return Time(value, scale="utc")
+    except (ValueError, TypeError):
+        raise InputError(name, value, "must be an ISO 8601 UTC time, e.g. 2026-06-15T23:30:00")

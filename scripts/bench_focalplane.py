@@ -36,9 +36,10 @@ import numpy as np
 
 from inject.camera import layout as fp
 from inject.exposure import runner as parallel
-from inject.config import load_scene_file
-from inject.exposure.scene import ccd_scene, ccd_streaks, margins_px, parse_focal_scene
-
+from inject.schema import load_scene_file
+from inject.exposure.scene import parse_focal_scene
+from inject.exposure.ccd import ccd_scene
+from inject.exposure.plan import make_plan
 SCENE = os.path.join(os.path.dirname(__file__), "..", "sample_fields",
                      "focal_paper_550km.yaml")
 
@@ -47,8 +48,7 @@ def baseline_ccd(args):
     """Poisson sky for one CCD written as IMAGE, MASK, VARIANCE (then deleted)."""
     from astropy.io import fits
 
-    from inject.scene import sky_level
-
+    from inject.config import sky_level
     parallel.limit_threads()
     scene, name, outdir = args
     start = time.perf_counter()
@@ -65,13 +65,14 @@ def baseline_ccd(args):
             "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
-def paired(fscene, crossed, plain, n, outdir, margins):
+def paired(plan, crossed, plain, n, outdir):
+    fscene = plan.fscene
     """Per-CCD seconds of the runner's task and of the baseline, interleaved in this process
     (alternating which goes first), for ``n`` CCDs without and ``n`` with the streak."""
     parallel.limit_threads()
     os.makedirs(outdir, exist_ok=True)
     # Warm-up (imports, the stars' PSF stamps, the profile tables' caches), not timed.
-    parallel.render_ccd(parallel.Task(fscene, plain[-1].name, outdir, margins, keep=False))
+    parallel.render_ccd(parallel.Task(fscene, plain[-1].name, outdir, tuple(plan.streaks(plain[-1])), keep=False))
     baseline_ccd((ccd_scene(fscene, plain[-1]), plain[-1].name, outdir))
     out = {}
     for kind, ccds in (("plain", plain[:n]), ("streak", crossed[:n])):
@@ -87,7 +88,7 @@ def paired(fscene, crossed, plain, n, outdir, margins):
 
         for k, ccd in enumerate(ccds):
             steps = [("task", lambda: parallel.render_ccd(parallel.Task(
-                         fscene, ccd.name, outdir, margins, keep=False))),
+                         fscene, ccd.name, outdir, tuple(plan.streaks(ccd)), keep=False))),
                      ("base", lambda: baseline_ccd((ccd_scene(fscene, ccd), ccd.name,
                                                     outdir)))]
             for name, work in steps if k % 2 == 0 else steps[::-1]:
@@ -125,10 +126,10 @@ def warm_worker(fscene):
     return os.getpid()
 
 
-def timed_run(fscene, ccds, executor, outdir, margins):
+def timed_run(plan, ccds, executor, outdir):
     shutil.rmtree(outdir, ignore_errors=True)
     start = time.perf_counter()
-    result = parallel.run(fscene, outdir, executor, ccds=ccds, keep=False, margins=margins,
+    result = parallel.run(plan, outdir, executor, ccds=ccds, keep=False,
                           progress=_Quiet())
     seconds = time.perf_counter() - start
     assert not result.failed, result.failed
@@ -169,16 +170,16 @@ def main(argv=None):
     os.makedirs(args.out, exist_ok=True)
     work = tempfile.mkdtemp(prefix="bench_focalplane_", dir=args.out)
     fscene = parse_focal_scene(load_scene_file(SCENE))
-    margins = margins_px(fscene)
-    crossed = [c for c in fp.CCDS if ccd_streaks(fscene, c, margins)]
+    plan = make_plan(fscene)
+    crossed = list(plan.streak_ccds(fp.CCDS))
     plain = [c for c in fp.CCDS if c not in crossed]
     half = args.rate_ccds // 2
     sample = tuple(sorted(crossed[:half] + plain[:args.rate_ccds - half], key=lambda c: c.id))
     report = {"crossed": len(crossed), "load_average_at_start": os.getloadavg()}
     try:
         if args.paired:
-            report["paired"] = paired(fscene, crossed, plain, args.paired,
-                                      os.path.join(work, "p"), margins)
+            report["paired"] = paired(plan, crossed, plain, args.paired,
+                                      os.path.join(work, "p"))
             print(json.dumps({"paired": report["paired"]}), flush=True)
         # The fork server (imports done once, workers forked from it) is up before any clock.
         with parallel.process_pool(1) as pool:
@@ -192,8 +193,7 @@ def main(argv=None):
                     if start == "warm":
                         pids = set(pool.map(warm_worker, [fscene] * workers))
                         assert len(pids) == workers, pids
-                    seconds, rows = timed_run(fscene, sample, pool, os.path.join(work, "r"),
-                                              margins)
+                    seconds, rows = timed_run(plan, sample, pool, os.path.join(work, "r"))
                 rates[workers] = len(sample) / seconds
                 key = f"pool_{workers}" + ("" if start == "cold" else "_warm")
                 report[key] = {"seconds": seconds, "ccds_per_s": rates[workers],
@@ -205,8 +205,7 @@ def main(argv=None):
                   f"(goal >= 0.85)", flush=True)
         if not args.skip_dask and not args.skip_rates:
             with parallel.dask_executor("local", workers=2) as executor:
-                seconds, rows = timed_run(fscene, sample, executor, os.path.join(work, "d"),
-                                          margins)
+                seconds, rows = timed_run(plan, sample, executor, os.path.join(work, "d"))
             report["dask_local_2"] = {"seconds": seconds, "ccds_per_s": len(sample) / seconds,
                                       **summary(rows)}
             print(json.dumps({"dask_local_2": report["dask_local_2"]}), flush=True)
@@ -223,11 +222,10 @@ def main(argv=None):
             # drift of the machine's speed during the run does not favour either side.
             with parallel.process_pool(2) as pool:
                 base_before, base_rows = baseline_189(pool)
-                whole, rows = timed_run(fscene, fp.CCDS, pool, os.path.join(work, "w"),
-                                        margins)
+                whole, rows = timed_run(plan, fp.CCDS, pool, os.path.join(work, "w"))
                 base_after, more_rows = baseline_189(pool)
-                only, only_rows = timed_run(fscene, tuple(crossed), pool,
-                                            os.path.join(work, "s"), margins)
+                only, only_rows = timed_run(plan, tuple(crossed), pool,
+                                            os.path.join(work, "s"))
             base = (base_before + base_after) / 2
             report["whole_189"] = {"seconds": whole, **summary(rows)}
             report["baseline_poisson_sky_189"] = {

@@ -27,9 +27,10 @@ import numpy as np
 from astropy import units as u
 from astropy.coordinates import ICRS, AltAz, SkyCoord
 
+from inject.camera.wcs import Pointing
 from inject.orbits.passes import (
-    RUBIN, Exposure, FieldFrame, Pointing, aimed_orbit, compute_pass, crossing_candidates,
-    find_passes, walker_shell)
+    RUBIN, Exposure, FieldFrame, aimed_orbit, compute_pass, crossing_candidates, find_passes,
+    walker_shell)
 
 START = "2026-06-15T23:30:00"
 

@@ -18,7 +18,8 @@ import time
 import numpy as np
 from astropy.io import fits
 
-from inject.config import apply_overrides, parse_scene, DEFAULT_SCENE
+from inject.config import parse_scene, DEFAULT_SCENE
+from inject.schema import apply_overrides
 from inject.io.fits import write_exposure
 from inject import scene as scene_mod
 

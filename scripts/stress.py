@@ -274,7 +274,7 @@ def _render_on(shape, model, segment, swept):
 
 def edge_cell(p):
     """A track touching the edges or corners of a small image (64 x 48)."""
-    from inject.config import Track
+    from inject.trajectory import Track
     from inject.render import swept_profile
     from inject.scene import render_tracks
     from inject.trajectory import Segment
@@ -357,8 +357,7 @@ def continuity_cell(p):
     """Two renders either side of a branch point."""
     from inject.render import Budget
     from inject.scene import NOISE_FRACTION, render_tracks
-    from inject.config import Track
-
+    from inject.trajectory import Track
     kind = p["kind"]
     base = dict(PAPER)
     track = dict(TRACK)
@@ -438,7 +437,6 @@ def scene_cell(p):
     from inject.io.fits import write_exposure
     from inject.maskplanes import FLAG_SATURATED, MASK_PLANES
     from inject.scene import simulate
-
     raw = {"seed": 3, "band": "g", "exptime": 30, "seeing": 0.67, "zenith": 70,
            "detector": {"type": p["detector"], "nx": 256, "ny": 200}, "sky": True,
            "stars": {"mag_bright": 18.0, "mag_limit": 24.0}, "noise": True,

@@ -19,7 +19,9 @@ from astropy.io import fits
 import inject.io.atomic
 from inject.cli.main import main
 from inject.addstreak import add_streaks
-from inject.config import Track, apply_overrides, load_scene_file, parse_scene
+from inject.config import parse_scene
+from inject.trajectory import Track
+from inject.schema import apply_overrides, load_scene_file
 from inject.errors import FileFormatError, InjectError, InputError, OutputError, SceneError
 from inject.geometry import Geometry
 from inject.io.atomic import atomic_path, output_group

@@ -48,7 +48,6 @@ def test_quicklook_truth_is_visible_beside_a_saturated_streak():
     so they show on the white streak."""
     from inject.io.quicklook import TRUTH_OFFSET_PT, quicklook_figure
     from inject.scene import SceneResult
-
     ny = nx = 200
     image = np.full((ny, nx), 100.0)
     image[95:106, :] = 1e6  # a saturated horizontal streak along y = 100

@@ -2,7 +2,8 @@
 import pytest
 import yaml
 
-from inject.config import DEFAULT_SCENE, apply_overrides, load_scene_file, parse_scene
+from inject.config import DEFAULT_SCENE, parse_scene
+from inject.schema import apply_overrides, load_scene_file
 from inject.errors import SceneError
 
 
@@ -19,7 +20,7 @@ def test_overrides_reach_nested_keys_and_list_items():
     scene = parse_scene(raw)
     assert scene.detector.shape == (400, 512)
     assert scene.satellites[0].mag == 6.5 and scene.satellites[0].track.length == 90
-    assert scene.stars is False and scene.band == "r"
+    assert scene.stars is None and scene.band == "r"
     assert DEFAULT_SCENE["detector"] == {"type": "itl"}  # the default is not modified
 
 

@@ -13,11 +13,11 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
+from inject.camera.wcs import ccd_wcs
 from inject.camera import layout as fp
 from inject.exposure import runner as parallel
 from inject.errors import OutputError
 from inject.exposure.scene import parse_focal_scene
-
 SAT = {"height": 550, "shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0}
 RAW = {"seed": 11, "band": "g", "zenith": 70, "exptime": 30,
        "pointing": {"ra": 50.0, "dec": -30.0, "rotation": 10.0},
@@ -82,7 +82,7 @@ def test_files_carry_detector_cards_and_wcs(reference, fscene, tmp_path):
         assert [h.name for h in hdus[1:4]] == ["IMAGE", "MASK", "VARIANCE"]
         wcs = WCS(hdus["IMAGE"].header)
         assert hdus["IMAGE"].data.shape == (80, 96)
-    expected = fp.ccd_wcs(fp.ccd("R22_S11"), RAW["pointing"]).pixel_to_world_values(10, 20)
+    expected = ccd_wcs(fp.ccd("R22_S11"), RAW["pointing"]).pixel_to_world_values(10, 20)
     np.testing.assert_allclose(wcs.pixel_to_world_values(10, 20), expected, rtol=0, atol=1e-10)
 
 

@@ -7,8 +7,9 @@ import pytest
 
 from inject.camera import layout as fp
 from inject.errors import SceneError
-from inject.exposure.scene import (ccd_streaks, margins_px, parse_focal_scene, plan,
-                               simulate_ccd, vertex_model)
+from inject.exposure.ccd import simulate_ccd
+from inject.exposure.plan import ccd_streaks, make_plan, margins_px, vertex_model
+from inject.exposure.scene import parse_focal_scene
 
 SAT = {"height": 550, "shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0}
 
@@ -48,7 +49,7 @@ def test_streak_across_two_ccds_is_one_line_and_loses_the_gap():
     rows = {}
     for name in ("R22_S11", "R22_S12"):
         ccd = fp.ccd(name)
-        _, result, streaks, _ = simulate_ccd(fscene, ccd, margins)
+        _, result, streaks, _ = simulate_ccd(fscene, ccd, ccd_streaks(fscene, ccd, margins))
         (row,) = result.truth
         rows[name] = row
         # The truth end points, back in focal-plane mm, lie on the scene's line.
@@ -80,8 +81,8 @@ def test_charge_per_pixel_uses_the_local_plate_scale():
     fscene = focal(satellites=[dict(SAT, track={"x0_mm": x_mm, "y0_mm": -290.0,
                                                 "angle": 90.0})],
                    cutout={"nx": 64, "ny": 64})
-    (streak,) = ccd_streaks(fscene, ccd)
-    _, result, _, _ = simulate_ccd(fscene, ccd)
+    (streak,) = ccd_streaks(fscene, ccd, margins_px(fscene))
+    _, result, _, _ = simulate_ccd(fscene, ccd, [streak])
     nominal = vertex_model(fscene, 0, fscene.tracks[0].values[0])  # 0.2"/px
     ym = float(np.mean(ccd.pixel_to_focal(0, [streak.ends[1], streak.ends[3]])[1]))
     # Written out: the step along +y has components along and across the radius.
@@ -105,13 +106,13 @@ def test_polyline_profile_is_the_one_where_the_ccd_sits():
     seen = []
     for name in ("R21_S11", "R22_S10", "R23_S12"):
         ccd = fp.ccd(name)
-        (streak,) = ccd_streaks(fscene, ccd)
+        (streak,) = ccd_streaks(fscene, ccd, margins_px(fscene))
         # Independent: the fraction along the polyline of the CCD's entry point.
         xm, ym = ccd.pixel_to_focal(streak.ends[0], streak.ends[1])
         f = (xm + 250.0) / 500.0
         assert streak.values[0]["height"] == pytest.approx(350 + f * 450, rel=1e-9)
         assert streak.values[0]["mag"] == pytest.approx(4 + f * 3, rel=1e-9)
-        _, result, _, _ = simulate_ccd(fscene, ccd)
+        _, result, _, _ = simulate_ccd(fscene, ccd, [streak])
         seen.append(result.truth[0]["height_km"])
     assert seen[0] < seen[1] < seen[2]
 
@@ -120,7 +121,7 @@ def test_plan_lists_the_ccds_the_footprint_reaches():
     fscene = focal(satellites=[dict(SAT, track={"x0_mm": 13.0, "y0_mm": -40.0,
                                                 "angle": 61.0})])
     margins = margins_px(fscene)
-    got = plan(fscene, margins=margins)["detectors"]
+    got = make_plan(fscene, margins).summary()["detectors"]
     # Independent: points every 2 um along the line against each CCD grown by the margin.
     a = np.radians(61.0)
     t = np.arange(-450.0, 450.0, 0.002)
@@ -152,8 +153,8 @@ def test_stars_are_where_the_scene_puts_them_whatever_is_rendered():
     full = focal(**keys)
     small = focal(cutout={"nx": 400, "ny": 300}, **keys)
     ccd = fp.ccd("R30_S21")
-    a = simulate_ccd(full, ccd)[1].image
-    b = simulate_ccd(small, ccd)[1].image
+    a = simulate_ccd(full, ccd, make_plan(full).streaks(ccd))[1].image
+    b = simulate_ccd(small, ccd, make_plan(small).streaks(ccd))[1].image
     assert b.shape == (300, 400) and b.sum() > 0
     np.testing.assert_array_equal(a[:300, :400], b)
 

@@ -14,7 +14,8 @@ import pytest
 
 import inject.validate as validate
 from inject.cli.main import main
-from inject.config import DEFAULT_SCENE, apply_overrides, load_scene_file, parse_scene
+from inject.config import DEFAULT_SCENE, parse_scene
+from inject.schema import apply_overrides, load_scene_file
 from inject.errors import InputError, InputWarning, ResourceError, SceneError
 from inject.validate import RANGES, check
 
@@ -196,7 +197,6 @@ def test_memory_estimate_covers_the_measured_peak(tmp_path):
     """Peak RSS of ``inject simulate`` with every output, 64 px against 1536 px square: the
     growth per pixel is below the estimate's bytes per pixel."""
     from inject.config import SIMULATE_BYTES_PER_PIXEL
-
     code = ("import resource, sys; from inject.cli.main import main; main(sys.argv[1:]); "
             "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
 

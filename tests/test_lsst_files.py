@@ -20,7 +20,7 @@ from astropy.wcs import WCS
 
 from inject.addstreak import add_streaks
 from inject.cli.main import main
-from inject.config import Track
+from inject.trajectory import Track
 from inject.io.reader import read_exposure
 from inject.maskplanes import MASK_PLANES, PLANE_DESCRIPTIONS, header_planes, plane_bit
 from inject.streak import StreakModel
@@ -325,7 +325,6 @@ def test_primary_cards_and_xy0(tmp_path):
     from inject.config import parse_scene
     from inject.io.fits import write_exposure
     from inject.scene import simulate
-
     scene = parse_scene({**SCENE, "pointing": None, "sky": False, "noise": False})
     result = simulate(scene)
     out = tmp_path / "ccd.fits"

@@ -4,8 +4,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from inject.config import load_scene_file
-
+from inject.schema import load_scene_file
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "sample_fields" / "pass_example.yaml"
 PLATE = {"surfaces": [{"area": 10.0, "normal": [0, 0, -1],  # a nadir-facing plate
@@ -27,9 +26,10 @@ def test_vertices_take_lumos_magnitudes():
     import lumos.brdf.library
     import lumos.conversions
     import lumos.geometry
-    from inject.exposure.scene import parse_focal_scene, vertex_model
-    from inject.orbits.passes import TRACK_STEP_S, Exposure, Orbit, Pointing, compute_pass
-
+    from inject.exposure.scene import parse_focal_scene
+    from inject.exposure.plan import vertex_model
+    from inject.orbits.passes import TRACK_STEP_S, Exposure, Orbit, compute_pass
+    from inject.camera.wcs import Pointing
     fscene = parse_focal_scene(_raw(PLATE))
     track = fscene.tracks[0]
     pointing = fscene.pointing
@@ -57,7 +57,6 @@ def test_lumos_inputs_are_checked():
     pytest.importorskip("lumos")
     from inject.errors import SceneError
     from inject.exposure.scene import parse_focal_scene
-
     bad = {"surfaces": [{"area": 1, "normal": [0, 0, 0], "brdf": {"type": "lambertian",
                                                                   "albedo": 0.5}}]}
     with pytest.raises(SceneError, match=r"surfaces\[0\]\.normal"):
@@ -77,7 +76,6 @@ def test_without_lumos_a_clear_error(monkeypatch):
 
     from inject.errors import SceneError
     from inject.exposure.scene import parse_focal_scene
-
     real = builtins.__import__
 
     def no_lumos(name, *args, **kwargs):

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from inject.config import Track
+from inject.trajectory import Track
 from inject.profile import Seeing
 from inject.render import (AUTO_MIN_TOLERANCE, TOLERANCE_STEPS_PER_OCTAVE, Budget, ProfileCache,
                            render_streak, short_track_budget, snap_tolerance, swept_profile)

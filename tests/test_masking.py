@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
+from inject.config import DEFAULT_SCENE, parse_scene
+from inject.schema import apply_overrides
 from inject.errors import FileFormatError, InputError, OutputError
 from inject.io.fits import write_exposure
 from inject.masking import MaskingError
@@ -20,8 +21,8 @@ from inject.masking.measure import (BinnedStack, Profile, half_max_width, pixel_
                                     profile_fwhm)
 from inject.masking.run import add_mask_parser, analyse, mask_image, write_masked
 from inject.maskplanes import MASK_PLANES
-from inject.scene import simulate, sky_level, streak_models
-
+from inject.scene import simulate, streak_models
+from inject.config import sky_level
 BAD_BITS = sum(1 << MASK_PLANES[p] for p in BAD_PLANES)
 
 
@@ -365,7 +366,7 @@ def test_write_masked_and_plain_arrays(simulated_file, tmp_path):
 def test_parser_defaults_match_the_engine():
     from inject.masking import mask as mask_module
     from inject.masking import run as run_module
-    from inject.scene import STREAK_MASK_SIGMA
+    from inject.maskplanes import STREAK_MASK_SIGMA
 
     assert run_module.DEFAULT_SB_SIGMA == STREAK_MASK_SIGMA
     assert run_module.DEFAULT_FWHM_FACTOR == mask_module.FWHM_FACTOR

@@ -53,7 +53,7 @@ def test_scores_of_a_streak_of_known_cross_section():
     leaves ``1 - sum_{|j|<=k} v_j / sum_j v_j`` of the charge, the peak is ``v_0`` and the
     matched-filter S/N is ``sqrt(W sum_j v_j^2) / sigma``.
     """
-    from inject.config import Track
+    from inject.trajectory import Track
     from inject.scene import SceneResult, render_tracks
     from inject.streak import StreakModel
 

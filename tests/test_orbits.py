@@ -21,10 +21,10 @@ from astropy.time import Time
 
 from inject import geometry
 from inject.errors import InjectError, InputError, OrbitError, OrbitWarning
+from inject.camera.wcs import Pointing, tangent_to_focal
 from inject.orbits.passes import (
-    RUBIN, Exposure, Orbit, Pointing, aimed_orbit, compute_pass, crossing_candidates,
-    find_passes, focal_to_sky, illumination, propagate_teme, sky_to_focal, sunlight,
-    walker_shell)
+    RUBIN, Exposure, Orbit, aimed_orbit, compute_pass, crossing_candidates, find_passes,
+    illumination, propagate_teme, sunlight, walker_shell)
 
 skyfield_api = pytest.importorskip("skyfield.api")
 from skyfield.data import iers as sf_iers  # noqa: E402
@@ -300,17 +300,17 @@ def test_astrometric_radec_pointing_would_be_20_arcsec_off(centred, sat, ts, top
 def test_rotation_convention():
     # +y at position angle rot (North through East); +x at rot - 90 (West at 0, afw flipX=False).
     for rot in (0.0, 30.0, 135.0, -70.0):
-        xi, eta = focal_to_sky(0.0, 1.0, rot)
+        xi, eta = tangent_to_focal(0.0, 1.0, rot)
         assert math.degrees(math.atan2(xi, eta)) == pytest.approx((rot + 180) % 360 - 180)
-        xi, eta = focal_to_sky(1.0, 0.0, rot)
+        xi, eta = tangent_to_focal(1.0, 0.0, rot)
         assert math.degrees(math.atan2(xi, eta)) == pytest.approx((rot + 90) % 360 - 180)
-        x, y = sky_to_focal(*focal_to_sky(0.3, -0.7, rot), rot)
+        x, y = tangent_to_focal(*tangent_to_focal(0.3, -0.7, rot), rot)
         assert (x, y) == pytest.approx((0.3, -0.7))
 
 
 def test_field_rotation_of_the_track(centred):
     p = centred
-    back_xi, back_eta = focal_to_sky(p.field_x_deg, p.field_y_deg, p.pointing.rotation_deg)
+    back_xi, back_eta = tangent_to_focal(p.field_x_deg, p.field_y_deg, p.pointing.rotation_deg)
     np.testing.assert_allclose(back_xi, p.xi_deg, atol=1e-12)
     np.testing.assert_allclose(back_eta, p.eta_deg, atol=1e-12)
 

@@ -8,6 +8,8 @@ import pytest
 from astropy import units as u
 from astropy.coordinates import ICRS, AltAz, SkyCoord
 
+from inject.trajectory import clip_path
+from inject.camera.wcs import ccd_wcs
 from inject.camera import layout as fp
 from inject.cli.main import main
 from inject.orbits.passes import (RUBIN, TRACK_STEP_S, Exposure, Orbit, Pointing, compute_pass,
@@ -102,13 +104,13 @@ def test_focal_positions_through_the_ccd_wcs(rotation):
     pointing = {"ra": RA, "dec": DEC, "rotation": rotation}
     checked = 0
     for i in np.flatnonzero(np.isfinite(x)):
-        hits = [c for c in fp.CCDS if fp.clip_path([x[i], x[i] + 1e-6], [y[i], y[i]],
+        hits = [c for c in fp.CCDS if clip_path([x[i], x[i] + 1e-6], [y[i], y[i]],
                                                    c.bounds_mm())]
         if not hits:
             continue  # in a gap between CCDs
         ccd = hits[0]
         px, py = ccd.focal_to_pixel(x[i], y[i])
-        sky = fp.ccd_wcs(ccd, pointing).pixel_to_world(px, py)
+        sky = ccd_wcs(ccd, pointing).pixel_to_world(px, py)
         frame = AltAz(obstime=p.utc[i], location=RUBIN.location)
         truth = SkyCoord(az=p.apparent_az_deg[i] * u.deg, alt=p.apparent_alt_deg[i] * u.deg,
                          frame=frame).transform_to(ICRS())
@@ -227,8 +229,7 @@ SCENE = ROOT / "sample_fields" / "pass_example.yaml"
 
 
 def _scene(**changes):
-    from inject.config import load_scene_file
-
+    from inject.schema import load_scene_file
     return {**load_scene_file(str(SCENE)), **changes}
 
 
@@ -260,7 +261,6 @@ def test_plan_of_the_orbit_scene_matches_inject_pass(capsys, monkeypatch):
 def test_orbit_track_vertices_carry_the_pass():
     from inject.exposure.scene import parse_focal_scene
     from inject.orbits.passes import Pass
-
     fscene = parse_focal_scene(_scene(exptime=4, time="2026-06-15T23:29:58"))
     track = fscene.tracks[0]
     assert track.kind == "polyline" and len(track.xs) >= 5
@@ -277,7 +277,7 @@ def test_orbit_track_vertices_carry_the_pass():
         # The vertex carries the pass's exact range and angular speed (the spherical Earth's
         # would be 0.5% and 3.5% off), so the model's brightness is Pass.magnitude's (the
         # nadir angle is still the spherical Earth's: < 0.01 mag).
-        from inject.exposure.scene import vertex_model
+        from inject.exposure.plan import vertex_model
         model = vertex_model(fscene, 0, values)
         assert model.geometry.range_km == pytest.approx(dense.range_km[i], rel=1e-12)
         assert model.geometry.angular_speed_rad_s == pytest.approx(
@@ -291,9 +291,9 @@ def test_orbit_track_vertices_carry_the_pass():
 ])
 def test_orbit_scene_without_a_streak_says_why(changes, why, capsys):
     from inject.errors import OrbitWarning
-    from inject.exposure.scene import parse_focal_scene, plan
+    from inject.exposure.scene import parse_focal_scene
+    from inject.exposure.plan import make_plan
     from inject.orbits.passes import aimed_orbit
-
     if changes == "shadow":  # the same shell, aimed east at the same time: in Earth's shadow
         orbit = aimed_orbit("2026-06-15T23:30:00", 60.0, 90.0)
         from astropy.time import Time
@@ -307,7 +307,7 @@ def test_orbit_scene_without_a_streak_says_why(changes, why, capsys):
     with pytest.warns(OrbitWarning, match=why):
         fscene = parse_focal_scene(raw)
     assert fscene.tracks[0].xs == ()
-    result = plan(fscene)
+    result = make_plan(fscene).summary()
     assert result["detectors"] == []
     assert why in result["satellites"][0]["message"]
 
@@ -338,7 +338,6 @@ def test_orbit_scene_without_a_streak_says_why(changes, why, capsys):
 def test_bad_orbit_scene(change, named):
     from inject.errors import SceneError
     from inject.exposure.scene import parse_focal_scene
-
     with pytest.raises(SceneError, match=named):
         parse_focal_scene(_scene(**change))
 
@@ -351,7 +350,6 @@ def test_shadow_entry_ends_the_streak_and_the_penumbra_fades_it():
 
     from inject.exposure.scene import parse_focal_scene
     from inject.orbits.passes import aimed_orbit
-
     t_aim = Time("2026-06-15T23:27:00")
     orbit = aimed_orbit(t_aim, 60.0, 90.0)
     exposure = Exposure(t_aim + 5 * u.s, 10.0)
@@ -427,8 +425,8 @@ def test_simulate_an_orbit_scene(tmp_path, capsys):
         truth = hdul["TRUTH"].data[0]
         assert not truth["flags"] & FLAG_OFF_IMAGE
     # TRUTH describes the streak drawn (its first vertex), not the scene's zenith and phi.
-    from inject.config import apply_overrides, parse_scene
-
+    from inject.config import parse_scene
+    from inject.schema import apply_overrides
     first = parse_scene(apply_overrides(
         yaml.safe_load(path.read_text()), ["detector.nx=256", "detector.ny=256"])
     ).satellites[0].track.vertices[0]
@@ -456,7 +454,6 @@ def _terminator_pass(aim_s=5.0):
     from astropy.time import Time
 
     from inject.orbits.passes import aimed_orbit
-
     t_aim = Time("2026-06-15T23:27:00")
     orbit = aimed_orbit(t_aim, 60.0, 90.0)
     exposure = Exposure(t_aim + 5 * u.s, 10.0)
@@ -478,7 +475,6 @@ def test_pass_lists_only_the_sunlit_ccds_as_focalplane_renders(capsys, tmp_path)
     """`inject pass`'s detectors are the CCDs the focal-plane scene's (sunlit) track crosses;
     those crossed only in the umbra are listed apart, with no streak."""
     from inject.exposure.scene import parse_focal_scene
-
     orbit, exposure, pointing = _terminator_pass(aim_s=8.0)  # umbra entry in the field
     report, _ = run_json(capsys, *_pass_args(orbit, exposure, pointing, tmp_path))
     raw = _scene(exptime=exposure.exptime_s, time=exposure.start.isot,
@@ -498,7 +494,6 @@ def test_pass_in_shadow_crosses_ccds_but_lists_none(capsys, tmp_path):
     from astropy.time import Time
 
     from inject.orbits.passes import aimed_orbit
-
     t = Time("2026-06-15T23:30:00")
     orbit = aimed_orbit(t, 60.0, 90.0)  # east at this time: in Earth's shadow
     frame = AltAz(obstime=t, location=RUBIN.location)
@@ -514,10 +509,10 @@ def test_every_sunlit_part_is_rendered(monkeypatch):
     """A pass that leaves Earth's shadow and re-enters it in one exposure (made here by
     darkening the middle of the example pass) renders both sunlit parts, with the gap
     between them dark: no CCD streak covers the shadowed stretch."""
-    from inject.exposure import scene as focalscene
-    from inject.exposure.scene import ccd_streaks, margins_px, parse_focal_scene
-
-    real = focalscene._orbit_pass
+    from inject.orbits import tracks as focalscene
+    from inject.exposure.scene import parse_focal_scene
+    from inject.exposure.plan import ccd_streaks, margins_px
+    real = focalscene.orbit_pass
 
     def darkened(*args, **kwargs):
         dense = real(*args, **kwargs)
@@ -525,7 +520,7 @@ def test_every_sunlit_part_is_rendered(monkeypatch):
         dense.sun_fraction = np.where(dark, 0.0, dense.sun_fraction)
         return dense
 
-    monkeypatch.setattr(focalscene, "_orbit_pass", darkened)
+    monkeypatch.setattr(focalscene, "orbit_pass", darkened)
     fscene = parse_focal_scene(_scene(exptime=4, time="2026-06-15T23:29:58"))
     track = fscene.tracks[0]
     parts = track.parts()

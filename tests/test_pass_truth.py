@@ -5,10 +5,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from inject.config import load_scene_file, parse_scene
+from inject.config import parse_scene
+from inject.schema import load_scene_file
 from inject.geometry import Geometry
 from inject.instrument import ARCSEC_PER_RAD
-from inject.orbits.passes import TRACK_STEP_S, Exposure, Orbit, Pointing, compute_pass
+from inject.orbits.passes import TRACK_STEP_S, Exposure, Orbit, compute_pass
+from inject.camera.wcs import Pointing
 from inject.photometry import band
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,7 +50,6 @@ def _check_row(row, omega, range_km, pixel_scale):
 
 def test_ccd_scene_truth_is_the_pass(dense):
     from inject.scene import render_streaks
-
     raw = _raw(detector={"type": "itl", "nx": 256, "ny": 256},
                pointing={"ra": RA, "dec": DEC, "rotation": 0.0})
     raw.pop("zenith")
@@ -65,11 +66,12 @@ def test_focal_plane_ccd_truth_is_the_pass(dense):
     describes where the clipped track enters the CCD's reach: the pass there, interpolated
     between its 0.1 s samples in focal-plane mm."""
     from inject.camera import layout as fp
-    from inject.exposure.scene import parse_focal_scene, simulate_ccd
-
+    from inject.exposure.scene import parse_focal_scene
+    from inject.exposure.ccd import simulate_ccd
+    from inject.exposure.plan import make_plan
     fscene = parse_focal_scene(_raw(cutout={"nx": 400, "ny": 400}))
     ccd = fp.BY_NAME["R22_S12"]
-    _, result, streaks, _ = simulate_ccd(fscene, ccd)
+    _, result, streaks, _ = simulate_ccd(fscene, ccd, make_plan(fscene).streaks(ccd))
     assert len(result.truth) == 1 and result.truth[0]["charge_in_image_e"] > 0
     row = result.truth[0]
     x_mm, y_mm = ccd.pixel_to_focal(row["x0"], row["y0"])
@@ -154,11 +156,14 @@ def test_scene_time_reaches_the_headers(tmp_path):
     assert main(["simulate", str(path), "-o", str(tmp_path / "none.fits")]) == 0
     assert "DATE-OBS" not in fits.getheader(tmp_path / "none.fits", 0)
 
-    from inject.exposure.scene import margins_px, parse_focal_scene
+    from inject.exposure.scene import parse_focal_scene
+    from inject.camera import layout as fp
+    from inject.exposure.plan import make_plan
     from inject.exposure.runner import Task, render_ccd
 
     fscene = parse_focal_scene(_raw(cutout={"nx": 64, "ny": 64}))
-    row = render_ccd(Task(fscene, "R22_S12", str(tmp_path), margins_px(fscene)))
+    ccd = fp.ccd("R22_S12")
+    row = render_ccd(Task(fscene, ccd.name, str(tmp_path), tuple(make_plan(fscene).streaks(ccd))))
     check(fits.getheader(tmp_path / row["file"], 0), EXPTIME)
 
 
@@ -167,8 +172,8 @@ def test_sampled_margin_bounds_every_vertex(case):
     """The footprint margin from a few vertices (focalscene._sampled, + REACH_ALLOWANCE) is
     at least the largest reach over every vertex, and not much more: for the example pass
     and a pass fading in the penumbra (its brightness, so its tolerance, changes)."""
-    from inject.exposure.scene import REACH_ALLOWANCE, margins_px, parse_focal_scene
-
+    from inject.exposure.scene import parse_focal_scene
+    from inject.exposure.plan import REACH_ALLOWANCE, margins_px
     if case == "pass":
         raw = _raw(exptime=3.0, time="2026-06-15T23:29:58.5", noise=True, sky=True)
     else:

@@ -18,7 +18,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from inject.config import Track, parse_scene
+from inject.config import parse_scene
+from inject.trajectory import Track
 from inject.io.exr import read_exr, write_exr
 from inject.io.fits import write_exposure
 from inject.io.reader import read_exposure

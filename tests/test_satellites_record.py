@@ -63,13 +63,13 @@ def test_every_satellite_has_a_record(tmp_path, capsys):
 
 
 def test_plan_json_carries_the_same_records(capsys):
-    from inject.exposure.scene import parse_focal_scene, plan, satellite_records
-
+    from inject.exposure.scene import parse_focal_scene
+    from inject.exposure.plan import make_plan, satellite_records
     from inject.errors import OrbitWarning
 
     with pytest.warns(OrbitWarning):
         fscene = parse_focal_scene(RAW)
-    records = satellite_records(fscene)
+    records = satellite_records(make_plan(fscene))
     assert [r["n_ccds"] for r in records] == [len(r["ccds"].split()) for r in records]
     assert records[0]["n_ccds"] >= 1 and records[1]["n_ccds"] == records[2]["n_ccds"] == 0
-    assert plan(fscene)["satellites"] == records
+    assert make_plan(fscene).summary()["satellites"] == records

@@ -35,7 +35,7 @@ import numpy as np
 from inject.camera.detector import E2V, ITL
 from inject.errors import InputError
 from inject.instrument import ARCSEC_PER_RAD
-from inject.trajectory import _clip_line
+from inject.trajectory import clip_path
 from inject.validate import check_pointing
 
 #: Pixel pitch, mm.
@@ -248,137 +248,7 @@ def pixel_scale_along(x_mm, y_mm, angle_deg):
 
 
 # -------------------------------------------------------------------------------------------
-# Celestial WCS
-
-def rotation_matrix(rotation_deg):
-    """Field angle (along focal-plane x, y) -> (east, north) tangent-plane offsets.
-
-    +y goes to position angle ``rotation`` (north through east) and +x to ``rotation - 90``
-    (west at rotation 0), as afw's ``makeCdMatrix(orientation, flipX=False)``.
-    """
-    c, s = np.cos(np.radians(rotation_deg)), np.sin(np.radians(rotation_deg))
-    return np.array([[-c, s], [s, c]])
-
-
-def ccd_wcs(ccd_, pointing):
-    """The celestial WCS of a CCD: TAN with SIP terms that are the distortion itself.
-
-    The mapping is exact, not fitted: ``CRPIX`` is the boresight's position in the CCD's pixel
-    frame (outside the CCD unless it is R22_S11), so that ``u = pixel - CRPIX`` is
-    proportional to the focal-plane position. The field angle is ``c u (1 - D3 r^2 - D5
-    r^4)`` with ``r = 0.01 |u|`` mm, a polynomial of degree 5 in ``u``: the forward SIP
-    polynomials ``A, B`` are its non-linear terms exactly, and the CD matrix is the boresight
-    plate scale turned by the rotator. The inverse ``AP, BP`` is the series inverse of the
-    radial polynomial fitted to order 9 (:func:`_sip_coefficients`; astropy's
-    ``world_to_pixel`` iterates on the forward terms anyway). Tested against an independent gnomonic computation in ``tests/test_focalplane.py``.
-
-    Parameters
-    ----------
-    ccd_ : CCD
-    pointing : dict
-        ``{ra, dec, rotation}``, deg; ``rotation`` as LSST's rotSkyPos (module docstring).
-
-    Returns
-    -------
-    astropy.wcs.WCS
-        ``to_header(relax=True)`` keeps the SIP terms.
-    """
-    from astropy.wcs import Sip, WCS
-
-    ra, dec, rotation = check_pointing(pointing)
-    crpix = ccd_.boresight_pixel
-    scale_deg = PLATE_SCALE_ARCSEC_PER_MM * PIXEL_MM / 3600.0
-    wcs = WCS(naxis=2)
-    wcs.wcs.ctype = ["RA---TAN-SIP", "DEC--TAN-SIP"]
-    wcs.wcs.crval = [ra, dec]
-    wcs.wcs.crpix = [crpix[0] + 1, crpix[1] + 1]  # FITS pixels are 1-based
-    wcs.wcs.cd = scale_deg * rotation_matrix(rotation)
-    wcs.wcs.cunit = ["deg", "deg"]
-    a, b, ap, bp = _sip_coefficients()
-    wcs.sip = Sip(a, b, ap, bp, wcs.wcs.crpix)
-    ny, nx = ccd_.shape
-    wcs.pixel_shape = (nx, ny)
-    return wcs
-
-
-#: Largest focal-plane radius the inverse SIP is fitted to, mm (the science corners are at
-#: 368 mm).
-_INVERSE_RADIUS_MM = 400.0
-
-
-def _sip_coefficients():
-    """SIP ``A, B`` (forward: exact, order 5) and ``AP, BP`` (inverse: order 9) of the radial
-    distortion.
-
-    In pixels ``u, v`` from the boresight, ``rho^2 = (u^2 + v^2) p^2`` (``p = 0.01`` mm), the
-    forward terms are ``f(u) = -u (D3 rho^2 + D5 rho^4)``. The inverse is radial too, ``g(U)
-    = U h(R^2)`` with ``R`` the radius of ``U = u + f`` in mm; the series of ``h`` converges
-    slowly at the corners (to 7th order it is still 2e-4 px off), so ``h`` is a quartic in
-    ``R^2`` fitted by least squares to the exact inverse (Newton) out to 400 mm: it is good
-    to ~1e-8 px (tested to 1e-6 px through astropy's ``sip_foc2pix``).
-    """
-    p2 = PIXEL_MM ** 2
-    r = np.linspace(1.0, _INVERSE_RADIUS_MM, 2000)
-    big_r = r - DISTORTION_R3 * r ** 3 - DISTORTION_R5 * r ** 5
-    scaled = big_r / _INVERSE_RADIUS_MM  # columns of comparable size for the fit
-    design = np.column_stack([scaled ** (2 * n) for n in range(1, 5)])
-    h = np.linalg.lstsq(design, r / big_r - 1.0, rcond=None)[0]
-    h = h / _INVERSE_RADIUS_MM ** (2 * np.arange(1, 5))
-    a = np.zeros((6, 6))
-    ap = np.zeros((10, 10))
-    for coeffs, terms in ((a, (-DISTORTION_R3, -DISTORTION_R5)), (ap, tuple(h))):
-        for n, c in enumerate(terms, start=1):
-            # u (u^2 + v^2)^n = sum_k C(n, k) u^(2n - 2k + 1) v^(2k); A[p, q] multiplies u^p v^q.
-            for k in range(n + 1):
-                coeffs[2 * (n - k) + 1, 2 * k] = c * p2 ** n * math.comb(n, k)
-    return a, a.T.copy(), ap, ap.T.copy()
-
-
-def focal_to_sky(x_mm, y_mm, pointing):
-    """(ra, dec) deg of focal-plane positions: field angle, rotation, gnomonic projection
-    (by astropy's TAN about the boresight)."""
-    from astropy.wcs import WCS
-
-    ra, dec, rotation = check_pointing(pointing)
-    ax, ay = field_angle(x_mm, y_mm)
-    east, north = rotation_matrix(rotation) @ np.vstack([np.ravel(ax), np.ravel(ay)])
-    wcs = WCS(naxis=2)
-    wcs.wcs.ctype = ["RA---TAN", "DEC--TAN"]
-    wcs.wcs.crval = [ra, dec]
-    wcs.wcs.crpix = [1, 1]  # 0-based pixel (0, 0) below: the offsets are the IWC
-    wcs.wcs.cdelt = [np.degrees(1), np.degrees(1)]  # IWC in radians -> degrees
-    out = wcs.wcs_pix2world(np.column_stack([east, north]), 0)
-    return out[:, 0].reshape(np.shape(ax)), out[:, 1].reshape(np.shape(ax))
-
-
-# -------------------------------------------------------------------------------------------
 # Tracks against the layout
-
-def clip_path(xs, ys, box):
-    """The parts of a polyline (focal-plane mm) inside a box ``(xmin, xmax, ymin, ymax)``.
-
-    Returns
-    -------
-    list of tuple
-        ``(piece, t0, t1)``: the index of the polyline piece and the fractions ``0 <= t0 <
-        t1 <= 1`` along it that lie inside, in order along the path.
-    """
-    xmin, xmax, ymin, ymax = box
-    out = []
-    for k in range(len(xs) - 1):
-        dx, dy = xs[k + 1] - xs[k], ys[k + 1] - ys[k]
-        length = float(np.hypot(dx, dy))
-        if length == 0:
-            continue
-        angle = float(np.degrees(np.arctan2(dy, dx)))
-        chord = _clip_line(xs[k], ys[k], angle, (xmin, xmax), (ymin, ymax))
-        if chord is None:
-            continue
-        t0, t1 = max(chord[0] / length, 0.0), min(chord[1] / length, 1.0)
-        if t1 > t0:
-            out.append((k, t0, t1))
-    return out
-
 
 def extent_mm():
     """``(xmin, xmax, ymin, ymax)`` of the science CCDs' pixel areas, mm."""

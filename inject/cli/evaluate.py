@@ -74,9 +74,9 @@ def campaign_images(heights, mags, seeds, size, progress=None):
     """
     import numpy as np
 
-    from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
+    from inject.config import DEFAULT_SCENE, parse_scene
+    from inject.schema import apply_overrides
     from inject.scene import simulate
-
     total = len(heights) * len(mags) * len(seeds)
     k = 0
     for height in heights:
@@ -98,9 +98,9 @@ def campaign_images(heights, mags, seeds, size, progress=None):
 def streak_free_images(count, size, progress=None, seed0=STREAK_FREE_SEED0):
     """``count`` streak-free images of the campaign's field (seeds ``seed0 + 1`` on), with
     labels ``{height_km: None, mag: None, seed, streak_free: True}``, generated lazily."""
-    from inject.config import DEFAULT_SCENE, apply_overrides, parse_scene
+    from inject.config import DEFAULT_SCENE, parse_scene
+    from inject.schema import apply_overrides
     from inject.scene import simulate
-
     for k in range(1, count + 1):
         seed = seed0 + k
         raw = apply_overrides(DEFAULT_SCENE, [f"seed={seed}", f"detector.nx={size}",

@@ -41,12 +41,11 @@ def add_focalplane_parser(sub):
     p.set_defaults(func=run_focalplane)
 
 
-def _selected(fscene, args, margins):
+def _selected(plan, args):
     from inject.camera import layout as fp
-    from inject.exposure.scene import ccd_streaks
     from inject.exposure.runner import slice_ccds
 
-    ccds = fscene.ccds
+    ccds = plan.fscene.ccds
     if args.detectors is not None:
         wanted = set(fp.select(args.detectors))
         outside = sorted(wanted - set(ccds), key=lambda c: c.id)
@@ -55,14 +54,14 @@ def _selected(fscene, args, margins):
                              f"{outside[0].name} is not among the scene's detectors")
         ccds = tuple(c for c in ccds if c in wanted)
     if args.streak_ccds_only:
-        ccds = tuple(c for c in ccds if ccd_streaks(fscene, c, margins))
+        ccds = plan.streak_ccds(ccds)
     return slice_ccds(ccds, args.job, args.njobs)
 
 
 def run_focalplane(args):
-    from inject.config import apply_overrides, load_scene_file
-    from inject.exposure.scene import margins_px, parse_focal_scene, plan
-
+    from inject.schema import apply_overrides, load_scene_file
+    from inject.exposure.plan import make_plan
+    from inject.exposure.scene import parse_focal_scene
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers", args.workers, "must be >= 1")
     if args.retries < 0:
@@ -70,10 +69,10 @@ def run_focalplane(args):
     if args.json and not args.plan:
         raise InputError("--json", True, "only with --plan")
     fscene = parse_focal_scene(apply_overrides(load_scene_file(args.scene), args.overrides))
-    margins = margins_px(fscene)
-    ccds = _selected(fscene, args, margins)
+    plan = make_plan(fscene)
+    ccds = _selected(plan, args)
     if args.plan:
-        result = plan(fscene, ccds, margins)
+        result = plan.summary(ccds)
         if args.json:
             json.dump(result, sys.stdout)
             sys.stdout.write("\n")
@@ -91,7 +90,7 @@ def run_focalplane(args):
         raise OutputError(f"{args.output}: exists and is not a directory")
     if not ccds:
         raise InputError("--detectors/--job", (args.detectors, args.job), "no CCD to render")
-    records = _check_satellites_file(fscene, args, margins)
+    records = _check_satellites_file(plan, args)
     mosaic = os.path.join(args.output, "mosaic.png")
     if not args.no_mosaic and os.path.exists(mosaic) and not args.overwrite:
         from inject.exposure.runner import read_manifest
@@ -100,20 +99,21 @@ def run_focalplane(args):
         if not any(r.get("scene_sha256") == fscene.digest for r in rows):
             raise OutputError(f"{mosaic}: exists (not this scene's); pass --overwrite to "
                               "replace it")
-    _render(fscene, ccds, margins, args, records)
+    _render(plan, ccds, args, records)
 
 
 #: The exposure-level record of every satellite, next to manifest.csv.
 SATELLITES_CSV = "satellites.csv"
 
 
-def _check_satellites_file(fscene, args, margins):
+def _check_satellites_file(plan, args):
     """The satellite records of the run; refuse (before any work) to replace another scene's
     satellites.csv without --overwrite."""
     import csv
 
-    from inject.exposure.scene import satellite_records
+    from inject.exposure.plan import satellite_records
 
+    fscene = plan.fscene
     path = os.path.join(args.output, SATELLITES_CSV)
     if os.path.exists(path) and not args.overwrite:
         with open(path, newline="") as stream:
@@ -121,17 +121,17 @@ def _check_satellites_file(fscene, args, margins):
         if digests - {fscene.digest}:
             raise OutputError(f"{path}: exists (not this scene's); pass --overwrite to "
                               "replace it")
-    return satellite_records(fscene, margins)
+    return satellite_records(plan)
 
 
 def write_satellites(outdir, records):
     """Write OUTDIR/satellites.csv atomically: one row per satellite of the scene (see
-    :func:`inject.exposure.scene.satellite_records`), so a satellite that renders nowhere still
+    :func:`inject.exposure.plan.satellite_records`), so a satellite that renders nowhere still
     says why. Its content depends on the scene alone (every ``--job`` slice writes the same)."""
     import csv
     import io
 
-    from inject.exposure.scene import SATELLITE_FIELDS
+    from inject.exposure.plan import SATELLITE_FIELDS
     from inject.io.atomic import atomic_path
 
     text = io.StringIO()
@@ -147,7 +147,7 @@ def write_satellites(outdir, records):
     return path
 
 
-def _render(fscene, ccds, margins, args, records):
+def _render(plan, ccds, args, records):
     from inject.exposure.runner import DASK_MEMORY_LIMIT, dask_executor, process_pool, run
 
     if args.scheduler:
@@ -158,8 +158,8 @@ def _render(fscene, ccds, margins, args, records):
             raise InputError("--memory-limit", args.memory_limit, "only with --scheduler")
         executor = process_pool(args.workers)  # shut down when the block ends
     with executor as ex:
-        result = run(fscene, args.output, ex, ccds, overwrite=args.overwrite,
-                     retries=args.retries, margins=margins)
+        result = run(plan, args.output, ex, ccds, overwrite=args.overwrite,
+                     retries=args.retries)
     print(f"{args.output}: {len(result.rendered)} CCDs rendered, {len(result.skipped)} "
           f"already done, {len(result.failed)} failed", file=sys.stderr)
     write_satellites(args.output, records)
@@ -171,7 +171,7 @@ def _render(fscene, ccds, margins, args, records):
         from inject.exposure.mosaic import write_mosaic
 
         path = os.path.join(args.output, "mosaic.png")
-        write_mosaic(path, fscene, args.output, margins=margins)
+        write_mosaic(path, plan.fscene, args.output)
         print(f"wrote {path}", file=sys.stderr)
     if result.failed:
         names = ", ".join(r["detector"] for r in result.failed[:10])

@@ -197,16 +197,19 @@ def run_simulate(args):
     """The ``inject simulate`` command: every output is written, or none (all-or-nothing)."""
     import os
 
-    from inject.config import apply_overrides, load_scene_file, parse_scene
+    from inject.config import parse_scene
+    from inject.schema import apply_overrides, load_scene_file
     from inject.io.atomic import output_group
     from inject.io.fits import write_exposure
+    from inject.orbits.tracks import resolve_ccd_orbits
     from inject.scene import simulate
 
     if args.png:
         from inject.io.quicklook import quicklook_format
 
         quicklook_format(args.png)  # before the work
-    scene = parse_scene(apply_overrides(load_scene_file(args.scene), args.overrides))
+    raw = apply_overrides(load_scene_file(args.scene), args.overrides)
+    scene = parse_scene(resolve_ccd_orbits(raw))  # orbit: satellites -> pixel tracks
     outputs = {option: path for option, path in (("-o", args.output), ("--exr", args.exr),
                                                  ("--png", args.png), ("--truth", args.truth))
                if path}
@@ -283,7 +286,7 @@ def run_add_streak(args):
     import numpy as np
 
     from inject.addstreak import add_streaks
-    from inject.config import Track
+    from inject.trajectory import Track
     from inject.io.atomic import check_writable
     from inject.io.reader import read_exposure
     from inject.maskplanes import FLAG_OFF_IMAGE, FLAG_SATURATED

@@ -45,7 +45,6 @@ def parse_orbit_option(text, time):
     """An :class:`~inject.orbits.passes.Orbit` from ``--orbit`` text ``key=value,...`` (through
     :func:`inject.orbits.passes.orbit_from_spec`, as a scene's ``orbit:``)."""
     from inject.orbits.passes import CIRCULAR_ORBIT_KEYS, orbit_from_spec
-
     values = {}
     for item in text.split(","):
         key, sep, value = item.partition("=")
@@ -77,7 +76,6 @@ def pass_report(orbit, exposure, pointing, site):
     """
     from inject.camera import layout as fp
     from inject.orbits.passes import TRACK_STEP_S, compute_pass, track_runs
-
     p = compute_pass(orbit, exposure, pointing, site)
     dense = compute_pass(orbit, exposure, pointing, site, step_s=TRACK_STEP_S,
                          check_epoch=False)
@@ -114,7 +112,9 @@ def pass_report(orbit, exposure, pointing, site):
 
 
 def run_pass(args):
-    from inject.orbits.passes import Exposure, Pointing, orbit_from_spec, parse_time, site_from_spec
+    from inject.orbits.passes import Exposure, orbit_from_spec, site_from_spec
+    from inject.camera.wcs import Pointing
+    from inject.validate import parse_time
     from inject.validate import RANGES, check_pointing
 
     time = parse_time(args.time, "--time")

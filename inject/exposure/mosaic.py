@@ -11,7 +11,7 @@ import os
 import numpy as np
 
 from inject.io.atomic import atomic_path
-from inject.io.quicklook import _zscale_limits, block_mean
+from inject.io.quicklook import block_mean, zscale_limits
 
 #: Default binning: a full focal plane (63 400 px across) about 1600 plotted pixels wide.
 DEFAULT_BIN = 40
@@ -58,7 +58,7 @@ def track_paths(fscene):
     return out
 
 
-def write_mosaic(path, fscene, outdir, factor=DEFAULT_BIN, overwrite=True, margins=None,
+def write_mosaic(path, fscene, outdir, factor=DEFAULT_BIN, overwrite=True,
                  dpi=100, names=True, title=None):
     """Write the mosaic of the CCD files in ``outdir`` to ``path`` (PNG), atomically.
 
@@ -80,12 +80,12 @@ def write_mosaic(path, fscene, outdir, factor=DEFAULT_BIN, overwrite=True, margi
     from matplotlib.patches import Rectangle
 
     from inject.camera.layout import PIXEL_MM, extent_mm
-    from inject.exposure.scene import ccd_shape
+    from inject.exposure.plan import ccd_shape
 
     binned = binned_ccds(fscene, outdir, factor)
     sample = np.concatenate([b[np.isfinite(b)].ravel()[::7] for b in binned.values()]) \
         if binned else np.zeros(1)
-    vmin, vmax = _zscale_limits(sample)
+    vmin, vmax = zscale_limits(sample)
     xmin, xmax, ymin, ymax = extent_mm()
     side_px = (xmax - xmin) / (PIXEL_MM * factor)
     inches = max(4.0, side_px / dpi)
@@ -123,8 +123,8 @@ def write_mosaic(path, fscene, outdir, factor=DEFAULT_BIN, overwrite=True, margi
     pointing = fscene.pointing
     fig.suptitle(title or (f"inject focal plane: {len(binned)} of {len(fscene.ccds)} CCDs, "
                            f"binned {factor}x{factor}, z-scale [{vmin:.0f}, {vmax:.0f}]; "
-                           f"ra {pointing['ra']:g} dec {pointing['dec']:g} rotSkyPos "
-                           f"{pointing.get('rotation', 0.0):g}; dashed: true tracks"),
+                           f"ra {pointing.ra_deg:g} dec {pointing.dec_deg:g} rotSkyPos "
+                           f"{pointing.rotation_deg:g}; dashed: true tracks"),
                  fontsize=max(5.0, inches * 0.45), y=0.995)
     with atomic_path(path, overwrite) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi, facecolor="white")

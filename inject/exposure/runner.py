@@ -79,12 +79,12 @@ def sha256_file(path, chunk=1 << 22):
 
 @dataclass(frozen=True)
 class Task:
-    """One CCD to render: the scene, the detector, where, and the margins of the plan."""
+    """One CCD to render: the scene, the detector, where, and its streaks from the plan."""
 
     fscene: object
     detector: str
     outdir: str
-    margins: tuple
+    streaks: tuple
     keep: bool = True  # False: write, hash and delete (benchmarks of whole exposures)
 
 
@@ -98,12 +98,12 @@ def render_ccd(task):
     if multiprocessing.parent_process() is not None:
         limit_threads()
     from inject.camera import layout as fp
-    from inject.exposure.scene import simulate_ccd
+    from inject.exposure.ccd import simulate_ccd
     from inject.io.fits import write_exposure
 
     start = time.perf_counter()
     ccd = fp.ccd(task.detector)
-    scene, result, streaks, wcs = simulate_ccd(task.fscene, ccd, task.margins)
+    scene, result, streaks, wcs = simulate_ccd(task.fscene, ccd, task.streaks)
     simulated = time.perf_counter()
     path = os.path.join(task.outdir, f"{ccd.name}.fits")
     cards = {"DETNAME": (ccd.name, "detector name"),
@@ -268,13 +268,14 @@ class RunResult:
     failed: list
 
 
-def run(fscene, outdir, executor, ccds=None, overwrite=False, retries=2, progress=None,
-        keep=True, margins=None):
+def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=None,
+        keep=True):
     """Render CCDs of a focal-plane scene on ``executor``, resumably.
 
     Parameters
     ----------
-    fscene : inject.exposure.scene.FocalScene
+    plan : inject.exposure.plan.Plan
+        The exposure's plan (:func:`inject.exposure.plan.make_plan`).
     outdir : str
         Created if missing.
     executor : concurrent.futures.Executor
@@ -294,12 +295,9 @@ def run(fscene, outdir, executor, ccds=None, overwrite=False, retries=2, progres
     -------
     RunResult
     """
-    from inject.exposure.scene import margins_px
-
+    fscene = plan.fscene
     ccds = fscene.ccds if ccds is None else tuple(ccds)
     os.makedirs(outdir, exist_ok=True)
-    if margins is None:
-        margins = margins_px(fscene)
     with _manifest_lock(outdir):
         from inject.io.atomic import remove_stale_temporaries
 
@@ -334,7 +332,7 @@ def run(fscene, outdir, executor, ccds=None, overwrite=False, retries=2, progres
 
     def submit(ccd):
         try:
-            future = executor.submit(render_ccd, Task(fscene, ccd.name, outdir, margins, keep))
+            future = executor.submit(render_ccd, Task(fscene, ccd.name, outdir, tuple(plan.streaks(ccd)), keep))
         except Exception as err:  # a broken pool (a worker killed): report, go on
             fail(ccd, err)
         else:
@@ -368,7 +366,7 @@ def run(fscene, outdir, executor, ccds=None, overwrite=False, retries=2, progres
 
 #: Modules every worker needs, imported once by the fork server the workers come from: a
 #: worker then starts in milliseconds instead of importing GalSim, astropy and SciPy (~1.5 s).
-WORKER_MODULES = ("inject.exposure.scene", "inject.io.fits", "inject.exposure.runner", "scipy.stats")
+WORKER_MODULES = ("inject.exposure.ccd", "inject.io.fits", "inject.exposure.runner", "scipy.stats")
 
 
 def start_fork_server():

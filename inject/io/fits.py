@@ -16,6 +16,7 @@ import os
 import numpy as np
 from astropy.io import fits
 from astropy.table import Table
+from astropy.time import Time, TimeDelta
 
 from inject import __version__
 from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, mask_header
@@ -23,6 +24,31 @@ from inject.io.atomic import atomic_path
 
 #: Extension types of afw's MaskedImage HDUs 1-3, in that order.
 MASKED_IMAGE_TYPES = ("IMAGE", "MASK", "VARIANCE")
+
+
+def time_cards(scene):
+    """FITS cards of the exposure's time, when the scene has one (``{}`` otherwise).
+
+    As LSSTCam's headers and afw's VisitInfo have them: ``TIMESYS = 'TAI'`` and the dates in
+    TAI (the FITS standard reads DATE-* and MJD-* in TIMESYS's scale; TAI - UTC is 37 s in
+    2026): ``DATE-OBS``/``MJD-OBS`` the exposure start (the UTC start in the comment),
+    ``DATE-AVG``/``MJD-AVG`` its middle (what afw takes as the VisitInfo date), ``DATE-END``
+    /``MJD-END`` its end.
+    """
+    if scene.time is None:
+        return {}
+
+    start = Time(scene.time, scale="utc")
+    cards = {"TIMESYS": ("TAI", "time scale of DATE-* and MJD-*")}
+    for key, t, what in (("OBS", start, "exposure start"),
+                         ("AVG", start + TimeDelta(scene.exptime / 2, format="sec"),
+                          "middle of the exposure"),
+                         ("END", start + TimeDelta(scene.exptime, format="sec"),
+                          "exposure end")):
+        tai = t.tai
+        cards[f"DATE-{key}"] = (tai.isot, f"{what} (TAI)")
+        cards[f"MJD-{key}"] = (float(tai.mjd), f"[d] {what}, MJD (TAI)")
+    return cards
 
 
 def primary_header(scene, primary_cards=None):
@@ -41,15 +67,13 @@ def primary_header(scene, primary_cards=None):
     hdr["BAND"] = (scene.band, "LSST filter")
     hdr["FILTER"] = (scene.band, "band (afw FilterLabel band)")
     hdr["EXPTIME"] = (scene.exptime, "[s] exposure time")
-    from inject.config import time_cards
-
     for key, card in time_cards(scene).items():  # a scene with an exposure start (time:)
         hdr[key] = card
     pointing = scene.pointing
     if pointing is not None:
-        rotation = float(pointing.get("rotation", 0.0))
-        hdr["BORE-RA"] = (float(pointing["ra"]), "[deg] ICRS RA of the pointing")
-        hdr["BORE-DEC"] = (float(pointing["dec"]), "[deg] ICRS Dec of the pointing")
+        rotation = float(pointing.rotation_deg)
+        hdr["BORE-RA"] = (float(pointing.ra_deg), "[deg] ICRS RA of the pointing")
+        hdr["BORE-DEC"] = (float(pointing.dec_deg), "[deg] ICRS Dec of the pointing")
         hdr["HIERARCH BORE-ROTANG"] = (rotation, "[deg] sky rotation angle (rotSkyPos)")
         hdr["ROTTYPE"] = ("SKY", "type of BORE-ROTANG (afw RotType)")
         hdr["ROTPA"] = (rotation, "[deg] sky position angle of the camera")

@@ -77,7 +77,7 @@ def block_mean(image, factor):
     return out
 
 
-def _zscale_limits(binned):
+def zscale_limits(binned):
     from astropy.visualization import ZScaleInterval
 
     finite = binned[np.isfinite(binned)]
@@ -143,7 +143,7 @@ def quicklook_figure(result, truth=True, title=None):
     ny, nx = image.shape
     factor = bin_factor(image.shape)
     binned = block_mean(image, factor)
-    vmin, vmax = _zscale_limits(binned)
+    vmin, vmax = zscale_limits(binned)
 
     aspect = ny / nx
     width_in = 8.0

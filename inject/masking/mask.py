@@ -4,7 +4,7 @@ Four width rules, so that results compare with the tools in use:
 
 ``sb`` (default)
     The surface-brightness rule: out to where the measured profile drops below ``t`` times the
-    sky noise per pixel (default ``t`` = :data:`inject.scene.STREAK_MASK_SIGMA`, the level of
+    sky noise per pixel (default ``t`` = :data:`inject.maskplanes.STREAK_MASK_SIGMA`, the level of
     the simulator's truth STREAK plane, so masks compare pixel for pixel), and never narrower
     than :data:`MIN_FWHM` FWHM (a faint streak below ``t`` sigma still gets its core masked).
 ``fwhm``
@@ -22,7 +22,7 @@ caps), not counted as width x length: pixel centres inside the rectangle, clippe
 """
 import numpy as np
 
-from inject.scene import STREAK_MASK_SIGMA
+from inject.maskplanes import STREAK_MASK_SIGMA
 from inject.masking.geometry import rectangle_spans, span_indices
 from inject.masking.measure import GAUSSIAN_FWHM_PER_SIGMA, MOFFAT_FWHM_PER_ALPHA, wing_reach
 

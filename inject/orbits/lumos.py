@@ -44,8 +44,7 @@ def surfaces(where, spec):
     earth_brdf : callable or None
         None: no earthshine.
     """
-    from inject.config import _check_keys, _number
-
+    from inject.schema import check_keys, number
     lumos = _lumos()
     _check_keys(where, spec, {"surfaces", "earthshine", "earth_albedo"}, {"surfaces"})
     items = spec["surfaces"]

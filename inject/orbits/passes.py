@@ -2,7 +2,7 @@
 
 The engine behind issue 13 (the part that does not need the focal plane). A satellite is an SGP4
 element set (:class:`Orbit`, from a TLE or from circular-orbit elements); the site, the exposure
-and the sidereally tracked pointing are :class:`Site`, :class:`Exposure` and :class:`Pointing`.
+and the sidereally tracked pointing are :class:`Site`, :class:`Exposure` and :class:`~inject.camera.wcs.Pointing`.
 :func:`compute_pass` samples the exposure and returns a :class:`Pass`: where the satellite is
 (geometric alt/az, range), how the paper sees it (nadir angle, phi), how fast it crosses the tracked
 star field, whether it is sunlit, and where it appears on the sky as gnomonic field angles in the
@@ -42,10 +42,11 @@ from sgp4.exporter import export_tle
 from sgp4.io import compute_checksum
 
 from inject.errors import InputError, OrbitError, OrbitWarning
-from inject.camera.layout import focal_of_field_angle, rotation_matrix
+from inject.camera.layout import focal_of_field_angle
+from inject.camera.wcs import Pointing, tangent_to_focal
 from inject.geometry import R_EARTH_KM
 from inject.photometry import apparent_magnitude
-from inject.validate import RANGES, check_pointing, finite, in_range, positive
+from inject.validate import RANGES, check_pointing, finite, in_range, parse_time, positive
 
 # Offline: never download Earth-orientation data; past the bundled table, warn and extrapolate.
 iers.conf.auto_download = False
@@ -101,22 +102,6 @@ class Site:
 RUBIN = Site()
 
 
-def parse_time(value, name="time"):
-    """An astropy :class:`~astropy.time.Time` (UTC) from an ISO 8601 string or a Time.
-
-    Raises
-    ------
-    InputError
-        If ``value`` is not a readable time.
-    """
-    if isinstance(value, Time):
-        return value.utc
-    try:
-        return Time(value, scale="utc")
-    except (ValueError, TypeError):
-        raise InputError(name, value, "must be an ISO 8601 UTC time, e.g. 2026-06-15T23:30:00")
-
-
 @dataclass(frozen=True)
 class Exposure:
     """An exposure: start time (UTC) and duration (s)."""
@@ -140,44 +125,6 @@ class Exposure:
     @property
     def middle(self):
         return self.start + self.exptime_s / 2.0 * u.s
-
-
-@dataclass(frozen=True)
-class Pointing:
-    """Telescope boresight (ICRS, deg) and rotator angle ``rotation_deg`` (LSST's rotSkyPos).
-
-    ``rotation_deg`` is the position angle of the focal plane's +y axis on the sky, measured from
-    North through East (the ``orientation`` of afw's ``makeSkyWcs`` with ``flipX=False``, as
-    LSSTCam's raw WCS); at 0, +y points North and +x West: the convention of
-    :mod:`inject.camera.layout`, whose CCD WCSs therefore agree with the field angles here.
-    """
-
-    ra_deg: float
-    dec_deg: float
-    rotation_deg: float = 0.0
-
-    def __post_init__(self):
-        check_pointing({"ra": self.ra_deg, "dec": self.dec_deg, "rotation": self.rotation_deg})
-
-    @property
-    def icrs(self):
-        return SkyCoord(self.ra_deg * u.deg, self.dec_deg * u.deg, frame="icrs")
-
-
-def sky_to_focal(xi, eta, rotation_deg):
-    """Rotate standard coordinates (xi East, eta North) into the focal-plane axes (x, y).
-
-    The inverse of :func:`inject.camera.layout.rotation_matrix` (a reflection, its own inverse):
-    +y at position angle ``rotation_deg``, +x at ``rotation_deg - 90`` (West at 0). Inverse of
-    :func:`focal_to_sky`; see :class:`Pointing`.
-    """
-    (a, b), (c, d) = rotation_matrix(rotation_deg)
-    return a * xi + b * eta, c * xi + d * eta
-
-
-#: Standard coordinates (xi East, eta North) of focal-plane field angles (x, y): the same
-#: reflection as :func:`sky_to_focal`, which is its own inverse.
-focal_to_sky = sky_to_focal
 
 
 # --- orbits --------------------------------------------------------------------------------------
@@ -694,7 +641,7 @@ class FieldFrame:
         """Gnomonic field angles (deg) of unit vectors (n_times, 3) in this frame.
 
         Returns ``xi, eta, x, y, front``: standard coordinates (xi East, eta North) and the same
-        rotated into the focal-plane axes by :func:`sky_to_focal`; tangent-plane coordinates in
+        rotated into the focal-plane axes by :func:`inject.camera.wcs.tangent_to_focal`; tangent-plane coordinates in
         radians (as afw's FIELD_ANGLE) expressed in degrees. They are ICRS offsets: those of the
         star that appears where the direction points (:attr:`to_icrs`), so that a CCD's WCS
         (TAN about the ICRS boresight) maps them to the same pixel as that star. ``front`` is
@@ -710,7 +657,7 @@ class FieldFrame:
             m = self.to_icrs
             xi, eta = (m[..., 0, 0] * xi + m[..., 0, 1] * eta,
                        m[..., 1, 0] * xi + m[..., 1, 1] * eta)
-        x, y = sky_to_focal(xi, eta, self.pointing.rotation_deg)
+        x, y = tangent_to_focal(xi, eta, self.pointing.rotation_deg)
         return xi, eta, x, y, front
 
 
@@ -1083,7 +1030,6 @@ def track_runs(p, tol_px=0.05, max_gap_s=1.0, lit_only=False,
         Sample indices of each run's vertices, in time order.
     """
     from inject.camera.layout import PIXEL_MM
-
     x, y = p.focal_mm()
     keep = np.isfinite(x) & (p.apparent_alt_deg > 0.0) & (
         np.hypot(p.field_x_deg, p.field_y_deg) <= radius_deg)
