@@ -352,7 +352,7 @@ def test_evaluate_checks_optional_maskers_before_simulating(capsys, tmp_path, mo
 
     def missing():
         raise MaskingError("the findsat_mrt masker needs acstools and photutils")
-    monkeypatch.setattr(external, "_trail_finder", missing)
+    monkeypatch.setattr(external, "trail_finder", missing)
 
     def images(*args, **kwargs):
         raise AssertionError("an image was simulated before the maskers were checked")

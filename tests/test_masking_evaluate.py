@@ -9,10 +9,11 @@ import pytest
 
 from inject.errors import InputError
 from inject.cli.evaluate import (add_evaluate_parser, bad_pixels, campaign_images,
-                                         false_positive_summary, markdown_table, pixel_loss,
-                                         streak_free_images)
-from inject.masking.evaluate import (Masker, MaskerOutput, completeness_point, evaluate,
-                                     inject_masker, load_masker, score_image, summarise)
+                                 false_positive_summary, markdown_table, pixel_loss,
+                                 streak_free_images)
+from inject.masking import MaskerOutput
+from inject.masking.evaluate import (Masker, completeness_point, evaluate, inject_masker,
+                                     load_masker, score_image, summarise)
 
 
 def one_image(mag=11.0, height=550.0, seed=1, size=512):

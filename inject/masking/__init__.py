@@ -7,15 +7,19 @@
 - :mod:`~inject.masking.mask`: mask-width rules (surface brightness against the sky noise,
   k x FWHM, the LSST ``maskStreaks`` and acstools ``findsat_mrt`` rules) and lost-pixel counts
   from the rasterised mask.
-- :mod:`~inject.masking.run`: :func:`mask_image`, :func:`write_masked` and the ``inject mask``
-  command.
-- :mod:`~inject.masking.evaluate`: scoring any masking function against injected truth;
-  :mod:`~inject.cli.evaluate`: the ``inject evaluate`` campaign;
+- :mod:`~inject.masking.run`: :func:`mask_image`, :func:`analyse` and :func:`write_masked`
+  (the engine of ``inject mask``, whose command line is :mod:`inject.cli.mask`).
+- :mod:`~inject.masking.evaluate`: scoring any masking function against injected truth
+  (the ``inject evaluate`` campaign is :mod:`inject.cli.evaluate`);
   :mod:`~inject.masking.external`: the acstools ``findsat_mrt`` adapter (optional).
 
+This module holds what they all share: :class:`MaskingError` and :class:`MaskerOutput`.
 Submodules are imported on first use, so that building the command-line parser stays cheap.
 """
 import importlib
+from dataclasses import dataclass
+
+import numpy as np
 
 from inject.errors import InjectError
 
@@ -26,13 +30,29 @@ class MaskingError(InjectError, ValueError):
     Also a :class:`ValueError`, as the input errors of :mod:`inject.errors` are."""
 
 
+@dataclass
+class MaskerOutput:
+    """What a masking function returns: a boolean mask, and its streaks when it reports them.
+
+    Attributes
+    ----------
+    mask : ndarray of bool
+        Pixels masked, same shape as the image.
+    streaks : list of dict or None
+        Lines found (``x0, y0, x1, y1``; ``fwhm_arcsec`` where measured), or None for a
+        masker that gives only a mask (its angle, offset and FWHM errors are then NaN).
+    """
+
+    mask: np.ndarray
+    streaks: list | None = None
+
+
 _LAZY = {"mask_image": "run", "analyse": "run", "write_masked": "run", "run_mask": "run",
          "add_mask_parser": "run", "detect_streaks": "detect", "prepare": "detect",
          "measure_streak": "measure", "mask_widths": "mask", "lost_pixels": "mask",
-         "load_masker": "evaluate", "Masker": "evaluate",
-         "add_evaluate_parser": "cli_evaluate", "findsat_mrt_mask": "external"}
+         "load_masker": "evaluate", "Masker": "evaluate", "findsat_mrt_mask": "external"}
 
-__all__ = ["MaskingError", *_LAZY]
+__all__ = ["MaskingError", "MaskerOutput", *_LAZY]
 
 
 def __getattr__(name):

@@ -14,8 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from inject.trajectory import Segment
+from inject.errors import InjectError, InputError
+from inject.masking import MaskerOutput, MaskingError, external
 from inject.masking.geometry import Line, angle_difference, band_pixels
+from inject.masking.run import analyse
+from inject.trajectory import Segment
 
 
 def truth_line(row, shape):
@@ -98,23 +101,6 @@ CORE_COVER = 0.5
 BUILTIN_MASKERS = ("inject", "findsat_mrt")
 
 
-@dataclass
-class MaskerOutput:
-    """What a masking function returns: a boolean mask, and its streaks when it reports them.
-
-    Attributes
-    ----------
-    mask : ndarray of bool
-        Pixels masked, same shape as the image.
-    streaks : list of dict or None
-        Lines found (``x0, y0, x1, y1``; ``fwhm_arcsec`` where measured), or None for a
-        masker that gives only a mask (its angle, offset and FWHM errors are then NaN).
-    """
-
-    mask: np.ndarray
-    streaks: list | None = None
-
-
 class Masker:
     """A masking function, called as ``func(image)`` or ``func(image, bad=bad)``.
 
@@ -146,8 +132,6 @@ class Masker:
             out = MaskerOutput(np.asarray(out))
         mask = np.asarray(out.mask, dtype=bool)
         if mask.shape != np.shape(image):
-            from inject.masking import MaskingError
-
             raise MaskingError(f"masker {self.name} returned a mask of shape {mask.shape} for "
                                f"an image of shape {np.shape(image)}")
         return MaskerOutput(mask, out.streaks), seconds
@@ -162,8 +146,7 @@ def inject_masker(image, bad=None, pixel_scale=0.2, n_boot=0):
     ``n_boot`` is 0 by default: the bootstrap only gives the FWHM's error bar, which scoring
     against truth does not need.
     """
-    from inject.masking.mask import mask_spans, paint
-    from inject.masking.run import analyse
+    from inject.masking.mask import mask_spans, paint  # SciPy, astropy: when first used
 
     res = analyse(image, bad=bad, pixel_scale=pixel_scale, n_boot=n_boot)
     mask = np.zeros(np.shape(image), dtype=bool)
@@ -185,8 +168,6 @@ def load_masker(spec):
     InputError
         For a spec that is neither, or a function that cannot be imported.
     """
-    from inject.errors import InputError
-
     if isinstance(spec, Masker):
         return spec
     if callable(spec):
@@ -194,10 +175,9 @@ def load_masker(spec):
     if spec == "inject":
         return Masker(inject_masker, "inject")
     if spec == "findsat_mrt":
-        from inject.masking.external import _trail_finder, findsat_mrt_trails
-
-        _trail_finder()  # acstools is optional: say it is missing now, not after the first image
-        return Masker(findsat_mrt_trails, "findsat_mrt")
+        # acstools is optional: say it is missing now, not after the first image.
+        external.trail_finder()
+        return Masker(external.findsat_mrt_trails, "findsat_mrt")
     module, sep, name = str(spec).partition(":")
     if not sep or not module or not name:
         raise InputError("--masker", spec, "give module:function or one of "
@@ -370,9 +350,6 @@ def evaluate(images, maskers, truth_sigma=TRUTH_SIGMA, pixel_scale=0.2, bad=None
             try:
                 out, seconds = masker(sim.image, flags)
             except Exception as err:  # a user's function may raise anything: say whose, where
-                from inject.errors import InjectError
-                from inject.masking import MaskingError
-
                 what = err if isinstance(err, InjectError) else f"{type(err).__name__}: {err}"
                 raise MaskingError(f"masker {masker.name} failed on {_describe(index, labels)}: "
                                    f"{what}") from err

@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 
-from inject.masking import MaskingError
+from inject.masking import MaskerOutput, MaskingError
 
 #: Binning before the transform: the acstools documentation recommends binning WFC images
 #: (4k x 2k) so the median Radon transform runs in reasonable time; 4 x 4 turns a 7-10 px
@@ -21,7 +21,8 @@ from inject.masking import MaskingError
 FINDSAT_BIN = 4
 
 
-def _trail_finder():
+def trail_finder():
+    """acstools' ``TrailFinder`` class; :class:`MaskingError` if acstools is not installed."""
     try:
         from acstools.findsat_mrt import TrailFinder
     except ImportError as err:
@@ -93,10 +94,8 @@ def findsat_mrt_trails(image, bad=None, binning=FINDSAT_BIN, threshold=5.0, proc
     MaskingError
         If acstools is not installed.
     """
-    TrailFinder = _trail_finder()
+    TrailFinder = trail_finder()
     from astropy.nddata import block_reduce
-
-    from inject.masking.evaluate import MaskerOutput
 
     img = np.array(image, dtype=np.float64)
     if bad is not None:
