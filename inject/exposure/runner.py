@@ -14,6 +14,16 @@ sharing the directory) leaves a manifest that says what is done. A rerun skips t
 file matches its row, redoes missing or corrupt ones, removes the temporary files a killed
 worker left (:func:`inject.io.atomic.remove_stale_temporaries`), and refuses to replace files of
 another scene (or of no recorded run) without ``overwrite``.
+
+A CCD that fails does not stop the others; its row says ``failed`` with the error in one line.
+Failures on the input (an :class:`~inject.errors.InjectError` that is not a condition of the
+machine: :class:`~inject.errors.InputError`, ``SceneError``, ``FileFormatError``,
+``OrbitError``; see :func:`deterministic`) are reported at once: the same scene and detector
+would fail the same way again. They come back from the worker as a failed row, not raised, so
+that Dask's own retries do not repeat them either. Anything else (a full disk, memory, a killed
+worker, an unexpected exception) is retried ``retries`` times first. The run's
+:class:`RunResult` lists the failed rows, and :meth:`RunResult.error` makes of them one
+:class:`~inject.errors.RunError` for the command line to report (exit status 2).
 """
 import contextlib
 import csv
@@ -29,7 +39,7 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 
 from inject import __version__
-from inject.errors import InputError, OutputError
+from inject.errors import InjectError, InputError, OutputError, RunError
 
 MANIFEST = "manifest.csv"
 FIELDS = ("detector", "id", "vendor", "file", "sha256", "streaks", "seconds", "status",
@@ -38,6 +48,9 @@ FIELDS = ("detector", "id", "vendor", "file", "sha256", "streaks", "seconds", "s
 #: Environment variables that cap the threads of BLAS/OpenMP libraries in workers.
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
               "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+#: Longest error text kept in a manifest row.
+MAX_ERROR = 300
 
 _LIMITED = False
 
@@ -125,6 +138,37 @@ def render_ccd(task):
             "simulate_s": simulated - start, "write_s": end - simulated,
             "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "pid": os.getpid()}
+
+
+def deterministic(err):
+    """Whether a CCD that failed with ``err`` would fail the same way on a retry.
+
+    True for an :class:`~inject.errors.InjectError` about the input (``InputError``,
+    ``SceneError``, ``FileFormatError``, ``OrbitError``...: the CCD's bytes, and so its errors,
+    depend only on the scene and the detector). False for the conditions of the machine,
+    ``OutputError`` (an :class:`OSError`: a full disk) and ``ResourceError`` (a
+    :class:`MemoryError`), which a retry may not meet, and for anything that is not an
+    ``InjectError`` (a killed worker, a bug).
+    """
+    return isinstance(err, InjectError) and not isinstance(err, (OSError, MemoryError))
+
+
+def error_text(err):
+    """``err`` in one line for a manifest row: an :class:`~inject.errors.InjectError`'s own
+    message (as the command line prints it), anything else after its class name."""
+    text = str(err) if isinstance(err, InjectError) else f"{type(err).__name__}: {err}"
+    return " ".join(text.split())[:MAX_ERROR]
+
+
+def _attempt(render, task):
+    """``render(task)`` in the worker, where a failure on the input becomes a ``failed`` row
+    (see :func:`deterministic`): returned, not raised, so that no one retries it."""
+    try:
+        return render(task)
+    except InjectError as err:
+        if not deterministic(err):
+            raise
+        return {"detector": task.detector, "status": "failed", "error": error_text(err)}
 
 
 # -------------------------------------------------------------------------------------------
@@ -250,9 +294,10 @@ class _Progress:
             self.bar.set_postfix_str(f"{row['detector']} {row['status']}")
             self.bar.update(1)
         else:
+            seconds = f" {row['seconds']} s" if row.get("seconds") not in (None, "") else ""
             extra = f" ({row['error']})" if row.get("error") else ""
-            print(f"[{self.count}/{self.total}] {row['detector']} {row['status']} "
-                  f"{row.get('seconds', '')} s{extra}", file=self.stream, flush=True)
+            print(f"[{self.count}/{self.total}] {row['detector']} {row['status']}{seconds}"
+                  f"{extra}", file=self.stream, flush=True)
 
     def close(self):
         if self.bar is not None:
@@ -266,6 +311,28 @@ class RunResult:
     rendered: list
     skipped: list
     failed: list
+
+    def error(self, outdir=None, shown=3):
+        """A :class:`~inject.errors.RunError` that says which CCDs failed and why (the CCDs
+        that share an error together, the first ``shown`` errors in full), or None if none
+        did. ``outdir``: where the manifest is, for the message."""
+        if not self.failed:
+            return None
+        rows = sorted(self.failed, key=lambda r: int(r["id"]))
+        groups = {}
+        for row in rows:
+            groups.setdefault(row["error"], []).append(row["detector"])
+        parts = []
+        for text, names in list(groups.items())[:shown]:
+            more = f" and {len(names) - 4} more" if len(names) > 4 else ""
+            parts.append(f"{', '.join(names[:4])}{more}: {text}")
+        if len(groups) > shown:
+            parts.append(f"{len(groups) - shown} other error(s)")
+        total = len(self.rendered) + len(self.skipped) + len(self.failed)
+        where = f"each CCD's error is in {os.path.join(outdir, MANIFEST)}; " if outdir else ""
+        return RunError(f"{len(rows)} of {total} CCDs failed ({'; '.join(parts)}); {where}"
+                        f"the others are done, and a rerun redoes only the failed ones",
+                        [(row["detector"], row["error"]) for row in rows])
 
 
 def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=None,
@@ -286,7 +353,8 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
         Replace files of another scene (or of no recorded run).
     retries : int
         Times a failed CCD is resubmitted (on top of the executor's own retries) before it is
-        reported as failed; the other CCDs go on regardless.
+        reported as failed; the other CCDs go on regardless. A CCD that fails on its input
+        (:func:`deterministic`) is reported at once.
     progress : _Progress, optional
     keep : bool
         False deletes each file once hashed (benchmarks).
@@ -320,21 +388,22 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
     pending = {}
     rendered, failed = [], []
 
-    def fail(ccd, err):
+    def fail(ccd, text):
         row = {"detector": ccd.name, "id": ccd.id, "vendor": ccd.vendor,
                "file": f"{ccd.name}.fits", "sha256": "", "streaks": "", "seconds": "",
                "status": "failed", "scene_sha256": fscene.digest,
-               "inject_version": __version__,
-               "error": " ".join(f"{type(err).__name__}: {err}".split())[:300]}
+               "inject_version": __version__, "error": text}
         failed.append(row)
         update_manifest(outdir, [row])
         progress.update(row)
 
     def submit(ccd):
         try:
-            future = executor.submit(render_ccd, Task(fscene, ccd.name, outdir, tuple(plan.streaks(ccd)), keep))
+            task = Task(fscene, ccd.name, outdir, tuple(plan.streaks(ccd)), keep)
+            # render_ccd as this module holds it now (tests replace it to make CCDs fail).
+            future = executor.submit(_attempt, render_ccd, task)
         except Exception as err:  # a broken pool (a worker killed): report, go on
-            fail(ccd, err)
+            fail(ccd, error_text(err))
         else:
             pending[future] = ccd
 
@@ -352,7 +421,10 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
                     if attempts[ccd.name] <= retries:
                         submit(ccd)
                     else:
-                        fail(ccd, err)
+                        fail(ccd, error_text(err))
+                    continue
+                if row["status"] == "failed":  # on its input (see _attempt): not retried
+                    fail(ccd, row["error"])
                     continue
                 rendered.append(row)
                 update_manifest(outdir, [row])
@@ -419,7 +491,8 @@ def dask_executor(scheduler, workers=None, memory_limit=DASK_MEMORY_LIMIT, retri
     """A ``concurrent.futures.Executor`` on Dask: ``scheduler="local"`` starts a LocalCluster
     of ``workers`` processes with one thread each; any other value is the address of a running
     scheduler (``tcp://host:8786``). Tasks are impure (``pure=False``) and retried
-    ``retries`` times by Dask."""
+    ``retries`` times by Dask when they raise (a CCD that fails on its input returns a failed
+    row instead: see :func:`run`)."""
     try:
         from dask.distributed import Client, LocalCluster
     except ImportError:
