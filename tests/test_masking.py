@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
+from inject.cli.mask import add_mask_parser
 from inject.config import DEFAULT_SCENE, parse_scene
 from inject.schema import apply_overrides
 from inject.errors import FileFormatError, InputError, OutputError
@@ -19,7 +20,7 @@ from inject.masking.geometry import Line, band_pixels, rectangle_spans
 from inject.masking.mask import lost_pixels, mask_spans, paint
 from inject.masking.measure import (BinnedStack, Profile, half_max_width, pixel_response,
                                     profile_fwhm)
-from inject.masking.run import add_mask_parser, analyse, mask_image, write_masked
+from inject.masking.run import analyse, mask_image, write_masked
 from inject.maskplanes import MASK_PLANES
 from inject.scene import simulate, streak_models
 from inject.config import sky_level

@@ -371,7 +371,7 @@ def run_evaluate(args):
     """The ``inject evaluate`` command (``args`` from :func:`add_evaluate_parser`)."""
     from inject.errors import OutputError
     from inject.io.atomic import output_group
-    from inject.masking.run import _json_safe as json_rows
+    from inject.masking.run import json_safe
 
     from inject.masking.evaluate import load_masker
 
@@ -410,7 +410,7 @@ def run_evaluate(args):
                "completeness_50": [{"masker": m, "height_km": h, "peak_sb": v}
                                    for (m, h), v in points.items()],
                "pixel_loss": loss, "false_positives": false, "files": plots}
-        json.dump(json_rows(out), sys.stdout)
+        json.dump(json_safe(out), sys.stdout)
         sys.stdout.write("\n")
         return
     print(table)

@@ -360,7 +360,7 @@ def build_parser():
     _add_simulate_parser(sub)
     _add_add_streak_parser(sub)
     from inject.cli.evaluate import add_evaluate_parser
-    from inject.masking.run import add_mask_parser
+    from inject.cli.mask import add_mask_parser
 
     add_mask_parser(sub)
     add_evaluate_parser(sub)

@@ -47,8 +47,8 @@ class MaskerOutput:
     streaks: list | None = None
 
 
-_LAZY = {"mask_image": "run", "analyse": "run", "write_masked": "run", "run_mask": "run",
-         "add_mask_parser": "run", "detect_streaks": "detect", "prepare": "detect",
+_LAZY = {"mask_image": "run", "analyse": "run", "write_masked": "run",
+         "detect_streaks": "detect", "prepare": "detect",
          "measure_streak": "measure", "mask_widths": "mask", "lost_pixels": "mask",
          "load_masker": "evaluate", "Masker": "evaluate", "findsat_mrt_mask": "external"}
 

@@ -1,18 +1,19 @@
-"""``inject mask``: detect, measure and mask the streaks of an image.
+"""Detect, measure and mask the streaks of an image: the engine of ``inject mask``.
 
-:func:`mask_image` returns one dict per streak with the keys of CONTRACT.md;
-:func:`write_masked` writes a copy of an input FITS file with the STREAK mask plane set;
-:func:`add_mask_parser` and :func:`run_mask` make the command. Heavy modules are imported
-inside the functions, so registering the command costs nothing.
+:func:`mask_image` returns one dict per streak with the documented keys (docs/reference);
+:func:`write_masked` writes a copy of an input FITS file with the STREAK mask plane set.
+The command line is :mod:`inject.cli.mask`, which imports this module to build its parser:
+the modules that need OpenCV, SciPy or astropy are imported inside the functions, so
+registering the command costs nothing.
 """
-import json
 import math
 import os
-import sys
 from dataclasses import dataclass
 
 from inject.errors import InputError
-from inject.masking import MaskingError
+from inject.maskplanes import MASK_PLANES, header_planes, mask_header
+from inject.masking.geometry import Line, span_indices
+from inject.validate import positive
 
 #: Defaults of the command (the engine's own defaults, repeated here so the parser needs no
 #: NumPy or OpenCV; tests check they agree).
@@ -59,15 +60,15 @@ class MaskResult:
                  "n_streaks": len(self.streaks), "masked_pixels": self.masked_pixels,
                  "masked_fraction": self.masked_pixels / npix,
                  "lost_pixels": self.lost_pixels, "lost_fraction": self.lost_pixels / npix}
-        return _json_safe({"streaks": self.streaks, "image": image})
+        return json_safe({"streaks": self.streaks, "image": image})
 
 
-def _json_safe(value):
+def json_safe(value):
     """NaN and infinities become None (JSON has no NaN); NumPy scalars become Python ones."""
     if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
+        return {k: json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
+        return [json_safe(v) for v in value]
     if hasattr(value, "item") and not isinstance(value, (str, bytes)):
         value = value.item()
     if isinstance(value, float) and not math.isfinite(value):
@@ -75,10 +76,10 @@ def _json_safe(value):
     return value
 
 
-def _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold=None, max_streaks=None):
+def check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold=None, max_streaks=None):
+    """Refuse bad options of :func:`analyse` (:class:`InputError` naming the command-line
+    option), before any work."""
     import numpy as np
-
-    from inject.validate import positive
 
     if pixel_scale is not None:
         positive("--pixel-scale", pixel_scale, scalar=True)
@@ -167,11 +168,10 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
     import numpy as np
 
     from inject.masking.detect import FALSE_ALARM_Z, MAX_STREAKS, detect_streaks, prepare
-    from inject.masking.geometry import span_indices
     from inject.masking.mask import lost_pixels, mask_spans, mask_widths, sb_width
     from inject.masking.measure import measure_streak
 
-    _check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold, max_streaks)
+    check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold, max_streaks)
     prep = prepare(image, bad)
     flagged = bad if flagged is None else flagged
     flagged = None if flagged is None else np.asarray(flagged, dtype=bool)
@@ -207,8 +207,6 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
 def _mask_bits(exposure):
     """``{plane: bit}`` of an exposure's MASK header (``MSKN`` and ``MP_`` cards); afw's
     default bits if it names none."""
-    from inject.maskplanes import MASK_PLANES, header_planes
-
     if exposure.mask_index is None:
         return dict(MASK_PLANES)
     return header_planes(exposure.file_header(exposure.mask_index)) or dict(MASK_PLANES)
@@ -259,10 +257,12 @@ def mask_image(source, *, mask=None, pixel_scale=None, **options):
         Each with ``angle_deg, x0, y0, x1, y1, fwhm_arcsec, fwhm_px, mask_width_px,
         masked_pixels, masked_fraction`` and the extras of :func:`streak_record`.
     """
-    return _analyse_source(source, mask, pixel_scale, **options).streaks
+    return analyse_source(source, mask, pixel_scale, **options).streaks
 
 
-def _analyse_source(source, mask=None, pixel_scale=None, **options):
+def analyse_source(source, mask=None, pixel_scale=None, **options):
+    """The :class:`MaskResult` of :func:`mask_image` (same arguments): every streak, and what
+    masking them costs."""
     from inject.io.reader import InputExposure, read_exposure
 
     name = None
@@ -289,8 +289,6 @@ def _set_streak_plane(exposure, streaks):
     import numpy as np
     from astropy.io import fits
 
-    from inject.maskplanes import mask_header
-    from inject.masking.geometry import Line
     from inject.masking.mask import mask_spans, paint
 
     shape = exposure.image_hdu.data.shape
@@ -332,100 +330,21 @@ def write_masked(in_path, out_path, streaks, overwrite=False):
     """
     from inject.io.reader import read_exposure
 
-    _check_distinct(in_path, out_path)
-    return _write_exposure(read_exposure(in_path), out_path, streaks, overwrite)
+    check_distinct(in_path, out_path)
+    return write_masked_exposure(read_exposure(in_path), out_path, streaks, overwrite)
 
 
-def _check_distinct(in_path, out_path):
+def check_distinct(in_path, out_path):
+    """Refuse an output that is the input file itself (it is never modified)."""
     if os.path.exists(in_path) and os.path.exists(out_path) and os.path.samefile(in_path,
                                                                                  out_path):
         raise InputError("--out", os.fspath(out_path),
                          "must differ from the input (it is never modified)")
 
 
-def _write_exposure(exposure, out_path, streaks, overwrite):
+def write_masked_exposure(exposure, out_path, streaks, overwrite=False):
+    """:func:`write_masked` of an exposure already read (:class:`~inject.io.reader.InputExposure`,
+    changed in memory)."""
     count = _set_streak_plane(exposure, streaks)
     exposure.write(out_path, overwrite)  # atomic; HDUs other than MASK copied byte for byte
     return count
-
-
-def add_mask_parser(sub):
-    """Register ``inject mask`` on an argparse sub-parser collection."""
-    p = sub.add_parser(
-        "mask", help="detect, measure and mask the streaks of a FITS image",
-        description="Detect satellite streaks (matched filter + fast Hough transform on a "
-                    "binned, star-cleaned image), measure their line and model-free FWHM, and "
-                    "size their masks. The input is never modified.")
-    p.add_argument("image", metavar="IMAGE.fits")
-    p.add_argument("--json", action="store_true",
-                   help='print {"streaks": [...], "image": {...}} as JSON')
-    p.add_argument("-o", "--out", "--output", metavar="MASKED.fits",
-                   help="write a copy with the STREAK mask plane set")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing MASKED.fits")
-    p.add_argument("--pixel-scale", type=float, metavar="ARCSEC",
-                   help="arcsec per pixel (default: from the WCS, else 0.2)")
-    p.add_argument("--mask-rule", choices=RULE_CHOICES, default=DEFAULT_RULE,
-                   help="mask width: sb = where the profile drops below --sb-sigma x sky noise "
-                        "(default), fwhm = --fwhm-factor x FWHM, lsst = +-5 alpha of a Moffat "
-                        "beta 2.5 fit (maskStreaks), acstools = 6 sigma of a Gaussian fit "
-                        "(findsat_mrt); all four widths are reported")
-    p.add_argument("--sb-sigma", type=float, default=DEFAULT_SB_SIGMA, metavar="T",
-                   help="surface-brightness threshold of the sb rule, in sky sigma")
-    p.add_argument("--fwhm-factor", type=float, default=DEFAULT_FWHM_FACTOR, metavar="K",
-                   help="k of the fwhm rule")
-    p.add_argument("--threshold", type=float, metavar="Z",
-                   help="detection threshold on the Hough significance (default: calibrated "
-                        "false-alarm level)")
-    p.add_argument("--max-streaks", type=int, metavar="N", help="most streaks to find (8)")
-    p.set_defaults(func=run_mask)
-    return p
-
-
-def run_mask(args):
-    """The ``inject mask`` command (``args`` from :func:`add_mask_parser`)."""
-    from inject.io.atomic import check_writable
-    from inject.io.reader import read_exposure
-
-    _check_options(args.pixel_scale, args.mask_rule, args.sb_sigma, args.fwhm_factor,
-                   args.threshold, args.max_streaks)
-    if args.out:  # fail before the work, not after it
-        _check_distinct(args.image, args.out)
-        check_writable(args.out, args.overwrite)
-    exposure = read_exposure(args.image)
-    result = _analyse_source(exposure, pixel_scale=args.pixel_scale, rule=args.mask_rule,
-                             sb_sigma=args.sb_sigma, fwhm_factor=args.fwhm_factor,
-                             threshold=args.threshold, max_streaks=args.max_streaks)
-    result.source = os.fspath(args.image)
-    if args.out:
-        _write_exposure(exposure, args.out, result.streaks, args.overwrite)
-    if args.json:
-        json.dump(result.to_json(), sys.stdout)
-        sys.stdout.write("\n")
-    else:
-        _print_table(result)
-    if args.out:
-        print(f"wrote {args.out}", file=sys.stderr)
-
-
-def _print_table(result):
-    print(f"{len(result.streaks)} streak(s) in {result.source or 'image'} "
-          f"({result.shape[1]} x {result.shape[0]} px, sky sigma {result.sky_sigma:.4g})")
-    if result.streaks:
-        names = ("angle", "x0", "y0", "x1", "y1", "FWHM\"", "+-", "width", "masked", "frac", "z")
-        widths = (8, 8, 8, 8, 8, 7, 6, 7, 9, 7, 7)
-        print(" ".join(name.rjust(w) for name, w in zip(names, widths)))
-    for s in result.streaks:
-        # An unmeasured FWHM (a streak cut by an edge, a hole or a neighbour) reads n/a.
-        fwhm = (f"{s['fwhm_arcsec']:7.3f} {s['fwhm_err_arcsec']:6.3f}" if s["fwhm_measured"]
-                else f"{'n/a':>7s} {'':6s}")
-        print(f"{s['angle_deg']:8.3f} {s['x0']:8.1f} {s['y0']:8.1f} {s['x1']:8.1f} "
-              f"{s['y1']:8.1f} {fwhm} "
-              f"{s['mask_width_px']:7.1f} {s['masked_pixels']:9d} {s['masked_fraction']:7.4f} "
-              f"{s['significance']:7.1f}")
-    for k, s in enumerate(result.streaks):
-        if s["mask_fallback"]:
-            print(f"streak {k + 1}: mask width {s['mask_width_px']:.1f} px by "
-                  f"{s['mask_fallback']}")
-    npix = result.shape[0] * result.shape[1]
-    print(f"masked {result.masked_pixels} px ({result.masked_pixels / npix:.4%}), "
-          f"{result.lost_pixels} not already flagged")
