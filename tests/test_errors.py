@@ -7,8 +7,18 @@ import pickle
 import pytest
 
 import inject.errors
-from inject.errors import (FileFormatError, InjectError, InputError, InputWarning, OrbitError,
-                           OrbitWarning, OutputError, ResourceError, RunError, SceneError)
+from inject.errors import (
+    FileFormatError,
+    InjectError,
+    InputError,
+    InputWarning,
+    OrbitError,
+    OrbitWarning,
+    OutputError,
+    ResourceError,
+    RunError,
+    SceneError,
+)
 from inject.masking import MaskingError
 
 
