@@ -4,7 +4,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DOCS_STAMP := $(VENV)/.docs-installed
 
-.PHONY: install test slow demo focalplane figures bench docs clean
+.PHONY: install test lint slow demo focalplane figures bench docs clean
 
 $(BIN)/python:
 	@echo "==> creating the virtual environment $(VENV) with $(PYTHON)"
@@ -25,6 +25,10 @@ install: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+lint: $(STAMP)
+	$(BIN)/ruff check inject tests scripts
+	$(BIN)/lint-imports
 
 slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow

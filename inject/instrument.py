@@ -1,6 +1,6 @@
 """Telescope and camera parameters: the one place the LSST numbers live.
 
-Sources (see DESIGN.md section 3): the clear M1 annulus from batoid's ``LSST_r.yaml`` and leosim;
+Sources: the clear M1 annulus from batoid's ``LSST_r.yaml`` and leosim;
 plate scale and focal length from the LSST overview paper (Ivezic et al. 2019) and ts_wep.
 """
 from dataclasses import dataclass, replace

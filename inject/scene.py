@@ -17,7 +17,6 @@ from inject.errors import SceneError
 from inject.instrument import LSST
 from inject.maskplanes import (FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, MASK_PLANES,
                                STREAK_MASK_FRACTION, STREAK_MASK_SIGMA)
-from inject.photometry import sky_per_pixel
 from inject.profile import Seeing
 from inject.render import (AUTO_MIN_TOLERANCE, PROFILE_CACHE, SHORT_TRACK_CHECK_PX, Budget,
                      render_polyline, render_segment, snap_tolerance, swept_profile)

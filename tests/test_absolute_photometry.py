@@ -76,7 +76,7 @@ def test_paper_case_charge_per_pixel_of_track(height, charge):
 def test_geometry_by_vectors_matches_the_paper_numbers():
     r, nadir, omega = pass_geometry(550.0, 0.0)
     assert r == pytest.approx(550e3, rel=1e-12)
-    assert np.degrees(omega) == pytest.approx(0.7902, abs=5e-5)  # DESIGN.md: 0.79 deg/s
+    assert np.degrees(omega) == pytest.approx(0.7902, abs=5e-5)  # the paper's 0.79 deg/s
     r, nadir, _ = pass_geometry(550.0, 70.0)
     assert r / 1e3 == pytest.approx(1293.8, abs=0.05) and np.degrees(nadir) == pytest.approx(
         59.89, abs=0.005)

@@ -1,4 +1,4 @@
-"""The command-line interface (CONTRACT.md)."""
+"""The command-line interface."""
 import json
 import subprocess
 import sys

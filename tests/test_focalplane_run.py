@@ -17,6 +17,7 @@ from inject.camera.wcs import ccd_wcs
 from inject.camera import layout as fp
 from inject.exposure import runner as parallel
 from inject.errors import InputError, OutputError, RunError
+from inject.exposure.plan import make_plan
 from inject.exposure.scene import parse_focal_scene
 SAT = {"height": 550, "shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0}
 RAW = {"seed": 11, "band": "g", "zenith": 70, "exptime": 30,
@@ -47,7 +48,7 @@ def reference(fscene, tmp_path_factory):
     """The CCDs rendered by one worker process."""
     out = str(tmp_path_factory.mktemp("one_worker"))
     with parallel.process_pool(1) as pool:
-        result = parallel.run(fscene, out, pool)
+        result = parallel.run(make_plan(fscene), out, pool)
     assert len(result.rendered) == 4 and not result.failed
     got = shas(out)
     assert sorted(got) == NAMES
@@ -58,15 +59,15 @@ def reference(fscene, tmp_path_factory):
 
 def test_two_workers_same_bytes(fscene, reference, tmp_path):
     with parallel.process_pool(2) as pool:
-        parallel.run(fscene, str(tmp_path), pool)
+        parallel.run(make_plan(fscene), str(tmp_path), pool)
     assert shas(str(tmp_path)) == reference
 
 
 def test_other_order_other_executor_and_alone(fscene, reference, tmp_path):
     reverse = tuple(reversed(fscene.ccds))
     with ThreadPoolExecutor(2) as pool:
-        parallel.run(fscene, str(tmp_path / "reversed"), pool, ccds=reverse)
-        parallel.run(fscene, str(tmp_path / "alone"), pool, ccds=[fp.ccd("R22_S12")])
+        parallel.run(make_plan(fscene), str(tmp_path / "reversed"), pool, ccds=reverse)
+        parallel.run(make_plan(fscene), str(tmp_path / "alone"), pool, ccds=[fp.ccd("R22_S12")])
     assert shas(str(tmp_path / "reversed")) == reference
     assert shas(str(tmp_path / "alone")) == {"R22_S12": reference["R22_S12"]}
 
@@ -76,7 +77,7 @@ def test_files_carry_detector_cards_and_wcs(reference, fscene, tmp_path):
     from astropy.wcs import WCS
 
     with ThreadPoolExecutor(1) as pool:
-        parallel.run(fscene, str(tmp_path), pool, ccds=[fp.ccd("R22_S11")])
+        parallel.run(make_plan(fscene), str(tmp_path), pool, ccds=[fp.ccd("R22_S11")])
     with fits.open(tmp_path / "R22_S11.fits") as hdus:
         assert hdus[0].header["DETNAME"] == "R22_S11" and hdus[0].header["DETECTOR"] == 94
         assert [h.name for h in hdus[1:4]] == ["IMAGE", "MASK", "VARIANCE"]
@@ -89,7 +90,7 @@ def test_files_carry_detector_cards_and_wcs(reference, fscene, tmp_path):
 def test_dask_local_cluster_same_bytes(fscene, reference, tmp_path):
     pytest.importorskip("dask.distributed")
     with parallel.dask_executor("local", workers=2) as executor:
-        parallel.run(fscene, str(tmp_path), executor, ccds=TWO)
+        parallel.run(make_plan(fscene), str(tmp_path), executor, ccds=TWO)
     assert shas(str(tmp_path)) == {c.name: reference[c.name] for c in TWO}
 
 
@@ -132,7 +133,7 @@ def test_dask_scheduler_and_worker_processes_same_bytes(fscene, reference, tmp_p
         with Client(address, timeout=60) as client:
             client.wait_for_workers(1, timeout=120)
         with parallel.dask_executor(address) as executor:
-            parallel.run(fscene, str(tmp_path / "out"), executor, ccds=TWO)
+            parallel.run(make_plan(fscene), str(tmp_path / "out"), executor, ccds=TWO)
         assert shas(str(tmp_path / "out")) == {c.name: reference[c.name] for c in TWO}
     finally:
         for proc in (worker, scheduler):
@@ -193,14 +194,14 @@ def test_killed_run_resumes_with_identical_files(tmp_path):
 def test_corrupt_file_is_redone_and_others_kept(fscene, reference, tmp_path):
     out = str(tmp_path)
     with ThreadPoolExecutor(2) as pool:
-        parallel.run(fscene, out, pool)
+        parallel.run(make_plan(fscene), out, pool)
         target = os.path.join(out, "R22_S12.fits")
         with open(target, "r+b") as stream:
             stream.seek(20000)
             stream.write(b"\x00garbage\x00")
         os.remove(os.path.join(out, "R01_S00.fits"))
         before = os.stat(os.path.join(out, "R43_S22.fits")).st_mtime_ns
-        result = parallel.run(fscene, out, pool)
+        result = parallel.run(make_plan(fscene), out, pool)
     assert sorted(r["detector"] for r in result.rendered) == ["R01_S00", "R22_S12"]
     assert sorted(r["detector"] for r in result.skipped) == ["R22_S11", "R43_S22"]
     assert os.stat(os.path.join(out, "R43_S22.fits")).st_mtime_ns == before
@@ -210,11 +211,11 @@ def test_corrupt_file_is_redone_and_others_kept(fscene, reference, tmp_path):
 def test_other_scene_is_not_replaced_without_overwrite(fscene, tmp_path):
     out = str(tmp_path)
     with ThreadPoolExecutor(2) as pool:
-        parallel.run(fscene, out, pool, ccds=[fp.ccd("R43_S22")])
+        parallel.run(make_plan(fscene), out, pool, ccds=[fp.ccd("R43_S22")])
         other = parse_focal_scene(dict(RAW, seed=12))
         with pytest.raises(OutputError, match="R43_S22.fits: exists.*--overwrite"):
-            parallel.run(other, out, pool, ccds=[fp.ccd("R43_S22")])
-        result = parallel.run(other, out, pool, ccds=[fp.ccd("R43_S22")], overwrite=True)
+            parallel.run(make_plan(other), out, pool, ccds=[fp.ccd("R43_S22")])
+        result = parallel.run(make_plan(other), out, pool, ccds=[fp.ccd("R43_S22")], overwrite=True)
     assert [r["detector"] for r in result.rendered] == ["R43_S22"]
     assert parallel.read_manifest(out)["R43_S22"]["scene_sha256"] == other.digest
 
@@ -234,7 +235,7 @@ def test_failures_are_retried_then_reported_without_losing_others(fscene, refere
 
     monkeypatch.setattr(parallel, "render_ccd", flaky)
     with ThreadPoolExecutor(2) as pool:
-        result = parallel.run(fscene, str(tmp_path), pool, retries=2)
+        result = parallel.run(make_plan(fscene), str(tmp_path), pool, retries=2)
     assert calls["R22_S11"] == 2 and calls["R01_S00"] == 3
     assert [r["detector"] for r in result.failed] == ["R01_S00"]
     rows = parallel.read_manifest(str(tmp_path))
@@ -267,7 +268,7 @@ def test_mosaic_bins_each_ccd_and_draws_the_track(fscene, tmp_path):
 
     out = str(tmp_path)
     with ThreadPoolExecutor(2) as pool:
-        parallel.run(fscene, out, pool, ccds=TWO)
+        parallel.run(make_plan(fscene), out, pool, ccds=TWO)
     binned = binned_ccds(fscene, out, 8)
     assert sorted(c.name for c in binned) == sorted(c.name for c in TWO)
     with fits.open(tmp_path / "R22_S12.fits") as hdus:
@@ -300,13 +301,13 @@ def test_a_killed_worker_is_reported_and_a_rerun_finishes(fscene, reference, tmp
     out = str(tmp_path)
     monkeypatch.setattr(parallel, "render_ccd", _die_on_r01)
     with parallel.process_pool(1) as pool:
-        result = parallel.run(fscene, out, pool, retries=1)
+        result = parallel.run(make_plan(fscene), out, pool, retries=1)
     assert "R01_S00" in {r["detector"] for r in result.failed}
     rows = parallel.read_manifest(out)
     assert rows["R01_S00"]["status"] == "failed"
     monkeypatch.setattr(parallel, "render_ccd", _REAL_RENDER)
     with ThreadPoolExecutor(2) as pool:
-        again = parallel.run(fscene, out, pool)
+        again = parallel.run(make_plan(fscene), out, pool)
     assert not again.failed
     assert shas(out) == reference
 
@@ -377,6 +378,6 @@ def test_full_size_ccds_same_bytes_with_1_and_2_workers(tmp_path):
     for workers in (1, 2):
         out = str(tmp_path / f"w{workers}")
         with parallel.process_pool(workers) as pool:
-            parallel.run(full, out, pool)
+            parallel.run(make_plan(full), out, pool)
         got.append(shas(out))
     assert got[0] == got[1] and len(got[0]) == 3

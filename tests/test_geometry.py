@@ -1,4 +1,4 @@
-"""Observing geometry against closed forms and DESIGN.md section 4."""
+"""Observing geometry against closed forms and the paper's numbers."""
 import numpy as np
 import pytest
 

@@ -29,13 +29,12 @@ def test_vertices_take_lumos_magnitudes():
     from inject.exposure.scene import parse_focal_scene
     from inject.exposure.plan import vertex_model
     from inject.orbits.passes import TRACK_STEP_S, Exposure, Orbit, compute_pass
-    from inject.camera.wcs import Pointing
     fscene = parse_focal_scene(_raw(PLATE))
     track = fscene.tracks[0]
     pointing = fscene.pointing
     dense = compute_pass(Orbit.read_tle(str(ROOT / "sample_fields" / "example_starlink_like.tle")),
                          Exposure("2026-06-15T23:29:59", 2.0),
-                         Pointing(pointing["ra"], pointing["dec"]), step_s=TRACK_STEP_S)
+                         pointing, step_s=TRACK_STEP_S)
     x, y = dense.focal_mm()
     plate = [lumos.geometry.Surface(10.0, np.array([0.0, 0.0, -1.0]),
                                     lumos.brdf.library.LAMBERTIAN(0.5))]

@@ -260,7 +260,7 @@ def test_mask_widths_and_rules(tmp_path):
     assert set(widths) == {"sb", "fwhm", "lsst", "acstools"}
     assert s["mask_width_px"] == widths["sb"] and s["mask_rule"] == "sb"
     assert widths["fwhm"] == pytest.approx(3 * s["fwhm_px"])
-    # Gaussian and Moffat fits are narrower than the model-free FWHM (DESIGN.md section 6).
+    # Gaussian and Moffat fits are narrower than the model-free FWHM (a Moffat's wings widen the model-free FWHM).
     assert s["gaussian_fwhm_px"] < s["fwhm_px"] and s["moffat_fwhm_px"] < s["fwhm_px"]
     # The sb mask ends where the streak drops below 1 sky sigma: check against the truth model.
     model = streak_models(make_scene([box_satellite(550, 8.0, 0, 0, 0)]))[0]

@@ -1,4 +1,4 @@
-"""``inject pass`` (CONTRACT.md) and orbit tracks on the focal plane (issue 13)."""
+"""``inject pass`` and orbit tracks on the focal plane (issue 13)."""
 import json
 import math
 from pathlib import Path
@@ -8,6 +8,7 @@ import pytest
 from astropy import units as u
 from astropy.coordinates import ICRS, AltAz, SkyCoord
 
+from inject.orbits.tracks import resolve_ccd_orbits
 from inject.trajectory import clip_path
 from inject.camera.wcs import ccd_wcs
 from inject.camera import layout as fp
@@ -392,7 +393,8 @@ def test_orbit_in_a_ccd_scene_lands_where_the_wcs_says():
     from inject.instrument import LSST
     from inject.camera.wcs import pointing_wcs
 
-    scene = parse_scene(_ccd_scene_raw(pointing={"ra": RA, "dec": DEC, "rotation": 25.0}))
+    scene = parse_scene(resolve_ccd_orbits(
+        _ccd_scene_raw(pointing={"ra": RA, "dec": DEC, "rotation": 25.0})))
     vertices = scene.satellites[0].track.vertices
     assert len(vertices) >= 5
     wcs = pointing_wcs(scene.pointing, scene.detector.shape, LSST.pixel_scale_arcsec)
@@ -427,8 +429,8 @@ def test_simulate_an_orbit_scene(tmp_path, capsys):
     # TRUTH describes the streak drawn (its first vertex), not the scene's zenith and phi.
     from inject.config import parse_scene
     from inject.schema import apply_overrides
-    first = parse_scene(apply_overrides(
-        yaml.safe_load(path.read_text()), ["detector.nx=256", "detector.ny=256"])
+    first = parse_scene(resolve_ccd_orbits(apply_overrides(
+        yaml.safe_load(path.read_text()), ["detector.nx=256", "detector.ny=256"]))
     ).satellites[0].track.vertices[0]
     assert truth["zenith_deg"] == pytest.approx(first["zenith"], abs=1e-9)
     assert truth["phi_deg"] == pytest.approx(first["phi"], abs=1e-9)
@@ -441,10 +443,10 @@ def test_ccd_scene_orbit_that_misses_says_why():
 
     raw = _ccd_scene_raw(pointing={"ra": (RA + 40) % 360, "dec": DEC})
     with pytest.warns(OrbitWarning, match="no streak: misses the field"):
-        scene = parse_scene(raw)
+        scene = parse_scene(resolve_ccd_orbits(raw))
     assert all(v["x"] < -1e5 for v in scene.satellites[0].track.vertices)  # off the image
     with pytest.raises(SceneError, match="pointing: required with an orbit"):
-        parse_scene({k: v for k, v in raw.items() if k != "pointing"})
+        resolve_ccd_orbits({k: v for k, v in raw.items() if k != "pointing"})
 
 
 def _terminator_pass(aim_s=5.0):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from inject.config import parse_scene
+from inject.orbits.tracks import resolve_ccd_orbits
 from inject.schema import load_scene_file
 from inject.geometry import Geometry
 from inject.instrument import ARCSEC_PER_RAD
@@ -53,7 +54,7 @@ def test_ccd_scene_truth_is_the_pass(dense):
     raw = _raw(detector={"type": "itl", "nx": 256, "ny": 256},
                pointing={"ra": RA, "dec": DEC, "rotation": 0.0})
     raw.pop("zenith")
-    scene = parse_scene(raw)
+    scene = parse_scene(resolve_ccd_orbits(raw))
     first = scene.satellites[0].track.vertices[0]
     i = int(np.argmin(np.abs(dense.alt_deg - (90 - first["zenith"]))))  # its sample
     assert abs(dense.alt_deg[i] - (90 - first["zenith"])) < 1e-9

@@ -12,7 +12,7 @@ def test_smtn002_values():
 
 
 def test_sky_level_g_30s():
-    # DESIGN.md section 3: ~465 e-/px in g for 30 s with the hardware zero point.
+    # ~465 e-/px in g for 30 s with the hardware zero point.
     assert ph.sky_per_pixel("g", 30.0) == pytest.approx(465, abs=1)
 
 

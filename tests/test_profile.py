@@ -1,4 +1,4 @@
-"""Stationary profile and cross-section against closed forms and DESIGN.md section 4."""
+"""Stationary profile and cross-section against closed forms and the paper's numbers."""
 import galsim
 import numpy as np
 import pytest
@@ -55,7 +55,7 @@ def test_annulus_line_profile_matches_bektesevic(range_km):
 def test_kolmogorov_lsf_fwhm():
     psf = Seeing(0.67).profile()
     cs = line_spread(psf, step_arcsec=0.002)
-    # DESIGN.md quotes 0.705"; direct quadrature of GalSim's own profile gives 0.7023".
+    # The design notes quote 0.705"; direct quadrature of GalSim's own profile gives 0.7023".
     assert cs.fwhm() == pytest.approx(0.705, abs=0.004)
 
     def lsf(y):

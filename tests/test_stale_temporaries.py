@@ -5,6 +5,7 @@ import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+from inject.exposure.plan import make_plan
 from inject.camera import layout as fp
 from inject.exposure import runner as parallel
 from inject.exposure.scene import parse_focal_scene
@@ -50,7 +51,7 @@ def test_focal_plane_rerun_removes_a_killed_workers_temporary(tmp_path, capsys):
         "satellites": []})
     stale = plant(tmp_path, ".inject-abc123.fits")
     with ThreadPoolExecutor(1) as pool:
-        result = parallel.run(fscene, str(tmp_path), pool, ccds=(fp.ccd("R22_S11"),))
+        result = parallel.run(make_plan(fscene), str(tmp_path), pool, ccds=(fp.ccd("R22_S11"),))
     assert len(result.rendered) == 1 and not stale.exists()
     assert "removed 1 temporary file" in capsys.readouterr().err
     assert sorted(n for n in os.listdir(tmp_path) if n.startswith(".inject-")) == []

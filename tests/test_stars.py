@@ -23,7 +23,7 @@ def stamps():
 # --- counts -------------------------------------------------------------------------------
 
 def test_bahcall_soneira_reference_counts():
-    # DESIGN.md section 3 (from the paper): N(<20) = 1440 at b = 90, 5191 at b = 30, l = 90.
+    # The paper: N(<20) = 1440 at b = 90, 5191 at b = 30, l = 90.
     assert st.cumulative_counts(20.0, 0.0, 90.0) == pytest.approx(1440, rel=0.01)
     assert st.cumulative_counts(20.0, 90.0, 30.0) == pytest.approx(5191, rel=0.01)
     # Symmetric in b, vectorised over magnitude, increasing with magnitude.

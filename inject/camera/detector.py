@@ -1,4 +1,4 @@
-"""LSSTCam CCD models (obs_lsst values, DESIGN.md section 3).
+"""LSSTCam CCD models (obs_lsst values).
 
 A :class:`Detector` is the imaging area of one sensor with its amplifier grid; a cut-out of any
 size keeps the sensor's electronics.

@@ -1,5 +1,5 @@
 """The LSSTCam focal plane: 189 science CCDs, their pixels in focal-plane millimetres, the
-field-angle distortion and each CCD's celestial WCS (DESIGN.md section 8).
+field-angle distortion (each CCD's celestial WCS is :mod:`inject.camera.wcs`'s).
 
 Geometry is obs_lsst's nominal one (``policy/rafts.yaml``, ``policy/lsstCam/R*.yaml``,
 ``generateCamera.py``; afw ``cameraGeom/Orientation.cc``): raft ``Rij`` is centred at
@@ -26,7 +26,6 @@ rotSkyPos, flipX=False)`` (obs_lsst's LSSTCam raw formatter keeps ``wcsFlipX = F
 rotation 0, +y points north and +x west (east is to the left, as the sky is seen); at
 rotation 90 deg, +y points east. :mod:`inject.camera.wcs` uses the same convention for single CCDs.
 """
-import math
 import re
 from dataclasses import dataclass
 
@@ -36,7 +35,6 @@ from inject.camera.detector import E2V, ITL
 from inject.errors import InputError
 from inject.instrument import ARCSEC_PER_RAD
 from inject.trajectory import clip_path
-from inject.validate import check_pointing
 
 #: Pixel pitch, mm.
 PIXEL_MM = 0.010

@@ -1,4 +1,4 @@
-"""``inject focalplane``: a focal-plane scene rendered CCD by CCD (CONTRACT.md)."""
+"""``inject focalplane``: a focal-plane scene rendered CCD by CCD."""
 import json
 import os
 import sys

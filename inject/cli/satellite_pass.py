@@ -1,5 +1,5 @@
 """``inject pass``: a satellite (TLE or circular orbit) seen from the site during one exposure,
-and the CCDs its apparent track crosses (CONTRACT.md)."""
+and the CCDs its apparent track crosses."""
 import json
 import math
 import sys
@@ -64,7 +64,7 @@ def pass_report(orbit, exposure, pointing, site):
     Returns
     -------
     report : dict
-        CONTRACT.md's keys (``in_field``, ``message``, ``detectors``: the CCDs the track
+        The documented keys (``in_field``, ``message``, ``detectors``: the CCDs the track
         crosses while sunlit, those with a streak, ``samples``) and more
         (``detectors_in_shadow``: CCDs crossed only in Earth's shadow).
     p : inject.orbits.passes.Pass

@@ -89,7 +89,7 @@ def match_streaks(found, truth, shape, max_angle_deg=0.5, max_offset_px=5.0):
 # Scoring any masking function against injected truth
 
 #: ``t`` of the true region ``{streak_model > t x sky sigma}`` that masks are scored against
-#: (the simulator's STREAK plane uses the same level, :data:`inject.scene.STREAK_MASK_SIGMA`).
+#: (the simulator's STREAK plane uses the same level, :data:`inject.maskplanes.STREAK_MASK_SIGMA`).
 TRUTH_SIGMA = 1.0
 
 #: A streak counts as found by a mask when the mask covers at least this fraction of its core

@@ -236,7 +236,7 @@ def _exposure_arrays(exposure):
 
 
 def mask_image(source, *, mask=None, pixel_scale=None, **options):
-    """Streaks of an image, one dict each (CONTRACT.md keys and more).
+    """Streaks of an image, one dict each (the documented keys and more).
 
     Parameters
     ----------

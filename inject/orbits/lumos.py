@@ -17,6 +17,7 @@ lumos computes earthshine only with an Earth BRDF (with none it calls ``None``):
 import numpy as np
 
 from inject.errors import SceneError
+from inject.schema import check_keys, number
 
 #: Parameters of each BRDF type (lumos.brdf.library's LAMBERTIAN, PHONG, ABG).
 BRDF_KEYS = {"lambertian": ("albedo",), "phong": ("Kd", "Ks", "n"), "abg": ("A", "B", "g")}
@@ -44,36 +45,36 @@ def surfaces(where, spec):
     earth_brdf : callable or None
         None: no earthshine.
     """
-    from inject.schema import check_keys, number
+
     lumos = _lumos()
-    _check_keys(where, spec, {"surfaces", "earthshine", "earth_albedo"}, {"surfaces"})
+    check_keys(where, spec, {"surfaces", "earthshine", "earth_albedo"}, {"surfaces"})
     items = spec["surfaces"]
     if not isinstance(items, list) or not items:
         raise SceneError(f"{where}.surfaces: needs a list of surfaces")
     out = []
     for j, surface in enumerate(items):
         here = f"{where}.surfaces[{j}]"
-        _check_keys(here, surface, {"area", "normal", "brdf"}, {"area", "normal", "brdf"})
-        area = _number(f"{here}.area", surface["area"])
+        check_keys(here, surface, {"area", "normal", "brdf"}, {"area", "normal", "brdf"})
+        area = number(f"{here}.area", surface["area"])
         if not area > 0:
             raise SceneError(f"{here}.area={area}: must be > 0 (m^2)")
         normal = surface["normal"]
         if not isinstance(normal, list) or len(normal) != 3:
             raise SceneError(f"{here}.normal={normal!r}: needs [x, y, z]")
-        n = np.array([_number(f"{here}.normal", v) for v in normal])
+        n = np.array([number(f"{here}.normal", v) for v in normal])
         if not np.linalg.norm(n) > 0:
             raise SceneError(f"{here}.normal={normal!r}: must not be zero")
         brdf = surface["brdf"]
         kind = brdf.get("type") if isinstance(brdf, dict) else None
         if kind not in BRDF_KEYS:
             raise SceneError(f"{here}.brdf={brdf!r}: needs type: one of {', '.join(BRDF_KEYS)}")
-        _check_keys(f"{here}.brdf", brdf, {"type", *BRDF_KEYS[kind]}, {"type", *BRDF_KEYS[kind]})
-        params = [_number(f"{here}.brdf.{k}", brdf[k]) for k in BRDF_KEYS[kind]]
+        check_keys(f"{here}.brdf", brdf, {"type", *BRDF_KEYS[kind]}, {"type", *BRDF_KEYS[kind]})
+        params = [number(f"{here}.brdf.{k}", brdf[k]) for k in BRDF_KEYS[kind]]
         make = getattr(lumos.brdf.library, kind.upper())
         out.append(lumos.geometry.Surface(area, n / np.linalg.norm(n), make(*params)))
     earth_brdf = None
     if spec.get("earthshine", False) is True:
-        albedo = _number(f"{where}.earth_albedo", spec.get("earth_albedo", 0.3))
+        albedo = number(f"{where}.earth_albedo", spec.get("earth_albedo", 0.3))
         if not 0 <= albedo <= 1:
             raise SceneError(f"{where}.earth_albedo={albedo}: must be in [0, 1]")
         earth_brdf = lumos.brdf.library.LAMBERTIAN(albedo)

@@ -46,7 +46,7 @@ from inject.camera.layout import focal_of_field_angle
 from inject.camera.wcs import Pointing, tangent_to_focal
 from inject.geometry import R_EARTH_KM
 from inject.photometry import apparent_magnitude
-from inject.validate import RANGES, check_pointing, finite, in_range, parse_time, positive
+from inject.validate import RANGES, finite, in_range, parse_time, positive
 
 # Offline: never download Earth-orientation data; past the bundled table, warn and extrapolate.
 iers.conf.auto_download = False
@@ -802,7 +802,7 @@ class Pass:
         return np.where(ok, x, np.nan), np.where(ok, y, np.nan)
 
     def samples(self):
-        """The samples as a list of JSON-ready dicts (the keys of CONTRACT.md's ``inject pass``
+        """The samples as a list of JSON-ready dicts (the keys of ``inject pass --json``
         except the focal-plane ``x_mm``/``y_mm``, plus the field angles)."""
         keys = ("t_s", "alt_deg", "az_deg", "range_km", "nadir_angle_deg", "phi_deg",
                 "angular_speed_rad_s", "sun_fraction", "light_time_s", "apparent_alt_deg",

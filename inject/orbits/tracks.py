@@ -9,12 +9,9 @@ import numpy as np
 from inject.camera.detector import detector_from_spec
 from inject.camera.wcs import Pointing
 from inject.errors import InjectError, OrbitWarning, SceneError
-from inject.geometry import nadir_angle
 from inject.instrument import LSST
-from inject.orbits.lumos import magnitudes
 from inject.orbits.passes import (
     TRACK_STEP_S, Exposure, compute_pass, orbit_from_spec, site_from_spec, track_runs)
-from inject.photometry import apparent_magnitude
 from inject.schema import check_keys, number
 from inject.trajectory import FocalTrack
 from inject.validate import check_pointing, parse_time
@@ -98,7 +95,7 @@ def sunlit_runs(where, dense, mag, lumos=None, ref_range=550.0):
         base = np.full(len(run), float(mag))
         if lumos is not None:
             from inject.geometry import nadir_angle
-            from inject.orbits.passes.lumos import magnitudes
+            from inject.orbits.lumos import magnitudes
             from inject.photometry import apparent_magnitude
 
             # The mag at ref_range, face-on, that the streak model's cos/r^2 scaling turns
