@@ -19,7 +19,7 @@ _API = {
     # errors
     **dict.fromkeys(("InjectError", "InputError", "SceneError", "FileFormatError",
                      "OutputError", "ResourceError", "OrbitError", "InputWarning",
-                     "OrbitWarning"), "inject.errors"),
+                     "OrbitWarning", "RunError"), "inject.errors"),
     "RANGES": "inject.validate",
     # physics
     "LSST": "inject.instrument", "Telescope": "inject.instrument",

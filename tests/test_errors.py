@@ -119,12 +119,6 @@ def test_an_input_error_comes_back_from_a_worker_process():
 # --- OutputError is an OSError now: code that turns an OSError into an OutputError must let
 # an OutputError through as it is.
 
-_ATOMIC_FIX = pytest.mark.xfail(
-    strict=True, reason="inject/io/atomic.py wraps any OSError, OutputError included (until "
-                        "atomic_path and _commit let OutputError through)")
-
-
-@_ATOMIC_FIX
 def test_output_error_inside_atomic_path_keeps_its_message(tmp_path):
     from inject.io.atomic import atomic_path
 
@@ -136,7 +130,6 @@ def test_output_error_inside_atomic_path_keeps_its_message(tmp_path):
     assert not path.exists() and not list(tmp_path.iterdir())
 
 
-@_ATOMIC_FIX
 def test_output_appearing_during_a_group_is_reported_once(tmp_path):
     from inject.io.atomic import atomic_path, output_group
 

@@ -173,7 +173,6 @@ def _render(plan, ccds, args, records):
         path = os.path.join(args.output, "mosaic.png")
         write_mosaic(path, plan.fscene, args.output)
         print(f"wrote {path}", file=sys.stderr)
-    if result.failed:
-        names = ", ".join(r["detector"] for r in result.failed[:10])
-        raise OutputError(f"{len(result.failed)} CCD(s) failed after retries: {names} (see "
-                          f"{os.path.join(args.output, 'manifest.csv')}; rerun to retry them)")
+    error = result.error(args.output)  # which CCDs failed, with their messages
+    if error is not None:
+        raise error  # a RunError: one line, exit status 2

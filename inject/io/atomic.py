@@ -172,6 +172,8 @@ def atomic_path(path, overwrite=False):
             else:
                 group.append((path, tmp, overwrite))  # the group moves it, or removes it
             tmp = None
+    except OutputError:
+        raise  # says what already (an OSError too: not to be wrapped again)
     except OSError as err:
         raise _cannot_write(path, err) from None
     finally:
@@ -252,7 +254,7 @@ def _commit(pending):
                     os.remove(done)  # it did not exist before
                 else:
                     os.replace(backup, done)
-        if isinstance(err, OSError):
+        if isinstance(err, OSError) and not isinstance(err, OutputError):
             raise _cannot_write(path, err) from None
         raise
     finally:
