@@ -5,12 +5,13 @@ Each module is listed by its name in the package's folder layout first and by it
 flat name after it, so the pages follow the code whichever layout it has.
 """
 import sys
+import tomllib
 from pathlib import Path
 
 import mkdocs_gen_files
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import first_existing  # noqa: E402
+from _common import ROOT, first_existing, importable  # noqa: E402
 
 #: (page, title, introduction, [(module, earlier name or None), ...])
 PAGES = [
@@ -65,21 +66,18 @@ PAGES = [
       ("inject.signals", None), ("inject.maskplanes", None)]),
 ]
 
-#: The layers, top to bottom.
-LAYERS = """\
-cli
-addstreak | exposure | masking
-orbits | io
-scene
-config | stars
-camera | render
-streak
-physics: geometry, satellite, photometry, profile
-trajectory | instrument
-schema
-validate
-signals | maskplanes
-errors"""
+
+def layers():
+    """The layer contract of ``pyproject.toml`` (import-linter), top to bottom, or None."""
+    try:
+        config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError):
+        return None
+    for contract in config.get("tool", {}).get("importlinter", {}).get("contracts", []):
+        if contract.get("type") == "layers":
+            return [layer.replace("inject.", "") for layer in contract["layers"]]
+    return None
+
 
 #: Per-module options (the command line's module holds one private helper per command).
 OPTIONS = {"inject.cli.main": "members: [build_parser, main]",
@@ -109,10 +107,30 @@ for page, title, _, modules in PAGES:
     found = [first_existing(*(m for m in pair if m)) for pair in modules]
     names = ", ".join(f"`{m}`" for m in found if m)
     index.append(f"| [{title}]({page}.md) | {names} |")
-index += ["", "Imports run one way, from the command line down to the errors: a module imports "
-          "from the layers below its own; `|` separates parts of one layer that do not import "
-          "each other, and the four physics modules may import one another:", "",
-          "```text", LAYERS, "```", "",
-          "`make lint` checks this with import-linter (the contracts are in `pyproject.toml`)."]
+
+# The names ``inject`` itself exports (imported on first use), with the page of each.
+importable()
+import inject  # noqa: E402
+
+exported = getattr(inject, "_API", {})  # public name -> defining module
+if exported:
+    page_of = {m: page for page, _, _, modules in PAGES for pair in modules for m in pair if m}
+    index += ["", "## `import inject`", "",
+              "These names are importable from the package itself (`inject.simulate`, "
+              "`inject.StreakModel`, ...); each module is imported only when one of its names "
+              "is first used.", "", "| name | defined in |", "|---|---|"]
+    for name, module in exported.items():
+        page = page_of.get(module)
+        where = f"[`{module}`]({page}.md)" if page else f"`{module}`"
+        index.append(f"| `{name}` | {where} |")
+
+order = layers()
+if order:
+    index += ["", "## Layers", "",
+              "Imports run one way, from the command line down to the errors: a module may "
+              "import only from the layers below its own, and the parts of one layer separated "
+              "by `|` do not import each other. The layers, top to bottom (from "
+              "`pyproject.toml`, where `make lint` checks them with import-linter):", "",
+              "```text", *order, "```"]
 with mkdocs_gen_files.open("reference/api/index.md", "w") as f:
     f.write("\n".join(index) + "\n")
