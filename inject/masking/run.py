@@ -3,8 +3,8 @@
 :func:`mask_image` returns one dict per streak with the documented keys (docs/reference);
 :func:`write_masked` writes a copy of an input FITS file with the STREAK mask plane set.
 The command line is :mod:`inject.cli.mask`, which imports this module to build its parser:
-the modules that need OpenCV, SciPy or astropy are imported inside the functions, so
-registering the command costs nothing.
+the modules that need OpenCV, SciPy or astropy, and the geometry the engine alone uses, are
+imported inside the functions, so registering the command costs next to nothing.
 """
 import math
 import os
@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 from inject.errors import InputError
 from inject.maskplanes import MASK_PLANES, header_planes, mask_header
-from inject.masking.geometry import Line, span_indices
 from inject.validate import positive
 
 #: Defaults of the command (the engine's own defaults, repeated here so the parser needs no
@@ -168,6 +167,7 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
     import numpy as np
 
     from inject.masking.detect import FALSE_ALARM_Z, MAX_STREAKS, detect_streaks, prepare
+    from inject.masking.geometry import span_indices
     from inject.masking.mask import lost_pixels, mask_spans, mask_widths, sb_width
     from inject.masking.measure import measure_streak
 
@@ -289,6 +289,7 @@ def _set_streak_plane(exposure, streaks):
     import numpy as np
     from astropy.io import fits
 
+    from inject.masking.geometry import Line
     from inject.masking.mask import mask_spans, paint
 
     shape = exposure.image_hdu.data.shape

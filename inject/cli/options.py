@@ -1,0 +1,76 @@
+"""Options that several commands share: the output option of every command that writes one
+file, and the options describing one satellite (``inject profile``, ``inject add-streak``)
+with the :class:`~inject.streak.StreakModel` they make."""
+from inject.errors import InputError
+from inject.instrument import LSST
+from inject.validate import check
+
+
+def add_output_option(p, metavar, help=None):
+    """``-o/--output/--out``: every subcommand accepts the three spellings."""
+    p.add_argument("-o", "--output", "--out", dest="output", required=True, metavar=metavar,
+                   help=help)
+
+
+def add_satellite_options(p):
+    """Options describing one satellite and its geometry (shared by profile and add-streak)."""
+    p.add_argument("--height", type=float, required=True, metavar="KM",
+                   help="orbit height, km (100 or more)")
+    p.add_argument("--zenith", type=float, default=0.0, metavar="DEG", help="zenith angle")
+    p.add_argument("--phi", type=float, default=90.0, metavar="DEG",
+                   help="velocity rotation angle, paper eq. 8 (90: along constant azimuth)")
+    p.add_argument("--shape", choices=("box", "disk"), default="box", help="satellite shape")
+    p.add_argument("--length", type=float, metavar="M",
+                   help="box length along the motion (default: 7.25)")
+    p.add_argument("--width", type=float, metavar="M",
+                   help="box width across the motion (default: 2.65)")
+    p.add_argument("--radius", type=float, metavar="M", help="disk radius (default: 1.0)")
+    p.add_argument("--seeing", type=float, default=0.67, metavar="ARCSEC",
+                   help="atmospheric FWHM (Kolmogorov unless --seeing-model), 0 for none")
+    p.add_argument("--seeing-model", choices=("kolmogorov", "vonkarman"), default="kolmogorov",
+                   help="atmospheric PSF")
+    p.add_argument("--band", default="g", help="LSST filter: u g r i z y")
+    p.add_argument("--mag", type=float, default=5.0,
+                   help="stationary AB magnitude at --ref-range, face-on")
+    p.add_argument("--ref-range", type=float, default=550.0, metavar="KM",
+                   help="range at which --mag is given")
+    p.add_argument("--pixel-scale", type=float, default=0.2, metavar="ARCSEC",
+                   help="arcsec per pixel")
+
+
+def model_from_args(args, pixel_scale=None, pixel_scale_name="--pixel-scale"):
+    """The :class:`~inject.streak.StreakModel` of the satellite options, their ranges checked
+    (:data:`inject.validate.RANGES`) before any profile is built."""
+    from inject.profile import Seeing  # GalSim: when a command runs, not for --help
+    from inject.streak import StreakModel
+
+    model = StreakModel(  # its own domain checks first (NaN, <= 0, zenith >= 90, band)
+        height_km=args.height, zenith_deg=args.zenith, phi_deg=args.phi,
+        shape=shape_from_args(args), mag=args.mag, band_name=args.band,
+        seeing=Seeing(args.seeing, args.seeing_model),
+        telescope=LSST.with_pixel_scale(pixel_scale or args.pixel_scale),
+        ref_range_km=args.ref_range)
+    for quantity, option in (("height", "--height"), ("zenith", "--zenith"), ("phi", "--phi"),
+                             ("mag", "--mag"), ("seeing", "--seeing"),
+                             ("ref_range", "--ref-range")):
+        check(quantity, getattr(args, option[2:].replace("-", "_")), option)
+    check("pixel_scale", pixel_scale or args.pixel_scale, pixel_scale_name)
+    option = "--radius" if args.shape == "disk" else "--length/--width"
+    check("size", round(model.shape.size_m, 3), f"{option} (largest extent, m)")
+    return model
+
+
+def shape_from_args(args):
+    """The :class:`~inject.satellite.Box` or :class:`~inject.satellite.Disk` of ``--shape``
+    and its sizes (defaults: the paper's satellite)."""
+    from inject.satellite import Box, Disk
+
+    if args.shape == "box":
+        if args.radius is not None:
+            raise InputError("--radius", args.radius, "only applies to --shape disk")
+        return Box(7.25 if args.length is None else args.length,
+                   2.65 if args.width is None else args.width)
+    if args.length is not None or args.width is not None:
+        raise InputError("--length/--width", (args.length, args.width),
+                         "only apply to --shape box")
+    return Disk(1.0 if args.radius is None else args.radius)
