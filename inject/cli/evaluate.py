@@ -17,7 +17,15 @@ import math
 import os
 import sys
 
-from inject.errors import InputError
+from inject.errors import InputError, OutputError
+from inject.io.atomic import atomic_path, output_group
+from inject.masking.run import json_safe
+from inject.maskplanes import MASK_PLANES
+from inject.signals import deferred
+from inject.validate import check
+
+# ``inject --help`` imports this module: the simulator, inject.masking.evaluate and the
+# maskers (GalSim, SciPy, OpenCV, logging...) are imported inside the functions that use them.
 
 #: Defaults of the campaign: magnitudes spanning peak S/N per pixel ~1.7 to ~0.03 at 550 km.
 DEFAULT_MAGS = (11.0, 12.0, 13.0, 13.5, 14.0, 14.5, 15.0, 15.5)
@@ -75,8 +83,8 @@ def campaign_images(heights, mags, seeds, size, progress=None):
     import numpy as np
 
     from inject.config import DEFAULT_SCENE, parse_scene
-    from inject.schema import apply_overrides
     from inject.scene import simulate
+    from inject.schema import apply_overrides
     total = len(heights) * len(mags) * len(seeds)
     k = 0
     for height in heights:
@@ -99,8 +107,8 @@ def streak_free_images(count, size, progress=None, seed0=STREAK_FREE_SEED0):
     """``count`` streak-free images of the campaign's field (seeds ``seed0 + 1`` on), with
     labels ``{height_km: None, mag: None, seed, streak_free: True}``, generated lazily."""
     from inject.config import DEFAULT_SCENE, parse_scene
-    from inject.schema import apply_overrides
     from inject.scene import simulate
+    from inject.schema import apply_overrides
     for k in range(1, count + 1):
         seed = seed0 + k
         raw = apply_overrides(DEFAULT_SCENE, [f"seed={seed}", f"detector.nx={size}",
@@ -130,8 +138,7 @@ def false_positive_summary(records, size):
 
 def bad_pixels(sim):
     """Unusable pixels of a simulated image (the LSST bad planes of its mask)."""
-    from inject.maskplanes import MASK_PLANES
-    from inject.masking.detect import BAD_PLANES
+    from inject.masking.detect import BAD_PLANES  # OpenCV, SciPy: not for --help
 
     bits = sum(1 << MASK_PLANES[p] for p in BAD_PLANES if p in MASK_PLANES)
     return (sim.mask & bits) != 0
@@ -186,8 +193,6 @@ OUTPUT_FILES = ("records.csv", "summary.csv", "summary.md", "pixel_loss.csv",
 
 
 def _write_text(path, text, overwrite=False):
-    from inject.io.atomic import atomic_path
-
     with atomic_path(path, overwrite) as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as f:
             f.write(text)
@@ -209,8 +214,6 @@ def write_plots(summary, loss, outdir, masker, overwrite=False):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from inject.io.atomic import atomic_path
 
     paths = []
 
@@ -314,8 +317,6 @@ def add_evaluate_parser(sub):
 
 
 def _check(args):
-    from inject.validate import check
-
     if args.seeds < 1:
         raise InputError("--seeds", args.seeds, "must be >= 1")
     if args.seeds > STREAK_FREE_SEED0:
@@ -343,9 +344,6 @@ def _output_directory(path):
     """Make ``path`` (and missing parents) for the block; remove the directories it made if
     the block fails or is stopped and they are still empty (the outputs appear only at the
     block's end, so on failure they are)."""
-    from inject.errors import OutputError
-    from inject.signals import deferred
-
     missing, head = [], os.path.abspath(path)
     while not os.path.isdir(head) and head != os.path.dirname(head):
         missing.append(head)
@@ -369,10 +367,6 @@ def _output_directory(path):
 
 def run_evaluate(args):
     """The ``inject evaluate`` command (``args`` from :func:`add_evaluate_parser`)."""
-    from inject.errors import OutputError
-    from inject.io.atomic import output_group
-    from inject.masking.run import json_safe
-
     from inject.masking.evaluate import load_masker
 
     _check(args)

@@ -4,6 +4,10 @@ import os
 import sys
 
 from inject.errors import InputError, OutputError
+from inject.io.atomic import atomic_path
+
+# ``inject --help`` imports this module: the scene parser, the plan, the runner (multiprocessing,
+# Dask) and the camera layout are imported inside the functions that use them.
 
 
 def add_focalplane_parser(sub):
@@ -59,9 +63,9 @@ def _selected(plan, args):
 
 
 def run_focalplane(args):
-    from inject.schema import apply_overrides, load_scene_file
     from inject.exposure.plan import make_plan
     from inject.exposure.scene import parse_focal_scene
+    from inject.schema import apply_overrides, load_scene_file
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers", args.workers, "must be >= 1")
     if args.retries < 0:
@@ -132,7 +136,6 @@ def write_satellites(outdir, records):
     import io
 
     from inject.exposure.plan import SATELLITE_FIELDS
-    from inject.io.atomic import atomic_path
 
     text = io.StringIO()
     writer = csv.DictWriter(text, SATELLITE_FIELDS)

@@ -7,6 +7,11 @@ import sys
 import numpy as np
 
 from inject.errors import InputError
+from inject.io.atomic import atomic_path, check_writable
+from inject.validate import RANGES, check_pointing, parse_time
+
+# ``inject --help`` imports this module: the orbits (astropy, SGP4), the camera layout and the
+# streak model are imported inside the functions that use them.
 
 
 def add_pass_parser(sub):
@@ -112,10 +117,8 @@ def pass_report(orbit, exposure, pointing, site):
 
 
 def run_pass(args):
-    from inject.orbits.passes import Exposure, orbit_from_spec, site_from_spec
     from inject.camera.wcs import Pointing
-    from inject.validate import parse_time
-    from inject.validate import RANGES, check_pointing
+    from inject.orbits.passes import Exposure, orbit_from_spec, site_from_spec
 
     time = parse_time(args.time, "--time")
     orbit = (orbit_from_spec({"tle": args.tle}, time, "--tle") if args.tle is not None
@@ -126,8 +129,6 @@ def run_pass(args):
                                          "rotation": args.rotation},
                                         {"ra": "--ra", "dec": "--dec", "rotation": "--rotation"}))
     if args.plot:
-        from inject.io.atomic import check_writable
-
         check_writable(args.plot, args.overwrite)  # fail before the work
     report, p, track = pass_report(orbit, exposure, pointing, site)
     if args.plot:
@@ -183,7 +184,6 @@ def write_plot(path, report, p, track, overwrite=False):
     from matplotlib.patches import Rectangle
 
     from inject.camera import layout as fp
-    from inject.io.atomic import atomic_path
 
     dense, xd, yd, runs = track
     fig = Figure(figsize=(11, 6))
