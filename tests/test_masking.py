@@ -433,7 +433,7 @@ def test_full_ccd_two_streaks_one_faint_one_ending():
 def test_bootstrap_replicates_match_the_direct_computation():
     # The batched replicate FWHMs (one convolution of each replicate's change) equal
     # profile_fwhm of each replicate, and the integer-weight trimmed means equal float ones.
-    from inject.masking.measure import _replicate_fwhms, stack_samples
+    from inject.masking.measure import replicate_fwhms, stack_samples
 
     rng = np.random.default_rng(7)
     d = rng.uniform(-40, 40, 60_000)
@@ -451,7 +451,7 @@ def test_bootstrap_replicates_match_the_direct_computation():
                                    rtol=0, atol=1e-9)
         rows.append(a - profile.baseline)
     rows = np.array(rows)
-    fast = _replicate_fwhms(profile, rows, first, 1.5)
+    fast = replicate_fwhms(profile, rows, first, 1.5)
     for row, f in zip(rows, fast):
         value = profile.value.copy()
         value[first:last] = row
@@ -466,7 +466,7 @@ def test_bootstrap_replicates_match_the_direct_computation():
 def test_clipped_box_medians_match_resorting():
     # One sort per row and order statistics give the same medians as clipping and sorting
     # again, NaNs (unusable) and constant rows included; robust_sigma is the MAD sigma.
-    from inject.masking.detect import _clipped_row_medians, robust_sigma
+    from inject.masking.detect import clipped_row_medians, robust_sigma
 
     def resorted(a):
         def medians(x):
@@ -483,7 +483,7 @@ def test_clipped_box_medians_match_resorting():
     a = rng.normal(0, 1, (40, 300)).astype(np.float32)
     a[:, :12] += 40 * rng.random((40, 12)).astype(np.float32)  # stars in every box
     a[3], a[5, 7:], a[8] = np.nan, np.nan, 2.0
-    np.testing.assert_array_equal(_clipped_row_medians(a), resorted(a))
+    np.testing.assert_array_equal(clipped_row_medians(a), resorted(a))
     v = rng.normal(3, 2, 1001)
     v[::10] = np.nan
     f = v[np.isfinite(v)]
@@ -506,14 +506,14 @@ def test_image_size_not_a_multiple_of_the_binning():
 
 
 def test_bin_value_order_is_lexsort():
-    from inject.masking.measure import _bin_value_order
+    from inject.masking.measure import bin_value_order
 
     rng = np.random.default_rng(5)
     for n, nbins, scale in ((1, 1, 1.0), (2, 2, 1.0), (500, 3, 1e5), (2000, 50, 1e-3),
                             (300, 2 ** 40, 1.0), (1000, 7, 0.0)):
         v, b = np.round(rng.normal(size=n) * scale, 1), rng.integers(0, nbins, n)
-        o, ref = _bin_value_order(b, v), np.lexsort((v, b))
+        o, ref = bin_value_order(b, v), np.lexsort((v, b))
         np.testing.assert_array_equal(b[o], b[ref])
         np.testing.assert_array_equal(v[o], v[ref])
     v = np.array([1.0, np.nan, -np.inf, 0.0])  # non-finite values: the general way
-    np.testing.assert_array_equal(_bin_value_order(np.zeros(4, int), v), [2, 3, 0, 1])
+    np.testing.assert_array_equal(bin_value_order(np.zeros(4, int), v), [2, 3, 0, 1])

@@ -332,7 +332,7 @@ def _dead_blocks(crop, factor, binned):
     return same
 
 
-def _clipped_row_medians(a, passes=2, k=3.0):
+def clipped_row_medians(a, passes=2, k=3.0):
     """Median of the finite values of each row after ``passes`` rounds of ``k``-sigma
     clipping about the median (sigma from the median absolute deviation): a star or a streak
     in a box does not pull it.
@@ -397,7 +397,7 @@ def _box_medians(binned, box):
     padded = np.full((gy * by, gx * bx), np.nan, dtype=np.float32)
     padded[:ny, :nx] = binned
     blocks = padded.reshape(gy, by, gx, bx).transpose(0, 2, 1, 3).reshape(gy * gx, by * bx)
-    med = _clipped_row_medians(blocks).reshape(gy, gx)
+    med = clipped_row_medians(blocks).reshape(gy, gx)
     if np.all(np.isnan(med)):
         raise MaskingError("no usable pixels for the background")
     med[np.isnan(med)] = np.nanmedian(med)

@@ -80,7 +80,7 @@ class BinnedStack:
     def __init__(self, bins, values, nbins):
         bins = np.asarray(bins)
         values = np.asarray(values, dtype=np.float64)
-        order = _bin_value_order(bins, values)
+        order = bin_value_order(bins, values)
         self.order = order
         self.values = values[order]
         counts = np.bincount(bins.ravel(), minlength=nbins)[:nbins] if bins.size else \
@@ -222,7 +222,7 @@ def _running_sum(x):
     return out
 
 
-def _bin_value_order(bins, values):
+def bin_value_order(bins, values):
     """Permutation sorting by bin, then by value.
 
     One sort of int64 keys ``bin | value quantised | index`` (the index comes back out of
@@ -1120,7 +1120,7 @@ def _bootstrap(profile, stack, t, smooth, length, fwhm, n_boot, seed):
     outer bins and the baseline keep their values. The restacked bins are a
     contiguous slice of the sorted stack (no new sort), a replicate is two running sums over
     it, and smoothing and pixel-response removal, both linear, are applied to all replicates'
-    changes at once (:func:`_replicate_fwhms`).
+    changes at once (:func:`replicate_fwhms`).
     """
     replicates = np.full(n_boot, np.nan)
     step = profile.step
@@ -1140,10 +1140,10 @@ def _bootstrap(profile, stack, t, smooth, length, fwhm, n_boot, seed):
     for r in range(n_boot):
         draws = np.bincount(rng.integers(0, nseg, nseg), minlength=nseg)
         inner[r] = stack_statistic(sub, profile.statistic, sorted_weights=np.take(draws, seg))
-    return _replicate_fwhms(profile, inner - profile.baseline, first, smooth)
+    return replicate_fwhms(profile, inner - profile.baseline, first, smooth)
 
 
-def _replicate_fwhms(profile, inner, first, smooth_px):
+def replicate_fwhms(profile, inner, first, smooth_px):
     """FWHM (pixel response removed) of ``profile`` with bins ``first, first + 1, ...``
     replaced by each row of ``inner``; the same as :func:`profile_fwhm` of each replicate.
 
