@@ -311,15 +311,22 @@ def check_pointing(pointing, names=None):
 
 
 def ranges_markdown():
-    """The README's table of :data:`RANGES` (markdown)."""
+    """The table of :data:`RANGES` as Markdown (the docs' input-ranges page is built from it)."""
+    def cell(text):
+        return str(text).replace("|", "\\|").replace("\n", " ")
+
+    def options(r):
+        commands = ("add-streak", "evaluate", "pass", "simulate", "profile", "mask")
+        return ", ".join(f"`{o}`" if o.startswith("-") or o.split(" ")[0] in commands else o
+                         for o in (o.strip() for o in r.options.split(","))) if r.options else ""
+
     lines = ["| scene key | options | unit | accepted | warned | why |",
              "|---|---|---|---|---|---|"]
     for r in RANGES.values():
-        why = r.why + (f"; warned: {r.warn_why}" if r.warn_why else "")
-        options = ", ".join(f"`{o.strip()}`" if o.strip().startswith(("-", "add", "eval", "pass"))
-                            else o.strip() for o in r.options.split(",")) if r.options else ""
-        lines.append(f"| `{r.name}` | {options} | {r.unit} | {r.bounds()} | {r.plausible()} "
-                     f"| {why} |")
+        accepted = r.bounds() + (" (whole number)" if r.integer else "")
+        why = r.why + (f". Warned: {r.warn_why}" if r.warn_why else "")
+        lines.append("| " + " | ".join(cell(c) for c in (
+            f"`{r.name}`", options(r), r.unit, accepted, r.plausible(), why)) + " |")
     return "\n".join(lines)
 
 

@@ -21,7 +21,7 @@ limit and passes when ``value <= limit``:
     wings).
 ``reference``
     Largest pixel difference from :func:`inject.reference.render_brute_force`, relative to the
-    streak's peak surface brightness ``peak_e_per_px`` (CONTRACT: the most charge a pixel can
+    streak's peak surface brightness ``peak_e_per_px`` (by definition: the most charge a pixel can
     get), <= 1e-4. Tracks are short (<= 3 px) to keep the brute force affordable; the
     reference is Richardson-extrapolated from ``n`` and ``2n`` sub-steps, which removes the
     midpoint rule's ``O(step^2)`` error. The error relative to the short streak's own

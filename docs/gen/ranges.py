@@ -9,7 +9,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import importable  # noqa: E402
 
 importable()
-from inject.validate import RANGES  # noqa: E402
+from inject.validate import ranges_markdown  # noqa: E402
 
 INTRO = """\
 # Input ranges
@@ -47,30 +47,5 @@ last one wins.
 """
 
 
-def cell(text):
-    """Markdown table cell: no pipes, no line breaks."""
-    return str(text).replace("|", "\\|").replace("\n", " ")
-
-
-def options(r):
-    if not r.options:
-        return ""
-    out = []
-    for o in (o.strip() for o in r.options.split(",")):
-        # "add-streak --seed", "--zenith": code; "or the image's WCS": prose.
-        code = o.startswith("-") or o.split(" ")[0] in ("add-streak", "evaluate", "pass",
-                                                        "simulate", "profile", "mask")
-        out.append(f"`{o}`" if code else o)
-    return ", ".join(out)
-
-
-rows = ["| scene key | options | unit | accepted | warned | why |",
-        "|---|---|---|---|---|---|"]
-for r in RANGES.values():
-    accepted = r.bounds() + (" (whole number)" if r.integer else "")
-    why = r.why + (f". Warned: {r.warn_why}" if r.warn_why else "")
-    rows.append("| " + " | ".join(cell(c) for c in (
-        f"`{r.name}`", options(r), r.unit, accepted, r.plausible(), why)) + " |")
-
 with mkdocs_gen_files.open("reference/input-ranges.md", "w") as f:
-    f.write(INTRO + "\n".join(rows) + "\n")
+    f.write(INTRO + ranges_markdown() + "\n")

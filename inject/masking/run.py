@@ -1,6 +1,6 @@
 """Detect, measure and mask the streaks of an image: the engine of ``inject mask``.
 
-:func:`mask_image` returns one dict per streak with the documented keys (docs/reference);
+:func:`mask_image` returns one dict per streak with the keys documented in docs/reference/file-formats.md;
 :func:`write_masked` writes a copy of an input FITS file with the STREAK mask plane set.
 The command line is :mod:`inject.cli.mask`, which imports this module to build its parser:
 the modules that need OpenCV, SciPy or astropy, and the geometry the engine alone uses, are
@@ -96,7 +96,7 @@ def check_options(pixel_scale, rule, sb_sigma, fwhm_factor, threshold=None, max_
 
 def streak_record(measurement, detection, widths, rule, counts, pixel_scale, sky_sigma,
                   fallback=None):
-    """The dict of one streak (CONTRACT keys first); ``rule`` is the mask-width rule applied,
+    """The dict of one streak (the documented keys first); ``rule`` is the mask-width rule applied,
     ``fallback`` the words of the bounded rule that replaced the measured ``sb`` width (or
     None).
 
