@@ -389,7 +389,8 @@ def check_charge(scene, vertex_values=None):
         vertex_values = [sat.track.vertices or ({},) for sat in scene.satellites]
     for i, (sat, values) in enumerate(zip(scene.satellites, vertex_values)):
         for vertex in values:
-            model = StreakModel(vertex.get("height", sat.height), vertex.get("zenith", scene.zenith),
+            model = StreakModel(vertex.get("height", sat.height),
+                                vertex.get("zenith", scene.zenith),
                                 vertex.get("phi", sat.phi), sat.shape, vertex.get("mag", sat.mag),
                                 scene.band, ref_range_km=sat.ref_range,
                                 range_km=vertex.get("range"),

@@ -82,7 +82,8 @@ class StreakModel:
         if not isinstance(self.band_name, str):
             raise InputError("band", self.band_name, "must be a band name such as 'g'")
         band(self.band_name)
-        self.geometry  # validates height and zenith now rather than on first use
+        # Touch the cached geometry: validates height and zenith now rather than on first use.
+        _ = self.geometry
 
     @cached_property
     def geometry(self):

@@ -243,27 +243,34 @@ RANGES = {r.name: r for r in (
     Range("height", "km", 100, _INF, "nothing orbits below ~100 km, and the speed is a "
           "circular orbit's", warn_hi=4e5,
           warn_why="beyond the Moon (384 400 km) nothing is an Earth satellite, and the "
-          "effective exposure per pixel exceeds any exposure", options="--height, evaluate --heights"),
+          "effective exposure per pixel exceeds any exposure",
+          options="--height, evaluate --heights"),
     Range("mag", "AB mag", -30, 100, "-30 is brighter than the Sun, at -26.7", warn_lo=-10,
-          warn_why="brighter than any satellite seen (Iridium flares reached -9.5)", options="--mag, evaluate --mags"),
+          warn_why="brighter than any satellite seen (Iridium flares reached -9.5)",
+          options="--mag, evaluate --mags"),
     Range("phi", "deg", -_INF, _INF, "any angle (the velocity's direction)", options="--phi"),
     Range("range", "km", 0, 1e6, "a polyline vertex's exact range (an orbit's vertices carry "
           "it), in place of the spherical-Earth one", lo_open=True),
     Range("angular_speed", "rad/s", 0, 1, "a polyline vertex's exact angular speed across the "
           "star field (an orbit's vertices carry it); LEO at zenith is ~0.014", lo_open=True),
-    Range("ref_range", "km", 1, 1e6, "magnitudes are quoted at 550 or 1000 km", options="--ref-range"),
+    Range("ref_range", "km", 1, 1e6, "magnitudes are quoted at 550 or 1000 km",
+          options="--ref-range"),
     Range("size", "m", 0, 200, "the shape's largest extent, box diagonal, disk diameter or "
-          "composite span; the ISS, the largest satellite, is 109 m", lo_open=True, options="--length, --width, --radius"),
+          "composite span; the ISS, the largest satellite, is 109 m", lo_open=True,
+          options="--length, --width, --radius"),
     Range("reflectance", "", 0, 1e6, "a composite part's flux per unit area relative to the "
           "other parts", lo_open=True),
-    Range("track.x0", "px", -1e6, 1e6, "1e6 px is 55 deg away at 0.2 arcsec/px", options="add-streak --x0"),
-    Range("track.y0", "px", -1e6, 1e6, "1e6 px is 55 deg away at 0.2 arcsec/px", options="add-streak --y0"),
+    Range("track.x0", "px", -1e6, 1e6, "1e6 px is 55 deg away at 0.2 arcsec/px",
+          options="add-streak --x0"),
+    Range("track.y0", "px", -1e6, 1e6, "1e6 px is 55 deg away at 0.2 arcsec/px",
+          options="add-streak --y0"),
     Range("track.angle", "deg", -_INF, _INF, "any angle", options="add-streak --angle"),
     Range("track.length", "px", 0, 1e6, "1e6 px is 55 deg at 0.2 arcsec/px; omit it to "
           "cross the image", options="add-streak --track-length"),
     Range("pixel_scale", "arcsec/px", 0.01, 10, "LSSTCam has 0.2; the profile is sampled per "
           "pixel", options="--pixel-scale, or the image's WCS"),
-    Range("gain", "e-/ADU", 0, 1000, "a gain is positive", lo_open=True, options="add-streak --gain, or the GAIN header"),
+    Range("gain", "e-/ADU", 0, 1000, "a gain is positive", lo_open=True,
+          options="add-streak --gain, or the GAIN header"),
     Range("charge_per_px", "e-", 0, 1e15, "the expected charge of the brightest pixel; "
           "numpy's Poisson draw fails above 9e18, and 1e15 e- is already 6e9 full wells"),
 )}
@@ -379,4 +386,5 @@ def parse_time(value, name="time"):
     try:
         return Time(value, scale="utc")
     except (ValueError, TypeError):
-        raise InputError(name, value, "must be an ISO 8601 UTC time, e.g. 2026-06-15T23:30:00")
+        raise InputError(name, value,
+                         "must be an ISO 8601 UTC time, e.g. 2026-06-15T23:30:00") from None

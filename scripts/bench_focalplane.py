@@ -72,7 +72,8 @@ def paired(plan, crossed, plain, n, outdir):
     parallel.limit_threads()
     os.makedirs(outdir, exist_ok=True)
     # Warm-up (imports, the stars' PSF stamps, the profile tables' caches), not timed.
-    parallel.render_ccd(parallel.Task(fscene, plain[-1].name, outdir, tuple(plan.streaks(plain[-1])), keep=False))
+    parallel.render_ccd(parallel.Task(fscene, plain[-1].name, outdir,
+                                      tuple(plan.streaks(plain[-1])), keep=False))
     baseline_ccd((ccd_scene(fscene, plain[-1]), plain[-1].name, outdir))
     out = {}
     for kind, ccds in (("plain", plain[:n]), ("streak", crossed[:n])):

@@ -6,9 +6,9 @@ from Rubin, the pointing at alt 55, az 290 at mid-exposure (2026-06-15, ~1.6 h a
 
 Two ways, timed in this run:
 
-* ``prefilter + exact``: :func:`inject.orbits.passes.find_passes`: SGP4 ``SatrecArray`` at every 5 s with
-  numpy geometry for the whole catalog, then the exact astropy frames (:func:`compute_pass`, 1 s
-  samples, light time, shadow) for the candidates only;
+* ``prefilter + exact``: :func:`inject.orbits.passes.find_passes`: SGP4 ``SatrecArray`` at every
+  5 s with numpy geometry for the whole catalog, then the exact astropy frames
+  (:func:`compute_pass`, 1 s samples, light time, shadow) for the candidates only;
 * ``exact for all``: :func:`compute_pass` with the exposure's shared :class:`FieldFrame` on a
   random sample of the catalog (``--exact-sample``), scaled to the catalog: the brute force.
 

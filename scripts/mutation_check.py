@@ -114,7 +114,8 @@ MUTATIONS = [
              "return (self.height_km, self.zenith_deg, self.phi_deg, self.shape, None,",
              ("tests/test_many_streaks.py",)),
     Mutation("FWHM pixel response not removed", "inject/masking/measure.py",
-             'return 2 * values - np.convolve(values, pixel_response(step, angle_deg), mode="same")',
+             'return 2 * values - np.convolve(values, '
+             'pixel_response(step, angle_deg), mode="same")',
              "return values", MASK),
     Mutation("smoothing that widens (moving average)", "inject/masking/measure.py",
              'return savgol_filter(f, n, 2, mode="interp") if n < f.size else f',

@@ -38,8 +38,10 @@ def lsst_image(tmp_path):
     mask_header["HIERARCH MP_BAD"] = 0
     mask_header["HIERARCH MP_SAT"] = 1
     hdus = fits.HDUList([fits.PrimaryHDU(),
-                         fits.ImageHDU(image, name="IMAGE", header=fits.Header({"BUNIT": "electron"})),
-                         fits.ImageHDU(np.zeros(image.shape, np.int32), header=mask_header, name="MASK"),
+                         fits.ImageHDU(image, name="IMAGE",
+                                       header=fits.Header({"BUNIT": "electron"})),
+                         fits.ImageHDU(np.zeros(image.shape, np.int32), header=mask_header,
+                                       name="MASK"),
                          fits.ImageHDU(np.full(image.shape, 400.0, np.float32), name="VARIANCE")])
     path = tmp_path / "lsst.fits"
     hdus.writeto(path)
@@ -102,7 +104,8 @@ def test_lsst_file_updates_variance_and_mask(lsst_image, tmp_path):
         assert np.all(model[streak] > 20.0) and np.all(model[~streak] <= 20.0)
 
 
-@pytest.mark.parametrize("content", [b"", b"SIMPLE  =                    T" + b" " * 50, b"garbage" * 100])
+@pytest.mark.parametrize("content", [b"", b"SIMPLE  =                    T" + b" " * 50,
+                                     b"garbage" * 100])
 def test_unreadable_input(tmp_path, capsys, content):
     bad = tmp_path / "bad.fits"
     bad.write_bytes(content)

@@ -62,7 +62,10 @@ def test_quicklook_truth_is_visible_beside_a_saturated_streak():
     x_pix, y_mid = ax.transData.transform((nx / 2, 100.0))
     col = int(round(x_pix))
     column = rgba[:, col - 20:col + 20]  # a band across the streak, away from the label
-    row = lambda y: height - 1 - int(round(ax.transData.transform((nx / 2, y))[1]))
+
+    def row(y):
+        return height - 1 - int(round(ax.transData.transform((nx / 2, y))[1]))
+
     coloured = (column.max(axis=2) - column.min(axis=2)) > 80  # not grey: the truth colour
     centre = slice(row(100.6), row(99.4) + 1)
     assert (column[centre] > 250).all()  # the track itself: white, not covered

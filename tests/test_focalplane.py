@@ -72,7 +72,10 @@ def test_plate_scales_are_derivatives_of_the_field_angle():
         r = np.hypot(x, y)
         radial, tangential = fp.plate_scales(x, y)
         h = 1e-3
-        theta = lambda rr: np.hypot(*fp.field_angle(rr * x / max(r, 1), rr * y / max(r, 1)))
+
+        def theta(rr):
+            return np.hypot(*fp.field_angle(rr * x / max(r, 1), rr * y / max(r, 1)))
+
         if r > 0:
             numeric = (theta(r + h) - theta(r - h)) / (2 * h) * 206264.80624709636
             assert radial == pytest.approx(numeric, rel=1e-9)

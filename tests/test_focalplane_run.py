@@ -32,7 +32,7 @@ TWO = (fp.ccd("R22_S12"), fp.ccd("R43_S22"))  # one with a streak, one without
 
 def shas(outdir):
     rows = parallel.read_manifest(outdir)
-    for name, row in rows.items():
+    for _name, row in rows.items():
         assert row["status"] == "done"
         assert parallel.sha256_file(os.path.join(outdir, row["file"])) == row["sha256"]
     return {name: row["sha256"] for name, row in rows.items()}

@@ -260,7 +260,8 @@ def test_mask_widths_and_rules(tmp_path):
     assert set(widths) == {"sb", "fwhm", "lsst", "acstools"}
     assert s["mask_width_px"] == widths["sb"] and s["mask_rule"] == "sb"
     assert widths["fwhm"] == pytest.approx(3 * s["fwhm_px"])
-    # Gaussian and Moffat fits are narrower than the model-free FWHM (a Moffat's wings widen the model-free FWHM).
+    # Gaussian and Moffat fits are narrower than the model-free FWHM (a Moffat's wings widen the
+    # model-free FWHM).
     assert s["gaussian_fwhm_px"] < s["fwhm_px"] and s["moffat_fwhm_px"] < s["fwhm_px"]
     # The sb mask ends where the streak drops below 1 sky sigma: check against the truth model.
     model = streak_models(make_scene([box_satellite(550, 8.0, 0, 0, 0)]))[0]
@@ -444,7 +445,7 @@ def test_bootstrap_replicates_match_the_direct_computation():
     sub = stack.subset(first, last)
     seg = np.clip(((t[sub.order] + 500) / 100).astype(int), 0, 9)
     rows = []
-    for k in range(4):
+    for _ in range(4):
         draws = np.bincount(rng.integers(0, 10, 10), minlength=10)
         a = sub.trimmed_mean(sorted_weights=draws[seg])
         np.testing.assert_allclose(a, sub.trimmed_mean(sorted_weights=draws[seg].astype(float)),

@@ -119,7 +119,8 @@ def test_looser_budget_smaller_footprint_and_bounded_error(tolerance):
     image = np.zeros((400, 420))
     result = render_streak(image, PAPER_550, seg, Budget(tolerance, flux_tolerance=tolerance))
     # The Box idiom itself is good to ~2e-5 of the peak.
-    assert np.abs(image - ref).max() < result.plan.total_predicted_error * ref.max() + 3e-5 * ref.max()
+    assert np.abs(image - ref).max() < (result.plan.total_predicted_error * ref.max()
+                                        + 3e-5 * ref.max())
 
 
 def test_segment_angle_must_match_profile_angle():

@@ -85,7 +85,8 @@ def test_sky_options():
     assert sky_level(scene("sky=false")) == 0
     assert sky_level(scene("sky.level=123.5")) == 123.5
     dark = sky_level(scene())
-    assert sky_level(scene("sky.airmass_scaling=true")) == pytest.approx(dark / np.cos(np.radians(70)))
+    assert sky_level(scene("sky.airmass_scaling=true")) == pytest.approx(
+        dark / np.cos(np.radians(70)))
     assert sky_level(scene("sky.mag=21.25")) == pytest.approx(dark * 10 ** 0.4)
     with pytest.raises(SceneError, match="unknown keys"):
         sky_level(scene("sky.colour=blue"))

@@ -153,7 +153,8 @@ def detector_from_spec(spec):
     except (TypeError, ValueError) as err:
         if isinstance(err, InputError):
             raise
-        raise InputError("detector", spec, "gains, read_noise and full_well must be numbers") from None
+        raise InputError("detector", spec,
+                         "gains, read_noise and full_well must be numbers") from None
 
 
 def bleed_saturation(image, full_well, midline=None):

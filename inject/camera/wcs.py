@@ -96,7 +96,8 @@ def ccd_wcs(ccd_, pointing):
     polynomials ``A, B`` are its non-linear terms exactly, and the CD matrix is the boresight
     plate scale turned by the rotator. The inverse ``AP, BP`` is the series inverse of the
     radial polynomial fitted to order 9 (:func:`_sip_coefficients`; astropy's
-    ``world_to_pixel`` iterates on the forward terms anyway). Tested against an independent gnomonic computation in ``tests/test_focalplane.py``.
+    ``world_to_pixel`` iterates on the forward terms anyway). Tested against an independent
+    gnomonic computation in ``tests/test_focalplane.py``.
 
     Parameters
     ----------

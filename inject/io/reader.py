@@ -212,7 +212,8 @@ class InputExposure:
             if key in header:
                 header[key] = value
             else:
-                header.set(key, value, after=after if after is not None and after in header else None)
+                header.set(key, value,
+                           after=after if after is not None and after in header else None)
         if not self._is_plain(index):
             self._changed.add(index)
 

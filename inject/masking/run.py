@@ -1,7 +1,8 @@
 """Detect, measure and mask the streaks of an image: the engine of ``inject mask``.
 
-:func:`mask_image` returns one dict per streak with the keys documented in docs/reference/file-formats.md;
-:func:`write_masked` writes a copy of an input FITS file with the STREAK mask plane set.
+:func:`mask_image` returns one dict per streak with the keys documented in
+docs/reference/file-formats.md; :func:`write_masked` writes a copy of an input FITS file with
+the STREAK mask plane set.
 The command line is :mod:`inject.cli.mask`, which imports this module to build its parser:
 the modules that need OpenCV, SciPy or astropy, and the geometry the engine alone uses, are
 imported inside the functions, so registering the command costs next to nothing.

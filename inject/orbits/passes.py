@@ -2,7 +2,8 @@
 
 The engine behind issue 13 (the part that does not need the focal plane). A satellite is an SGP4
 element set (:class:`Orbit`, from a TLE or from circular-orbit elements); the site, the exposure
-and the sidereally tracked pointing are :class:`Site`, :class:`Exposure` and :class:`~inject.camera.wcs.Pointing`.
+and the sidereally tracked pointing are :class:`Site`, :class:`Exposure` and
+:class:`~inject.camera.wcs.Pointing`.
 :func:`compute_pass` samples the exposure and returns a :class:`Pass`: where the satellite is
 (geometric alt/az, range), how the paper sees it (nadir angle, phi), how fast it crosses the tracked
 star field, whether it is sunlit, and where it appears on the sky as gnomonic field angles in the
@@ -641,12 +642,12 @@ class FieldFrame:
         """Gnomonic field angles (deg) of unit vectors (n_times, 3) in this frame.
 
         Returns ``xi, eta, x, y, front``: standard coordinates (xi East, eta North) and the same
-        rotated into the focal-plane axes by :func:`inject.camera.wcs.tangent_to_focal`; tangent-plane coordinates in
-        radians (as afw's FIELD_ANGLE) expressed in degrees. They are ICRS offsets: those of the
-        star that appears where the direction points (:attr:`to_icrs`), so that a CCD's WCS
-        (TAN about the ICRS boresight) maps them to the same pixel as that star. ``front`` is
-        False where the direction is 90 deg or more from the boresight (the projection is then
-        undefined: NaN).
+        rotated into the focal-plane axes by :func:`inject.camera.wcs.tangent_to_focal`;
+        tangent-plane coordinates in radians (as afw's FIELD_ANGLE) expressed in degrees. They
+        are ICRS offsets: those of the star that appears where the direction points
+        (:attr:`to_icrs`), so that a CCD's WCS (TAN about the ICRS boresight) maps them to the
+        same pixel as that star. ``front`` is False where the direction is 90 deg or more from
+        the boresight (the projection is then undefined: NaN).
         """
         cz = _dot(unit, self.centre)
         front = cz > 1e-6

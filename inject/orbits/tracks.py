@@ -19,14 +19,15 @@ from inject.validate import check_pointing, parse_time
 
 def orbit_focal_track(where, spec, sat, scene, raw, lumos=None):
     """A satellite's track from its orbit during the exposure: the apparent, sunlit parts of
-    the pass inside the field (all of them, in time order) as a polyline in mm (:func:`inject.orbits.passes.track_runs` on a pass
-    sampled every 0.1 s: a vertex at least every second and wherever the path bends by more
-    than 0.05 px), each vertex with the orbit's height, zenith (90 - alt), phi and the
-    satellite's ``mag`` dimmed by the penumbra (the streak model scales it with range and
-    nadir angle itself, as :meth:`inject.orbits.passes.Pass.magnitude` does), and the pass's exact
-    ``range`` and ``angular_speed`` (so t_eff, the charge per pixel and the defocus are the
-    pass's, not those of the paper's spherical Earth at that height and zenith). A pass that never
-    enters the field or is in shadow there has no vertices, and says why (OrbitWarning)."""
+    the pass inside the field (all of them, in time order) as a polyline in mm
+    (:func:`inject.orbits.passes.track_runs` on a pass sampled every 0.1 s: a vertex at least
+    every second and wherever the path bends by more than 0.05 px), each vertex with the
+    orbit's height, zenith (90 - alt), phi and the satellite's ``mag`` dimmed by the penumbra
+    (the streak model scales it with range and nadir angle itself, as
+    :meth:`inject.orbits.passes.Pass.magnitude` does), and the pass's exact ``range`` and
+    ``angular_speed`` (so t_eff, the charge per pixel and the defocus are the pass's, not those
+    of the paper's spherical Earth at that height and zenith). A pass that never enters the
+    field or is in shadow there has no vertices, and says why (OrbitWarning)."""
     dense = orbit_pass(where, spec, raw, scene.exptime, scene.pointing)
     runs, message = sunlit_runs(where, dense, sat.mag, lumos, sat.ref_range)
     about = {"name": dense.orbit.name or "", "in_field": bool(dense.in_field),
