@@ -9,14 +9,13 @@ unchanged bit for bit. IMAGE, MASK and VARIANCE of an afw file written without `
 input file is never modified.
 """
 import numpy as np
-from astropy.table import Table, vstack
 from astropy.io import fits
+from astropy.table import Table, vstack
 
 from inject.errors import InputError
 from inject.io.fits import truth_table
-from inject.maskplanes import FLAG_SATURATED
+from inject.maskplanes import FLAG_SATURATED, STREAK_MASK_SIGMA
 from inject.render import Budget
-from inject.maskplanes import STREAK_MASK_SIGMA
 from inject.scene import render_tracks
 from inject.validate import positive
 
@@ -117,9 +116,9 @@ def _flag_saturated(truth, models, saturated):
 def _check_arguments(exposure, models, tracks, rng):
     """Raise :class:`InputError` for arguments of the wrong kind (which would otherwise fail
     deep inside the renderer); return ``rng`` as a generator."""
-    from inject.trajectory import Track
     from inject.io.reader import InputExposure
     from inject.streak import StreakModel
+    from inject.trajectory import Track
 
     if not isinstance(exposure, InputExposure):
         raise InputError("exposure", type(exposure).__name__,

@@ -33,10 +33,9 @@ import galsim
 import numpy as np
 from scipy import fft, integrate, interpolate, ndimage
 
-from inject.profile import line_spread
 from inject.errors import InputError
+from inject.profile import line_spread
 from inject.validate import positive
-
 
 #: Finest pixel tolerance the renderer accepts (at 5e-7 it agrees with GalSim's Box FFT of a
 #: whole CCD to 1.5e-7 of the peak; such budgets cost seconds per profile).

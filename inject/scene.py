@@ -15,11 +15,25 @@ from inject.camera.detector import add_cosmic_rays, bleed_saturation, raw_layout
 from inject.config import Scene, sky_level
 from inject.errors import SceneError
 from inject.instrument import LSST
-from inject.maskplanes import (FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, MASK_PLANES,
-                               STREAK_MASK_FRACTION, STREAK_MASK_SIGMA)
+from inject.maskplanes import (
+    FLAG_CLIPPED,
+    FLAG_OFF_IMAGE,
+    FLAG_SATURATED,
+    MASK_PLANES,
+    STREAK_MASK_FRACTION,
+    STREAK_MASK_SIGMA,
+)
 from inject.profile import Seeing
-from inject.render import (AUTO_MIN_TOLERANCE, PROFILE_CACHE, SHORT_TRACK_CHECK_PX, Budget,
-                     render_polyline, render_segment, snap_tolerance, swept_profile)
+from inject.render import (
+    AUTO_MIN_TOLERANCE,
+    PROFILE_CACHE,
+    SHORT_TRACK_CHECK_PX,
+    Budget,
+    render_polyline,
+    render_segment,
+    snap_tolerance,
+    swept_profile,
+)
 from inject.stars import add_star_field
 from inject.streak import StreakModel
 from inject.trajectory import Polyline, Segment

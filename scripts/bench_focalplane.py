@@ -36,10 +36,11 @@ import numpy as np
 
 from inject.camera import layout as fp
 from inject.exposure import runner as parallel
-from inject.schema import load_scene_file
-from inject.exposure.scene import parse_focal_scene
 from inject.exposure.ccd import ccd_scene
 from inject.exposure.plan import make_plan
+from inject.exposure.scene import parse_focal_scene
+from inject.schema import load_scene_file
+
 SCENE = os.path.join(os.path.dirname(__file__), "..", "sample_fields",
                      "focal_paper_550km.yaml")
 

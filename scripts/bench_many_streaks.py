@@ -31,8 +31,10 @@ import time
 
 import numpy as np
 
-from inject import render, scene as scene_mod, stars, streak
+from inject import render, stars, streak
+from inject import scene as scene_mod
 from inject.config import DEFAULT_SCENE, parse_scene
+
 SATELLITE = {"height": 550.0, "shape": {"type": "box", "length": 7.25, "width": 2.65}}
 
 

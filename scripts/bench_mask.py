@@ -35,16 +35,22 @@ import time
 
 import numpy as np
 
-from inject.config import DEFAULT_SCENE, parse_scene
-from inject.schema import apply_overrides
+from inject.config import DEFAULT_SCENE, parse_scene, sky_level
 from inject.masking.baseline import canny_hough, segments_match
-from inject.masking.detect import (BAD_PLANES, BIN, FALSE_ALARM_Z, max_significance, prepare,
-                                   threshold_for)
+from inject.masking.detect import (
+    BAD_PLANES,
+    BIN,
+    FALSE_ALARM_Z,
+    max_significance,
+    prepare,
+    threshold_for,
+)
 from inject.masking.evaluate import match_streaks, truth_line
 from inject.masking.run import analyse
 from inject.maskplanes import MASK_PLANES
 from inject.scene import simulate, streak_models
-from inject.config import sky_level
+from inject.schema import apply_overrides
+
 #: Magnitudes of the completeness run (paper satellite at 550 km, zenith 70: peak S/N per
 #: pixel 4.4, 1.7, 0.69, 0.28, 0.17, 0.11, 0.069, 0.044, 0.028).
 MAGS = (10.0, 11.0, 12.0, 13.0, 13.5, 14.0, 14.5, 15.0, 15.5)

@@ -4,11 +4,13 @@ margin from a few sampled vertices vs from every vertex, interleaved, caches cle
     .venv/bin/python scripts/bench_pass_plan.py
 """
 import time
-from inject.schema import load_scene_file
+
 from inject.exposure import plan as focalplan
-from inject.exposure.scene import parse_focal_scene
 from inject.exposure.plan import make_plan, margins_px
+from inject.exposure.scene import parse_focal_scene
 from inject.render import PROFILE_CACHE
+from inject.schema import load_scene_file
+
 raw = load_scene_file("sample_fields/pass_example.yaml")
 f = parse_focal_scene(raw)
 for _ in range(2):

@@ -29,8 +29,15 @@ from astropy.coordinates import ICRS, AltAz, SkyCoord
 
 from inject.camera.wcs import Pointing
 from inject.orbits.passes import (
-    RUBIN, Exposure, FieldFrame, aimed_orbit, compute_pass, crossing_candidates, find_passes,
-    walker_shell)
+    RUBIN,
+    Exposure,
+    FieldFrame,
+    aimed_orbit,
+    compute_pass,
+    crossing_candidates,
+    find_passes,
+    walker_shell,
+)
 
 START = "2026-06-15T23:30:00"
 

@@ -18,10 +18,10 @@ import time
 import numpy as np
 from astropy.io import fits
 
-from inject.config import parse_scene, DEFAULT_SCENE
-from inject.schema import apply_overrides
-from inject.io.fits import write_exposure
 from inject import scene as scene_mod
+from inject.config import DEFAULT_SCENE, parse_scene
+from inject.io.fits import write_exposure
+from inject.schema import apply_overrides
 
 SCENE = apply_overrides(DEFAULT_SCENE, [
     "stars={galactic_b: 30, galactic_l: 90, mag_limit: 24}",

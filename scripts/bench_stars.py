@@ -23,6 +23,7 @@ import numpy as np
 from inject import stars
 from inject.photometry import electron_rate
 from inject.scene import rng
+
 PIXEL = 0.2
 
 

@@ -27,9 +27,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from inject.geometry import effective_exposure, slant_range# noqa: E402
-from inject.profile import defocus_kernel# noqa: E402
-from inject.streak import StreakModel# noqa: E402
+from inject.geometry import effective_exposure, slant_range  # noqa: E402
+from inject.profile import defocus_kernel  # noqa: E402
+from inject.streak import StreakModel  # noqa: E402
 
 HEIGHTS_KM = np.linspace(200.0, 1200.0, 201)
 ZENITHS_DEG = (0, 20, 40, 60, 70, 80)

@@ -274,10 +274,9 @@ def _render_on(shape, model, segment, swept):
 
 def edge_cell(p):
     """A track touching the edges or corners of a small image (64 x 48)."""
-    from inject.trajectory import Track
     from inject.render import swept_profile
     from inject.scene import render_tracks
-    from inject.trajectory import Segment
+    from inject.trajectory import Segment, Track
 
     model = make_model(p["model"])
     ny, nx = shape = (48, 64)

@@ -13,13 +13,21 @@ import galsim
 import numpy as np
 import pytest
 
-from inject.profile import GSPARAMS
+from inject.profile import GSPARAMS, Seeing
 from inject.reference import render_brute_force
-from inject.render import (ORIENTATION_FRACTION, ORIENTATION_SAFETY, Budget, ProfileCache,
-                           SweptProfile, orientation_slope, orientation_step, render_segment,
-                           snap_orientation, swept_profile)
+from inject.render import (
+    ORIENTATION_FRACTION,
+    ORIENTATION_SAFETY,
+    Budget,
+    ProfileCache,
+    SweptProfile,
+    orientation_slope,
+    orientation_step,
+    render_segment,
+    snap_orientation,
+    swept_profile,
+)
 from inject.satellite import Box
-from inject.profile import Seeing
 from inject.streak import StreakModel
 from inject.trajectory import Segment
 

@@ -17,11 +17,9 @@ import pytest
 from astropy.io import fits
 
 import inject.io.atomic
-from inject.cli.main import main
 from inject.addstreak import add_streaks
+from inject.cli.main import main
 from inject.config import parse_scene
-from inject.trajectory import Track
-from inject.schema import apply_overrides, load_scene_file
 from inject.errors import FileFormatError, InjectError, InputError, OutputError, SceneError
 from inject.geometry import Geometry
 from inject.io.atomic import atomic_path, output_group
@@ -32,8 +30,9 @@ from inject.reference import render_brute_force
 from inject.render import Budget
 from inject.satellite import Box, Composite, Disk, Part, shape_from_dict
 from inject.scene import simulate
+from inject.schema import apply_overrides, load_scene_file
 from inject.streak import StreakModel
-from inject.trajectory import Polyline, Segment
+from inject.trajectory import Polyline, Segment, Track
 
 SCENE = """\
 seed: 1
@@ -425,7 +424,7 @@ def test_scene_cannot_name_a_masking_function(capsys, tmp_path, booby_trapped_mo
 
 
 def test_masking_function_imported_only_when_named(booby_trapped_module):
-    from inject.masking import evaluate# the project's own module: a rename must fail
+    from inject.masking import evaluate  # the project's own module: a rename must fail
     load_masker = getattr(evaluate, "load_masker", None)
     if load_masker is None:
         pytest.skip("inject.masking.evaluate has no load_masker")

@@ -3,8 +3,8 @@ import pytest
 import yaml
 
 from inject.config import DEFAULT_SCENE, parse_scene
-from inject.schema import apply_overrides, load_scene_file
 from inject.errors import SceneError
+from inject.schema import apply_overrides, load_scene_file
 
 
 def test_default_scene_parses():

@@ -13,12 +13,13 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from inject.camera.wcs import ccd_wcs
 from inject.camera import layout as fp
-from inject.exposure import runner as parallel
+from inject.camera.wcs import ccd_wcs
 from inject.errors import InputError, OutputError, RunError
+from inject.exposure import runner as parallel
 from inject.exposure.plan import make_plan
 from inject.exposure.scene import parse_focal_scene
+
 SAT = {"height": 550, "shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0}
 RAW = {"seed": 11, "band": "g", "zenith": 70, "exptime": 30,
        "pointing": {"ra": 50.0, "dec": -30.0, "rotation": 10.0},

@@ -14,8 +14,8 @@ import pytest
 import inject.validate as validate
 from inject.cli.main import main
 from inject.config import DEFAULT_SCENE, parse_scene
-from inject.schema import apply_overrides, load_scene_file
 from inject.errors import InputError, InputWarning, ResourceError, SceneError
+from inject.schema import apply_overrides, load_scene_file
 from inject.validate import RANGES, check
 
 SMALL = ["detector.nx=64", "detector.ny=64", "stars=false"]

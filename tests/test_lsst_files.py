@@ -20,10 +20,10 @@ from astropy.wcs import WCS
 
 from inject.addstreak import add_streaks
 from inject.cli.main import main
-from inject.trajectory import Track
 from inject.io.reader import read_exposure
 from inject.maskplanes import MASK_PLANES, PLANE_DESCRIPTIONS, header_planes, plane_bit
 from inject.streak import StreakModel
+from inject.trajectory import Track
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))

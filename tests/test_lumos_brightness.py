@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from inject.schema import load_scene_file
+
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "sample_fields" / "pass_example.yaml"
 PLATE = {"surfaces": [{"area": 10.0, "normal": [0, 0, -1],  # a nadir-facing plate
@@ -21,13 +22,13 @@ def test_vertices_take_lumos_magnitudes():
     """Each vertex's apparent magnitude (the streak model's, after its cos/r^2 scaling) is
     lumos's for that sample (its alt/az, height and the Sun's alt/az from the site)."""
     calc = pytest.importorskip("lumos.calculator")
-    from astropy.coordinates import AltAz, get_sun
-
     import lumos.brdf.library
     import lumos.conversions
     import lumos.geometry
-    from inject.exposure.scene import parse_focal_scene
+    from astropy.coordinates import AltAz, get_sun
+
     from inject.exposure.plan import vertex_model
+    from inject.exposure.scene import parse_focal_scene
     from inject.orbits.passes import TRACK_STEP_S, Exposure, Orbit, compute_pass
     fscene = parse_focal_scene(_raw(PLATE))
     track = fscene.tracks[0]

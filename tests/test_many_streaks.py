@@ -2,13 +2,20 @@
 import numpy as np
 import pytest
 
-from inject.trajectory import Track
 from inject.profile import Seeing
-from inject.render import (AUTO_MIN_TOLERANCE, TOLERANCE_STEPS_PER_OCTAVE, Budget, ProfileCache,
-                           render_streak, short_track_budget, snap_tolerance, swept_profile)
+from inject.render import (
+    AUTO_MIN_TOLERANCE,
+    TOLERANCE_STEPS_PER_OCTAVE,
+    Budget,
+    ProfileCache,
+    render_streak,
+    short_track_budget,
+    snap_tolerance,
+    swept_profile,
+)
 from inject.scene import PROGRESS_MIN_STREAKS, render_tracks
 from inject.streak import StreakModel
-from inject.trajectory import Segment
+from inject.trajectory import Segment, Track
 
 SHAPE = (700, 700)
 

@@ -9,8 +9,7 @@ import pytest
 from astropy.io import fits
 
 from inject.cli.mask import add_mask_parser
-from inject.config import DEFAULT_SCENE, parse_scene
-from inject.schema import apply_overrides
+from inject.config import DEFAULT_SCENE, parse_scene, sky_level
 from inject.errors import FileFormatError, InputError, OutputError
 from inject.io.fits import write_exposure
 from inject.masking import MaskingError
@@ -18,12 +17,18 @@ from inject.masking.detect import BAD_PLANES, prepare
 from inject.masking.evaluate import match_streaks
 from inject.masking.geometry import Line, band_pixels, rectangle_spans
 from inject.masking.mask import lost_pixels, mask_spans, paint
-from inject.masking.measure import (BinnedStack, Profile, half_max_width, pixel_response,
-                                    profile_fwhm)
+from inject.masking.measure import (
+    BinnedStack,
+    Profile,
+    half_max_width,
+    pixel_response,
+    profile_fwhm,
+)
 from inject.masking.run import analyse, mask_image, write_masked
 from inject.maskplanes import MASK_PLANES
 from inject.scene import simulate, streak_models
-from inject.config import sky_level
+from inject.schema import apply_overrides
+
 BAD_BITS = sum(1 << MASK_PLANES[p] for p in BAD_PLANES)
 
 

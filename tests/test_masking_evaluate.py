@@ -7,13 +7,26 @@ import json
 import numpy as np
 import pytest
 
+from inject.cli.evaluate import (
+    add_evaluate_parser,
+    bad_pixels,
+    campaign_images,
+    false_positive_summary,
+    markdown_table,
+    pixel_loss,
+    streak_free_images,
+)
 from inject.errors import InputError
-from inject.cli.evaluate import (add_evaluate_parser, bad_pixels, campaign_images,
-                                 false_positive_summary, markdown_table, pixel_loss,
-                                 streak_free_images)
 from inject.masking import MaskerOutput
-from inject.masking.evaluate import (Masker, completeness_point, evaluate, inject_masker,
-                                     load_masker, score_image, summarise)
+from inject.masking.evaluate import (
+    Masker,
+    completeness_point,
+    evaluate,
+    inject_masker,
+    load_masker,
+    score_image,
+    summarise,
+)
 
 
 def one_image(mag=11.0, height=550.0, seed=1, size=512):
@@ -54,9 +67,9 @@ def test_scores_of_a_streak_of_known_cross_section():
     leaves ``1 - sum_{|j|<=k} v_j / sum_j v_j`` of the charge, the peak is ``v_0`` and the
     matched-filter S/N is ``sqrt(W sum_j v_j^2) / sigma``.
     """
-    from inject.trajectory import Track
     from inject.scene import SceneResult, render_tracks
     from inject.streak import StreakModel
+    from inject.trajectory import Track
 
     model, shape, y0, sigma, k = StreakModel(550, 70, mag=9.0), (161, 200), 80.0, 20.0, 6
     streaks, truth = render_tracks(shape, [model], [Track(0.0, y0, 0.0)])

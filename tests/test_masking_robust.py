@@ -13,7 +13,6 @@ import pytest
 
 from inject.cli.main import main
 from inject.config import DEFAULT_SCENE, parse_scene
-from inject.schema import apply_overrides
 from inject.errors import InputError
 from inject.io.fits import write_exposure
 from inject.masking.detect import BAD_PLANES, detect_streaks, prepare
@@ -22,6 +21,8 @@ from inject.masking.mask import FALLBACK_MAX_PX, mask_spans, paint
 from inject.masking.measure import Profile, half_max_width, profile_fwhm, wing_reach
 from inject.masking.run import MaskResult, analyse
 from inject.scene import MASK_PLANES, simulate
+from inject.schema import apply_overrides
+
 BAD_BITS = sum(1 << MASK_PLANES[p] for p in BAD_PLANES)
 
 

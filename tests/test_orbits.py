@@ -20,11 +20,21 @@ from astropy.coordinates import ICRS, AltAz, SkyCoord
 from astropy.time import Time
 
 from inject import geometry
-from inject.errors import InjectError, InputError, OrbitError, OrbitWarning
 from inject.camera.wcs import Pointing, tangent_to_focal
+from inject.errors import InjectError, InputError, OrbitError, OrbitWarning
 from inject.orbits.passes import (
-    RUBIN, Exposure, Orbit, aimed_orbit, compute_pass, crossing_candidates, find_passes,
-    illumination, propagate_teme, sunlight, walker_shell)
+    RUBIN,
+    Exposure,
+    Orbit,
+    aimed_orbit,
+    compute_pass,
+    crossing_candidates,
+    find_passes,
+    illumination,
+    propagate_teme,
+    sunlight,
+    walker_shell,
+)
 
 skyfield_api = pytest.importorskip("skyfield.api")
 from skyfield.data import iers as sf_iers  # noqa: E402
@@ -441,7 +451,13 @@ def test_prefilter_keeps_every_crossing(centred, exposure):
 
 def test_shared_rotations_are_astropys(exposure):
     """The per-exposure matrices reproduce astropy's own transforms (and the retarded time's)."""
-    from inject.orbits.passes import EARTH_ROTATION_RAD_S, FieldFrame, _rot_z, altaz_basis, teme_to_itrs
+    from inject.orbits.passes import (
+        EARTH_ROTATION_RAD_S,
+        FieldFrame,
+        _rot_z,
+        altaz_basis,
+        teme_to_itrs,
+    )
     times = exposure.start + exposure.sample_times(5.0) * u.s
     frame = FieldFrame.build(times, Pointing(10.0, -20.0), RUBIN)
     r = np.tile([5000.0, -3000.0, 3500.0], (len(times), 1))

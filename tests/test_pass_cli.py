@@ -8,13 +8,20 @@ import pytest
 from astropy import units as u
 from astropy.coordinates import ICRS, AltAz, SkyCoord
 
+from inject.camera import layout as fp
+from inject.camera.wcs import ccd_wcs
+from inject.cli.main import main
+from inject.orbits.passes import (
+    RUBIN,
+    TRACK_STEP_S,
+    Exposure,
+    Orbit,
+    Pointing,
+    compute_pass,
+    track_runs,
+)
 from inject.orbits.tracks import resolve_ccd_orbits
 from inject.trajectory import clip_path
-from inject.camera.wcs import ccd_wcs
-from inject.camera import layout as fp
-from inject.cli.main import main
-from inject.orbits.passes import (RUBIN, TRACK_STEP_S, Exposure, Orbit, Pointing, compute_pass,
-                           track_runs)
 
 ROOT = Path(__file__).resolve().parents[1]
 TLE = ROOT / "sample_fields" / "example_starlink_like.tle"
@@ -292,8 +299,8 @@ def test_orbit_track_vertices_carry_the_pass():
 ])
 def test_orbit_scene_without_a_streak_says_why(changes, why, capsys):
     from inject.errors import OrbitWarning
-    from inject.exposure.scene import parse_focal_scene
     from inject.exposure.plan import make_plan
+    from inject.exposure.scene import parse_focal_scene
     from inject.orbits.passes import aimed_orbit
     if changes == "shadow":  # the same shell, aimed east at the same time: in Earth's shadow
         orbit = aimed_orbit("2026-06-15T23:30:00", 60.0, 90.0)
@@ -389,9 +396,9 @@ def test_orbit_in_a_ccd_scene_lands_where_the_wcs_says():
     """`inject simulate`'s scene: the orbit's vertices in the CCD's pixels, through the scene's
     WCS (inject.camera.wcs.pointing_wcs), are the satellite's apparent place (ICRS as a star) to
     < 0.1"; the middle of the exposure is near the image centre."""
+    from inject.camera.wcs import pointing_wcs
     from inject.config import parse_scene
     from inject.instrument import LSST
-    from inject.camera.wcs import pointing_wcs
 
     scene = parse_scene(resolve_ccd_orbits(
         _ccd_scene_raw(pointing={"ra": RA, "dec": DEC, "rotation": 25.0})))
@@ -511,9 +518,9 @@ def test_every_sunlit_part_is_rendered(monkeypatch):
     """A pass that leaves Earth's shadow and re-enters it in one exposure (made here by
     darkening the middle of the example pass) renders both sunlit parts, with the gap
     between them dark: no CCD streak covers the shadowed stretch."""
-    from inject.orbits import tracks as focalscene
-    from inject.exposure.scene import parse_focal_scene
     from inject.exposure.plan import ccd_streaks, margins_px
+    from inject.exposure.scene import parse_focal_scene
+    from inject.orbits import tracks as focalscene
     real = focalscene.orbit_pass
 
     def darkened(*args, **kwargs):

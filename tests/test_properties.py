@@ -19,17 +19,22 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from inject.config import parse_scene
-from inject.trajectory import Track
 from inject.io.exr import read_exr, write_exr
 from inject.io.fits import write_exposure
 from inject.io.reader import read_exposure
 from inject.profile import GSPARAMS
-from inject.render import (Budget, SweptProfile, render_segment, render_streak,
-                           short_track_budget, swept_profile)
+from inject.render import (
+    Budget,
+    SweptProfile,
+    render_segment,
+    render_streak,
+    short_track_budget,
+    swept_profile,
+)
 from inject.satellite import Box, Disk
 from inject.scene import SceneResult, render_tracks, simulate
 from inject.streak import StreakModel
-from inject.trajectory import Segment
+from inject.trajectory import Segment, Track
 
 PAPER = StreakModel(550, 70)
 DISK = StreakModel(550, 40, shape=Disk(1.0))

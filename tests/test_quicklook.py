@@ -8,6 +8,8 @@ from PIL import Image
 from inject.errors import OutputError
 from inject.io.quicklook import bin_factor, block_mean, write_quicklook
 from inject.scene import SceneResult
+
+
 def _result(ny=48, nx=64, seed=0):
     gen = np.random.default_rng(seed)
     image = gen.normal(100.0, 10.0, (ny, nx))

@@ -6,8 +6,13 @@ from scipy import special
 
 from inject.errors import InputError
 from inject.profile import GSPARAMS
-from inject.reference import (default_stamp_half_size, n_steps, render_brute_force,
-                              sample_points, with_gsparams)
+from inject.reference import (
+    default_stamp_half_size,
+    n_steps,
+    render_brute_force,
+    sample_points,
+    with_gsparams,
+)
 from inject.satellite import Disk
 from inject.streak import StreakModel
 from inject.trajectory import Segment

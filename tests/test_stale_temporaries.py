@@ -5,9 +5,9 @@ import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-from inject.exposure.plan import make_plan
 from inject.camera import layout as fp
 from inject.exposure import runner as parallel
+from inject.exposure.plan import make_plan
 from inject.exposure.scene import parse_focal_scene
 from inject.io.atomic import STALE_AFTER_S, atomic_path, remove_stale_temporaries
 

@@ -7,9 +7,9 @@ from astropy.table import Table
 from scipy import stats
 
 from inject import stars as st
+from inject.camera.wcs import pointing_wcs
 from inject.errors import FileFormatError, InputError, SceneError
 from inject.scene import rng
-from inject.camera.wcs import pointing_wcs
 
 PIXEL = 0.2
 PSF = galsim.Kolmogorov(fwhm=0.67)

@@ -14,7 +14,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from inject.camera.layout import (
-    DISTORTION_R3, DISTORTION_R5, PIXEL_MM, PLATE_SCALE_ARCSEC_PER_MM, field_angle)
+    DISTORTION_R3,
+    DISTORTION_R5,
+    PIXEL_MM,
+    PLATE_SCALE_ARCSEC_PER_MM,
+    field_angle,
+)
 from inject.errors import InputError, SceneError
 from inject.validate import check_pointing
 

@@ -8,9 +8,16 @@ import os
 import sys
 
 from inject.io.atomic import check_writable
-from inject.masking.run import (DEFAULT_FWHM_FACTOR, DEFAULT_RULE, DEFAULT_SB_SIGMA,
-                                RULE_CHOICES, analyse_source, check_distinct, check_options,
-                                write_masked_exposure)
+from inject.masking.run import (
+    DEFAULT_FWHM_FACTOR,
+    DEFAULT_RULE,
+    DEFAULT_SB_SIGMA,
+    RULE_CHOICES,
+    analyse_source,
+    check_distinct,
+    check_options,
+    write_masked_exposure,
+)
 
 
 def add_mask_parser(sub):

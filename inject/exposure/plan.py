@@ -22,7 +22,6 @@ from inject.streak import StreakModel
 from inject.trajectory import Track, clip_path
 
 
-
 def vertex_model(fscene, i, values, pixel_scale=None):
     """The :class:`StreakModel` of satellite ``i`` with vertex ``values``, at a plate scale."""
     scene, spec = fscene.scene, fscene.scene.satellites[i]

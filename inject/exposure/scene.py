@@ -14,8 +14,16 @@ import numpy as np
 
 from inject.camera import layout as fp
 from inject.config import (
-    COMMON_KEYS, SATELLITE_MODEL_KEYS, VERTEX_MODEL_KEYS, Scene, check_charge, parse_common,
-    parse_satellite, parse_vertices, satellite_list)
+    COMMON_KEYS,
+    SATELLITE_MODEL_KEYS,
+    VERTEX_MODEL_KEYS,
+    Scene,
+    check_charge,
+    parse_common,
+    parse_satellite,
+    parse_vertices,
+    satellite_list,
+)
 from inject.errors import InjectError, SceneError
 from inject.orbits.tracks import orbit_focal_track
 from inject.schema import check_keys, number

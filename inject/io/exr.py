@@ -35,9 +35,9 @@ import numpy as np
 from astropy.io import fits
 
 from inject.errors import FileFormatError, OutputError
-from inject.maskplanes import MASK_PLANES
 from inject.io.atomic import atomic_path
 from inject.io.fits import primary_header
+from inject.maskplanes import MASK_PLANES
 
 #: Float channels of the ``image`` part, in the order written (EXR files store channels
 #: sorted by name, so readers must look them up by name, not position).

@@ -19,8 +19,8 @@ from astropy.table import Table
 from astropy.time import Time, TimeDelta
 
 from inject import __version__
-from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, mask_header
 from inject.io.atomic import atomic_path
+from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, mask_header
 
 #: Extension types of afw's MaskedImage HDUs 1-3, in that order.
 MASKED_IMAGE_TYPES = ("IMAGE", "MASK", "VARIANCE")

@@ -6,8 +6,8 @@ import os
 import numpy as np
 
 from inject.errors import OutputError
-from inject.trajectory import clip_segment
 from inject.io.atomic import atomic_path
+from inject.trajectory import clip_segment
 
 #: Longest side, in plotted (binned) pixels, of the quicklook image.
 MAX_SIDE = 1000

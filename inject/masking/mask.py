@@ -22,9 +22,9 @@ caps), not counted as width x length: pixel centres inside the rectangle, clippe
 """
 import numpy as np
 
-from inject.maskplanes import STREAK_MASK_SIGMA
 from inject.masking.geometry import rectangle_spans, span_indices
 from inject.masking.measure import GAUSSIAN_FWHM_PER_SIGMA, MOFFAT_FWHM_PER_ALPHA, wing_reach
+from inject.maskplanes import STREAK_MASK_SIGMA
 
 #: Mask-width rules, the default first.
 RULES = ("sb", "fwhm", "lsst", "acstools")

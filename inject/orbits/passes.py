@@ -32,9 +32,17 @@ from functools import cached_property
 
 import numpy as np
 from astropy import units as u
-from astropy.constants import R_sun, c as _c
+from astropy.constants import R_sun
+from astropy.constants import c as _c
 from astropy.coordinates import (
-    ITRS, TEME, AltAz, CartesianRepresentation, EarthLocation, SkyCoord, get_sun)
+    ITRS,
+    TEME,
+    AltAz,
+    CartesianRepresentation,
+    EarthLocation,
+    SkyCoord,
+    get_sun,
+)
 from astropy.time import Time
 from astropy.utils import iers
 from sgp4.api import SGP4_ERRORS, WGS72, Satrec, SatrecArray
@@ -42,9 +50,9 @@ from sgp4.earth_gravity import wgs72
 from sgp4.exporter import export_tle
 from sgp4.io import compute_checksum
 
-from inject.errors import InputError, OrbitError, OrbitWarning
 from inject.camera.layout import focal_of_field_angle
 from inject.camera.wcs import Pointing, tangent_to_focal
+from inject.errors import InputError, OrbitError, OrbitWarning
 from inject.geometry import R_EARTH_KM
 from inject.photometry import apparent_magnitude
 from inject.validate import RANGES, finite, in_range, parse_time, positive

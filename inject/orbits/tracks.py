@@ -11,7 +11,13 @@ from inject.camera.wcs import Pointing
 from inject.errors import InjectError, OrbitWarning, SceneError
 from inject.instrument import LSST
 from inject.orbits.passes import (
-    TRACK_STEP_S, Exposure, compute_pass, orbit_from_spec, site_from_spec, track_runs)
+    TRACK_STEP_S,
+    Exposure,
+    compute_pass,
+    orbit_from_spec,
+    site_from_spec,
+    track_runs,
+)
 from inject.schema import check_keys, number
 from inject.trajectory import FocalTrack
 from inject.validate import check_pointing, parse_time
