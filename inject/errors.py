@@ -58,6 +58,12 @@ pending. ``tests/test_errors.py`` round-trips every class of this module.
 class InjectError(Exception):
     """Base class of every error ``inject`` raises on purpose (see the module's notes)."""
 
+    def __reduce__(self):
+        # Explicit, so that pickle and the reducers Dask installs (tblib's) rebuild the class
+        # through its own constructor: tblib rebuilds a class with the builtin reducer by
+        # calling ``cls.__new__`` bare, which a MemoryError subclass refuses.
+        return type(self), self.args, self.__dict__ or None
+
 
 class InputError(InjectError, ValueError):
     """A parameter is out of its domain (negative height, zenith >= 90 deg, NaN, ...).

@@ -66,6 +66,18 @@ def test_pickle_round_trip(cls, protocol):
     assert back.__notes__ == ["a note"]
 
 
+@pytest.mark.parametrize("cls", _classes(), ids=lambda c: c.__name__)
+def test_round_trip_under_the_reducers_dask_installs(cls):
+    """Dask installs tblib's exception reducers process-wide; they rebuild a class that keeps
+    the builtin ``__reduce__`` with a bare ``cls.__new__``, which a MemoryError subclass
+    refuses. Each class must come back through them too."""
+    pickling_support = pytest.importorskip("tblib.pickling_support")
+    err = _make(cls)
+    reduced = pickling_support.pickle_exception(err)
+    back = reduced[0](*reduced[1])
+    assert type(back) is cls and str(back) == str(err)
+
+
 def test_input_error_keeps_its_parts():
     err = pickle.loads(pickle.dumps(InputError("height", -5.0, "must be > 0")))
     assert (err.name, err.value, err.reason) == ("height", -5.0, "must be > 0")
