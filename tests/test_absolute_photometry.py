@@ -16,8 +16,8 @@ import yaml
 from astropy.io import fits
 from astropy.table import Table
 
+from inject import StreakModel
 from inject.cli.main import main
-from inject.streak import StreakModel
 
 R_EARTH_M = 6378.1e3        # IAU 2015 nominal equatorial radius
 GM_EARTH = 3.986004e14      # IAU 2015 nominal, m^3 s^-2

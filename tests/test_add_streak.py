@@ -6,9 +6,8 @@ import pytest
 from astropy.io import fits
 from astropy.table import Table
 
-from inject.camera.wcs import pointing_wcs
+from inject import StreakModel, pointing_wcs
 from inject.cli.main import main
-from inject.streak import StreakModel
 
 ARGS = ["--height", "550", "--zenith", "70", "--mag", "8", "--x0", "20.5", "--y0", "60.2",
         "--angle", "15", "--track-length", "100"]

@@ -13,8 +13,8 @@ import galsim
 import numpy as np
 import pytest
 
-from inject.profile import GSPARAMS, Seeing
-from inject.reference import render_brute_force
+from inject import Box, Seeing, Segment, StreakModel, render_brute_force
+from inject.profile import GSPARAMS
 from inject.render import (
     ORIENTATION_FRACTION,
     ORIENTATION_SAFETY,
@@ -27,9 +27,6 @@ from inject.render import (
     snap_orientation,
     swept_profile,
 )
-from inject.satellite import Box
-from inject.streak import StreakModel
-from inject.trajectory import Segment
 
 TOL = Budget().tolerance
 PAPER_550 = StreakModel(550, 70)
@@ -194,8 +191,7 @@ def test_snap_orientation():
 
 
 def test_segment_outside_the_orientation_bin_is_refused():
-    from inject.errors import InputError
-
+    from inject import InputError
     swept = swept_profile(PAPER_550, 23.0, cache=ProfileCache())
     half = swept.angle_tolerance_deg
     assert half > 0
@@ -232,9 +228,7 @@ def test_polyline_snaps_only_profiles_that_recur():
     changes) snaps to the grid, as segments do. Both keep the track's charge."""
     from dataclasses import replace
 
-    from inject.render import render_polyline
-    from inject.trajectory import Polyline
-
+    from inject import Polyline, render_polyline
     poly = Polyline((20.0, 150.0, 260.0), (30.0, 90.0, 120.0))
     own = [StreakModel(h, 70) for h in (540.0, 550.0, 560.0)]
     shared = [replace(PAPER_550, mag=m) for m in (5.0, 5.5, 6.0)]

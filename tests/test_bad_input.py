@@ -17,22 +17,35 @@ import pytest
 from astropy.io import fits
 
 import inject.io.atomic
-from inject.addstreak import add_streaks
+from inject import (
+    Box,
+    Budget,
+    Disk,
+    FileFormatError,
+    Geometry,
+    InjectError,
+    InputError,
+    OutputError,
+    Polyline,
+    SceneError,
+    Seeing,
+    Segment,
+    StreakModel,
+    Track,
+    add_streaks,
+    apply_overrides,
+    load_scene_file,
+    parse_scene,
+    read_exposure,
+    render_brute_force,
+    shape_from_dict,
+    simulate,
+)
 from inject.cli.main import main
-from inject.config import parse_scene
-from inject.errors import FileFormatError, InjectError, InputError, OutputError, SceneError
-from inject.geometry import Geometry
 from inject.io.atomic import atomic_path, output_group
-from inject.io.reader import InputExposure, read_exposure
+from inject.io.reader import InputExposure
 from inject.photometry import band, sky_per_pixel
-from inject.profile import Seeing
-from inject.reference import render_brute_force
-from inject.render import Budget
-from inject.satellite import Box, Composite, Disk, Part, shape_from_dict
-from inject.scene import simulate
-from inject.schema import apply_overrides, load_scene_file
-from inject.streak import StreakModel
-from inject.trajectory import Polyline, Segment, Track
+from inject.satellite import Composite, Part
 
 SCENE = """\
 seed: 1
@@ -1066,8 +1079,7 @@ def _image(shape=(200, 220)):
 
 
 def _mask_image(**kwargs):
-    from inject.masking import mask_image
-
+    from inject import mask_image
     return mask_image(_image(), **kwargs)
 
 
@@ -1151,8 +1163,7 @@ def test_api_accepts_numpy_numbers():
 
 
 def _mask_image_of(image):
-    from inject.masking import mask_image
-
+    from inject import mask_image
     return mask_image(image)
 
 

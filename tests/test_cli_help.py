@@ -46,8 +46,8 @@ def test_quicklook_truth_is_visible_beside_a_saturated_streak():
     """A saturated streak renders white; the truth marks run either side of the track (its
     centre line stays uncovered) in a colour that is neither white nor grey, outlined in black,
     so they show on the white streak."""
+    from inject import SceneResult
     from inject.io.quicklook import TRUTH_OFFSET_PT, quicklook_figure
-    from inject.scene import SceneResult
     ny = nx = 200
     image = np.full((ny, nx), 100.0)
     image[95:106, :] = 1e6  # a saturated horizontal streak along y = 100

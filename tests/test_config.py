@@ -2,9 +2,7 @@
 import pytest
 import yaml
 
-from inject.config import DEFAULT_SCENE, parse_scene
-from inject.errors import SceneError
-from inject.schema import apply_overrides, load_scene_file
+from inject import DEFAULT_SCENE, SceneError, apply_overrides, load_scene_file, parse_scene
 
 
 def test_default_scene_parses():

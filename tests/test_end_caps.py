@@ -13,12 +13,9 @@ import galsim
 import numpy as np
 import pytest
 
-from inject.profile import GSPARAMS, Seeing
-from inject.reference import render_brute_force
-from inject.render import Budget, SweptProfile, render_segment, render_streak
-from inject.satellite import Box
-from inject.streak import StreakModel
-from inject.trajectory import Segment
+from inject import Box, Budget, Seeing, Segment, StreakModel, render_brute_force, render_segment
+from inject.profile import GSPARAMS
+from inject.render import SweptProfile, render_streak
 
 TOL = Budget().tolerance
 PIXEL = 0.2

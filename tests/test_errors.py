@@ -7,6 +7,7 @@ import pickle
 import pytest
 
 import inject.errors
+from inject import MaskingError
 from inject.errors import (
     FileFormatError,
     InjectError,
@@ -19,7 +20,6 @@ from inject.errors import (
     RunError,
     SceneError,
 )
-from inject.masking import MaskingError
 
 
 def _classes():

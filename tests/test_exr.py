@@ -8,13 +8,19 @@ import pytest
 from astropy.io import fits
 
 import inject.io.exr as exr
-from inject.config import DEFAULT_SCENE, parse_scene
-from inject.errors import FileFormatError, OutputError
-from inject.io.exr import read_exr, write_exr
-from inject.io.fits import primary_header, write_exposure
+from inject import (
+    DEFAULT_SCENE,
+    FileFormatError,
+    OutputError,
+    SceneResult,
+    apply_overrides,
+    parse_scene,
+    write_exposure,
+    write_exr,
+)
+from inject.io.exr import read_exr
+from inject.io.fits import primary_header
 from inject.maskplanes import MASK_PLANES
-from inject.scene import SceneResult
-from inject.schema import apply_overrides
 
 NY, NX = 48, 64
 MJD = 60123.123456789

@@ -3,9 +3,8 @@ computations."""
 import numpy as np
 import pytest
 
+from inject import InputError, ccd_wcs
 from inject.camera import layout as fp
-from inject.camera.wcs import ccd_wcs
-from inject.errors import InputError
 
 POINTING = {"ra": 52.0, "dec": -28.0, "rotation": 35.0}
 

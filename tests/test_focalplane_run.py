@@ -13,12 +13,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
+from inject import InputError, OutputError, RunError, ccd_wcs, make_plan, parse_focal_scene
 from inject.camera import layout as fp
-from inject.camera.wcs import ccd_wcs
-from inject.errors import InputError, OutputError, RunError
 from inject.exposure import runner as parallel
-from inject.exposure.plan import make_plan
-from inject.exposure.scene import parse_focal_scene
 
 SAT = {"height": 550, "shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0}
 RAW = {"seed": 11, "band": "g", "zenith": 70, "exptime": 30,
@@ -330,8 +327,7 @@ def test_an_input_error_in_a_worker_fails_that_ccd_alone(fscene, tmp_path, monke
     """Before: InputError could not be unpickled, and every CCD still pending came back as
     BrokenProcessPool. Now the CCD fails with its message, once (the same input would fail
     the same way again), and the other CCDs are written."""
-    from inject.exposure.plan import make_plan
-
+    from inject import make_plan
     out = tmp_path / "out"
     monkeypatch.setattr(parallel, "render_ccd", _input_error_on_r22_s12)
     with parallel.process_pool(2) as pool:

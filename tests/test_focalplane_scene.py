@@ -5,11 +5,9 @@ import json
 import numpy as np
 import pytest
 
+from inject import SceneError, make_plan, parse_focal_scene, simulate_ccd
 from inject.camera import layout as fp
-from inject.errors import SceneError
-from inject.exposure.ccd import simulate_ccd
-from inject.exposure.plan import ccd_streaks, make_plan, margins_px, vertex_model
-from inject.exposure.scene import parse_focal_scene
+from inject.exposure.plan import ccd_streaks, margins_px, vertex_model
 
 SAT = {"height": 550, "shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0}
 

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
+from inject import InputError
 from inject import geometry as geo
-from inject.errors import InputError
 
 R = geo.R_EARTH_KM
 

@@ -12,11 +12,19 @@ import numpy as np
 import pytest
 
 import inject.validate as validate
+from inject import (
+    DEFAULT_SCENE,
+    RANGES,
+    InputError,
+    InputWarning,
+    ResourceError,
+    SceneError,
+    apply_overrides,
+    load_scene_file,
+    parse_scene,
+)
 from inject.cli.main import main
-from inject.config import DEFAULT_SCENE, parse_scene
-from inject.errors import InputError, InputWarning, ResourceError, SceneError
-from inject.schema import apply_overrides, load_scene_file
-from inject.validate import RANGES, check
+from inject.validate import check
 
 SMALL = ["detector.nx=64", "detector.ny=64", "stars=false"]
 
@@ -350,8 +358,7 @@ def test_evaluate_keeps_a_folder_it_did_not_make(capsys, tmp_path):
 def test_evaluate_checks_optional_maskers_before_simulating(capsys, tmp_path, monkeypatch):
     import inject.cli.evaluate as cli_evaluate
     import inject.masking.external as external
-    from inject.masking import MaskingError
-
+    from inject import MaskingError
     def missing():
         raise MaskingError("the findsat_mrt masker needs acstools and photutils")
     monkeypatch.setattr(external, "trail_finder", missing)

@@ -18,12 +18,9 @@ from astropy.io import fits
 from astropy.table import Table
 from astropy.wcs import WCS
 
-from inject.addstreak import add_streaks
+from inject import StreakModel, Track, add_streaks, read_exposure
 from inject.cli.main import main
-from inject.io.reader import read_exposure
 from inject.maskplanes import MASK_PLANES, PLANE_DESCRIPTIONS, header_planes, plane_bit
-from inject.streak import StreakModel
-from inject.trajectory import Track
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))
@@ -322,9 +319,7 @@ def test_simulated_file_has_afw_cards(simulated):
 
 def test_primary_cards_and_xy0(tmp_path):
     """write_exposure: extra primary cards (a focal-plane CCD's DETNAME, DETECTOR) and xy0."""
-    from inject.config import parse_scene
-    from inject.io.fits import write_exposure
-    from inject.scene import simulate
+    from inject import parse_scene, simulate, write_exposure
     scene = parse_scene({**SCENE, "pointing": None, "sky": False, "noise": False})
     result = simulate(scene)
     out = tmp_path / "ccd.fits"
@@ -429,7 +424,7 @@ def test_date_avg_when_the_scene_has_a_start():
     """DATE-AVG is the middle of the exposure in TAI (TAI - UTC = 37 s since 2017)."""
     from types import SimpleNamespace
 
-    from inject.config import parse_scene
+    from inject import parse_scene
     from inject.io.fits import primary_header
 
     scene = parse_scene(SCENE)

@@ -4,7 +4,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from inject.schema import load_scene_file
+from inject import load_scene_file
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "sample_fields" / "pass_example.yaml"
@@ -27,9 +27,9 @@ def test_vertices_take_lumos_magnitudes():
     import lumos.geometry
     from astropy.coordinates import AltAz, get_sun
 
+    from inject import Exposure, Orbit, compute_pass, parse_focal_scene
     from inject.exposure.plan import vertex_model
-    from inject.exposure.scene import parse_focal_scene
-    from inject.orbits.passes import TRACK_STEP_S, Exposure, Orbit, compute_pass
+    from inject.orbits.passes import TRACK_STEP_S
     fscene = parse_focal_scene(_raw(PLATE))
     track = fscene.tracks[0]
     pointing = fscene.pointing
@@ -55,8 +55,7 @@ def test_vertices_take_lumos_magnitudes():
 
 def test_lumos_inputs_are_checked():
     pytest.importorskip("lumos")
-    from inject.errors import SceneError
-    from inject.exposure.scene import parse_focal_scene
+    from inject import SceneError, parse_focal_scene
     bad = {"surfaces": [{"area": 1, "normal": [0, 0, 0], "brdf": {"type": "lambertian",
                                                                   "albedo": 0.5}}]}
     with pytest.raises(SceneError, match=r"surfaces\[0\]\.normal"):
@@ -74,8 +73,7 @@ def test_lumos_inputs_are_checked():
 def test_without_lumos_a_clear_error(monkeypatch):
     import builtins
 
-    from inject.errors import SceneError
-    from inject.exposure.scene import parse_focal_scene
+    from inject import SceneError, parse_focal_scene
     real = builtins.__import__
 
     def no_lumos(name, *args, **kwargs):

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from inject.profile import Seeing
+from inject import Seeing, Segment, StreakModel, Track
 from inject.render import (
     AUTO_MIN_TOLERANCE,
     TOLERANCE_STEPS_PER_OCTAVE,
@@ -14,8 +14,6 @@ from inject.render import (
     swept_profile,
 )
 from inject.scene import PROGRESS_MIN_STREAKS, render_tracks
-from inject.streak import StreakModel
-from inject.trajectory import Segment, Track
 
 SHAPE = (700, 700)
 

@@ -8,11 +8,19 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
+from inject import (
+    DEFAULT_SCENE,
+    FileFormatError,
+    InputError,
+    MaskingError,
+    OutputError,
+    apply_overrides,
+    parse_scene,
+    simulate,
+    write_exposure,
+)
 from inject.cli.mask import add_mask_parser
-from inject.config import DEFAULT_SCENE, parse_scene, sky_level
-from inject.errors import FileFormatError, InputError, OutputError
-from inject.io.fits import write_exposure
-from inject.masking import MaskingError
+from inject.config import sky_level
 from inject.masking.detect import BAD_PLANES, prepare
 from inject.masking.evaluate import match_streaks
 from inject.masking.geometry import Line, band_pixels, rectangle_spans
@@ -26,8 +34,7 @@ from inject.masking.measure import (
 )
 from inject.masking.run import analyse, mask_image, write_masked
 from inject.maskplanes import MASK_PLANES
-from inject.scene import simulate, streak_models
-from inject.schema import apply_overrides
+from inject.scene import streak_models
 
 BAD_BITS = sum(1 << MASK_PLANES[p] for p in BAD_PLANES)
 

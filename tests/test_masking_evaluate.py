@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from inject import InputError
 from inject.cli.evaluate import (
     add_evaluate_parser,
     bad_pixels,
@@ -16,7 +17,6 @@ from inject.cli.evaluate import (
     pixel_loss,
     streak_free_images,
 )
-from inject.errors import InputError
 from inject.masking import MaskerOutput
 from inject.masking.evaluate import (
     Masker,
@@ -67,10 +67,8 @@ def test_scores_of_a_streak_of_known_cross_section():
     leaves ``1 - sum_{|j|<=k} v_j / sum_j v_j`` of the charge, the peak is ``v_0`` and the
     matched-filter S/N is ``sqrt(W sum_j v_j^2) / sigma``.
     """
-    from inject.scene import SceneResult, render_tracks
-    from inject.streak import StreakModel
-    from inject.trajectory import Track
-
+    from inject import SceneResult, StreakModel, Track
+    from inject.scene import render_tracks
     model, shape, y0, sigma, k = StreakModel(550, 70, mag=9.0), (161, 200), 80.0, 20.0, 6
     streaks, truth = render_tracks(shape, [model], [Track(0.0, y0, 0.0)])
     sim = SceneResult(image=streaks, mask=np.zeros(shape, np.int32), variance=streaks,
@@ -256,7 +254,7 @@ def test_findsat_trail_records_convert_binned_lines():
 def test_findsat_mrt_missing_gives_a_clear_error(monkeypatch):
     import sys
 
-    from inject.masking import MaskingError
+    from inject import MaskingError
     from inject.masking.external import findsat_mrt_mask
 
     monkeypatch.setitem(sys.modules, "acstools.findsat_mrt", None)  # import fails

@@ -11,17 +11,14 @@ import math
 import numpy as np
 import pytest
 
+from inject import DEFAULT_SCENE, InputError, apply_overrides, parse_scene, simulate, write_exposure
 from inject.cli.main import main
-from inject.config import DEFAULT_SCENE, parse_scene
-from inject.errors import InputError
-from inject.io.fits import write_exposure
 from inject.masking.detect import BAD_PLANES, detect_streaks, prepare
 from inject.masking.geometry import Line
 from inject.masking.mask import FALLBACK_MAX_PX, mask_spans, paint
 from inject.masking.measure import Profile, half_max_width, profile_fwhm, wing_reach
 from inject.masking.run import MaskResult, analyse
-from inject.scene import MASK_PLANES, simulate
-from inject.schema import apply_overrides
+from inject.scene import MASK_PLANES
 
 BAD_BITS = sum(1 << MASK_PLANES[p] for p in BAD_PLANES)
 

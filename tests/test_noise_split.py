@@ -9,12 +9,16 @@ import pytest
 from astropy.io import fits
 from scipy import stats
 
+from inject import (
+    DEFAULT_SCENE,
+    apply_overrides,
+    parse_scene,
+    read_exposure,
+    simulate,
+    write_exposure,
+)
 from inject.camera.detector import ITL
-from inject.config import DEFAULT_SCENE, parse_scene
-from inject.io.fits import write_exposure
-from inject.io.reader import read_exposure
-from inject.scene import AmplifierNoise, PoissonTable, draw_poisson, simulate
-from inject.schema import apply_overrides
+from inject.scene import AmplifierNoise, PoissonTable, draw_poisson
 
 #: A small sensor: 2 x 8 amplifiers of 64 x 50 pixels, each with its own read noise.
 READ_NOISE = tuple(3.0 + 0.5 * k for k in range(16))

@@ -19,9 +19,8 @@ from astropy import units as u
 from astropy.coordinates import ICRS, AltAz, SkyCoord
 from astropy.time import Time
 
-from inject import geometry
-from inject.camera.wcs import Pointing, tangent_to_focal
-from inject.errors import InjectError, InputError, OrbitError, OrbitWarning
+from inject import InjectError, InputError, OrbitError, OrbitWarning, Pointing, geometry
+from inject.camera.wcs import tangent_to_focal
 from inject.orbits.passes import (
     RUBIN,
     Exposure,
@@ -144,8 +143,7 @@ def test_bad_checksum_is_refused(sat):
 
 
 def test_decayed_orbit_is_refused():
-    from inject.errors import InputError
-
+    from inject import InputError
     # A circular orbit's height by the input-ranges table (orbit.height >= 80 km) ...
     with pytest.raises(InputError, match="orbit.height=50.0: .*decayed"):
         Orbit.circular(50.0, 53.0, 0.0, 0.0, Time(START))
@@ -501,7 +499,7 @@ def test_a_shared_frame_must_match(centred):
 
 
 def test_magnitude_along_the_pass_follows_the_paper_and_fades_in_the_penumbra(centred, sat):
-    from inject.photometry import apparent_magnitude
+    from inject import apparent_magnitude
     p = centred
     m = p.magnitude(5.0)
     np.testing.assert_allclose(m, apparent_magnitude(5.0, p.range_km, p.nadir_angle_deg))

@@ -8,8 +8,8 @@ import pytest
 from astropy import units as u
 from astropy.coordinates import ICRS, AltAz, SkyCoord
 
+from inject import ccd_wcs, resolve_ccd_orbits
 from inject.camera import layout as fp
-from inject.camera.wcs import ccd_wcs
 from inject.cli.main import main
 from inject.orbits.passes import (
     RUBIN,
@@ -20,7 +20,6 @@ from inject.orbits.passes import (
     compute_pass,
     track_runs,
 )
-from inject.orbits.tracks import resolve_ccd_orbits
 from inject.trajectory import clip_path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -237,7 +236,7 @@ SCENE = ROOT / "sample_fields" / "pass_example.yaml"
 
 
 def _scene(**changes):
-    from inject.schema import load_scene_file
+    from inject import load_scene_file
     return {**load_scene_file(str(SCENE)), **changes}
 
 
@@ -267,7 +266,7 @@ def test_plan_of_the_orbit_scene_matches_inject_pass(capsys, monkeypatch):
 
 
 def test_orbit_track_vertices_carry_the_pass():
-    from inject.exposure.scene import parse_focal_scene
+    from inject import parse_focal_scene
     from inject.orbits.passes import Pass
     fscene = parse_focal_scene(_scene(exptime=4, time="2026-06-15T23:29:58"))
     track = fscene.tracks[0]
@@ -298,9 +297,7 @@ def test_orbit_track_vertices_carry_the_pass():
     ("shadow", "Earth's shadow"),
 ])
 def test_orbit_scene_without_a_streak_says_why(changes, why, capsys):
-    from inject.errors import OrbitWarning
-    from inject.exposure.plan import make_plan
-    from inject.exposure.scene import parse_focal_scene
+    from inject import OrbitWarning, make_plan, parse_focal_scene
     from inject.orbits.passes import aimed_orbit
     if changes == "shadow":  # the same shell, aimed east at the same time: in Earth's shadow
         orbit = aimed_orbit("2026-06-15T23:30:00", 60.0, 90.0)
@@ -344,8 +341,7 @@ def test_orbit_scene_without_a_streak_says_why(changes, why, capsys):
     ({"pointing": {"ra": 151.95, "dec": 95}}, r"pointing\.dec=95"),
 ])
 def test_bad_orbit_scene(change, named):
-    from inject.errors import SceneError
-    from inject.exposure.scene import parse_focal_scene
+    from inject import SceneError, parse_focal_scene
     with pytest.raises(SceneError, match=named):
         parse_focal_scene(_scene(**change))
 
@@ -356,7 +352,7 @@ def test_shadow_entry_ends_the_streak_and_the_penumbra_fades_it():
     each vertex's mag is the reference dimmed by -2.5 log10 of the visible Sun."""
     from astropy.time import Time
 
-    from inject.exposure.scene import parse_focal_scene
+    from inject import parse_focal_scene
     from inject.orbits.passes import aimed_orbit
     t_aim = Time("2026-06-15T23:27:00")
     orbit = aimed_orbit(t_aim, 60.0, 90.0)
@@ -396,10 +392,7 @@ def test_orbit_in_a_ccd_scene_lands_where_the_wcs_says():
     """`inject simulate`'s scene: the orbit's vertices in the CCD's pixels, through the scene's
     WCS (inject.camera.wcs.pointing_wcs), are the satellite's apparent place (ICRS as a star) to
     < 0.1"; the middle of the exposure is near the image centre."""
-    from inject.camera.wcs import pointing_wcs
-    from inject.config import parse_scene
-    from inject.instrument import LSST
-
+    from inject import LSST, parse_scene, pointing_wcs
     scene = parse_scene(resolve_ccd_orbits(
         _ccd_scene_raw(pointing={"ra": RA, "dec": DEC, "rotation": 25.0})))
     vertices = scene.satellites[0].track.vertices
@@ -434,8 +427,7 @@ def test_simulate_an_orbit_scene(tmp_path, capsys):
         truth = hdul["TRUTH"].data[0]
         assert not truth["flags"] & FLAG_OFF_IMAGE
     # TRUTH describes the streak drawn (its first vertex), not the scene's zenith and phi.
-    from inject.config import parse_scene
-    from inject.schema import apply_overrides
+    from inject import apply_overrides, parse_scene
     first = parse_scene(resolve_ccd_orbits(apply_overrides(
         yaml.safe_load(path.read_text()), ["detector.nx=256", "detector.ny=256"]))
     ).satellites[0].track.vertices[0]
@@ -445,9 +437,7 @@ def test_simulate_an_orbit_scene(tmp_path, capsys):
 
 
 def test_ccd_scene_orbit_that_misses_says_why():
-    from inject.config import parse_scene
-    from inject.errors import OrbitWarning, SceneError
-
+    from inject import OrbitWarning, SceneError, parse_scene
     raw = _ccd_scene_raw(pointing={"ra": (RA + 40) % 360, "dec": DEC})
     with pytest.warns(OrbitWarning, match="no streak: misses the field"):
         scene = parse_scene(resolve_ccd_orbits(raw))
@@ -483,7 +473,7 @@ def _pass_args(orbit, exposure, pointing, tmp_path):
 def test_pass_lists_only_the_sunlit_ccds_as_focalplane_renders(capsys, tmp_path):
     """`inject pass`'s detectors are the CCDs the focal-plane scene's (sunlit) track crosses;
     those crossed only in the umbra are listed apart, with no streak."""
-    from inject.exposure.scene import parse_focal_scene
+    from inject import parse_focal_scene
     orbit, exposure, pointing = _terminator_pass(aim_s=8.0)  # umbra entry in the field
     report, _ = run_json(capsys, *_pass_args(orbit, exposure, pointing, tmp_path))
     raw = _scene(exptime=exposure.exptime_s, time=exposure.start.isot,
@@ -518,8 +508,8 @@ def test_every_sunlit_part_is_rendered(monkeypatch):
     """A pass that leaves Earth's shadow and re-enters it in one exposure (made here by
     darkening the middle of the example pass) renders both sunlit parts, with the gap
     between them dark: no CCD streak covers the shadowed stretch."""
+    from inject import parse_focal_scene
     from inject.exposure.plan import ccd_streaks, margins_px
-    from inject.exposure.scene import parse_focal_scene
     from inject.orbits import tracks as focalscene
     real = focalscene.orbit_pass
 

@@ -5,14 +5,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from inject.camera.wcs import Pointing
-from inject.config import parse_scene
-from inject.geometry import Geometry
+from inject import (
+    Exposure,
+    Geometry,
+    Orbit,
+    Pointing,
+    compute_pass,
+    load_scene_file,
+    parse_scene,
+    resolve_ccd_orbits,
+)
 from inject.instrument import ARCSEC_PER_RAD
-from inject.orbits.passes import TRACK_STEP_S, Exposure, Orbit, compute_pass
-from inject.orbits.tracks import resolve_ccd_orbits
+from inject.orbits.passes import TRACK_STEP_S
 from inject.photometry import band
-from inject.schema import load_scene_file
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "sample_fields" / "pass_example.yaml"
@@ -50,7 +55,7 @@ def _check_row(row, omega, range_km, pixel_scale):
 
 
 def test_ccd_scene_truth_is_the_pass(dense):
-    from inject.scene import render_streaks
+    from inject import render_streaks
     raw = _raw(detector={"type": "itl", "nx": 256, "ny": 256},
                pointing={"ra": RA, "dec": DEC, "rotation": 0.0})
     raw.pop("zenith")
@@ -66,10 +71,8 @@ def test_focal_plane_ccd_truth_is_the_pass(dense):
     """R22_S12's corner (a 400 x 400 cut-out) is crossed in this second; the TRUTH row
     describes where the clipped track enters the CCD's reach: the pass there, interpolated
     between its 0.1 s samples in focal-plane mm."""
+    from inject import make_plan, parse_focal_scene, simulate_ccd
     from inject.camera import layout as fp
-    from inject.exposure.ccd import simulate_ccd
-    from inject.exposure.plan import make_plan
-    from inject.exposure.scene import parse_focal_scene
     fscene = parse_focal_scene(_raw(cutout={"nx": 400, "ny": 400}))
     ccd = fp.BY_NAME["R22_S12"]
     _, result, streaks, _ = simulate_ccd(fscene, ccd, make_plan(fscene).streaks(ccd))
@@ -94,11 +97,7 @@ def test_focal_charge_check_uses_the_pass():
     import re
     import warnings
 
-    from inject.errors import SceneError
-    from inject.exposure.scene import parse_focal_scene
-    from inject.profile import Seeing
-    from inject.streak import StreakModel
-
+    from inject import SceneError, Seeing, StreakModel, parse_focal_scene
     raw = _raw()
     track = parse_focal_scene(raw).tracks[0]
     p = compute_pass(Orbit.read_tle(TLE), Exposure(START, EXPTIME), Pointing(RA, DEC, 0.0),
@@ -157,11 +156,9 @@ def test_scene_time_reaches_the_headers(tmp_path):
     assert main(["simulate", str(path), "-o", str(tmp_path / "none.fits")]) == 0
     assert "DATE-OBS" not in fits.getheader(tmp_path / "none.fits", 0)
 
+    from inject import make_plan, parse_focal_scene
     from inject.camera import layout as fp
-    from inject.exposure.plan import make_plan
     from inject.exposure.runner import Task, render_ccd
-    from inject.exposure.scene import parse_focal_scene
-
     fscene = parse_focal_scene(_raw(cutout={"nx": 64, "ny": 64}))
     ccd = fp.ccd("R22_S12")
     row = render_ccd(Task(fscene, ccd.name, str(tmp_path), tuple(make_plan(fscene).streaks(ccd))))
@@ -173,8 +170,8 @@ def test_sampled_margin_bounds_every_vertex(case):
     """The footprint margin from a few vertices (focalscene._sampled, + REACH_ALLOWANCE) is
     at least the largest reach over every vertex, and not much more: for the example pass
     and a pass fading in the penumbra (its brightness, so its tolerance, changes)."""
+    from inject import parse_focal_scene
     from inject.exposure.plan import REACH_ALLOWANCE, margins_px
-    from inject.exposure.scene import parse_focal_scene
     if case == "pass":
         raw = _raw(exptime=3.0, time="2026-06-15T23:29:58.5", noise=True, sky=True)
     else:

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
+from inject import InputError
 from inject import photometry as ph
-from inject.errors import InputError
 
 
 def test_smtn002_values():

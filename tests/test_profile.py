@@ -4,10 +4,9 @@ import numpy as np
 import pytest
 from scipy import integrate, optimize
 
-from inject.instrument import ARCSEC_PER_RAD, LSST, Telescope
-from inject.profile import Seeing, defocus_kernel, line_spread
-from inject.satellite import Disk
-from inject.streak import StreakModel
+from inject import LSST, Disk, Seeing, StreakModel, Telescope
+from inject.instrument import ARCSEC_PER_RAD
+from inject.profile import defocus_kernel, line_spread
 
 
 def test_defocus_kernel_has_unit_flux_and_radii():

@@ -18,10 +18,20 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from inject.config import parse_scene
-from inject.io.exr import read_exr, write_exr
-from inject.io.fits import write_exposure
-from inject.io.reader import read_exposure
+from inject import (
+    Box,
+    Disk,
+    SceneResult,
+    Segment,
+    StreakModel,
+    Track,
+    parse_scene,
+    read_exposure,
+    simulate,
+    write_exposure,
+    write_exr,
+)
+from inject.io.exr import read_exr
 from inject.profile import GSPARAMS
 from inject.render import (
     Budget,
@@ -31,10 +41,7 @@ from inject.render import (
     short_track_budget,
     swept_profile,
 )
-from inject.satellite import Box, Disk
-from inject.scene import SceneResult, render_tracks, simulate
-from inject.streak import StreakModel
-from inject.trajectory import Segment, Track
+from inject.scene import render_tracks
 
 PAPER = StreakModel(550, 70)
 DISK = StreakModel(550, 40, shape=Disk(1.0))

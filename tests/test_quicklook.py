@@ -5,9 +5,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from inject.errors import OutputError
+from inject import OutputError, SceneResult
 from inject.io.quicklook import bin_factor, block_mean, write_quicklook
-from inject.scene import SceneResult
 
 
 def _result(ny=48, nx=64, seed=0):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import special
 
-from inject.errors import InputError
+from inject import Disk, InputError, Segment, StreakModel
 from inject.profile import GSPARAMS
 from inject.reference import (
     default_stamp_half_size,
@@ -13,9 +13,6 @@ from inject.reference import (
     sample_points,
     with_gsparams,
 )
-from inject.satellite import Disk
-from inject.streak import StreakModel
-from inject.trajectory import Segment
 
 PAPER_550 = StreakModel(550, 70)
 DISK_350 = StreakModel(350, 0, shape=Disk(1.0))

@@ -3,13 +3,10 @@ import galsim
 import numpy as np
 import pytest
 
+from inject import Box, Budget, Disk, InputError, Seeing, Segment, StreakModel, render_segment
 from inject.baselines import render_galsim_box
-from inject.errors import InputError
-from inject.profile import Seeing
-from inject.render import Budget, SweptProfile, footprint, render_segment, render_streak
-from inject.satellite import Box, Composite, Disk, Part
-from inject.streak import StreakModel
-from inject.trajectory import Segment
+from inject.render import SweptProfile, footprint, render_streak
+from inject.satellite import Composite, Part
 
 PAPER_550 = StreakModel(550, 70)
 DISK_350 = StreakModel(350, 0, shape=Disk(1.0))
@@ -159,9 +156,7 @@ def test_linear_brightness_ramp_matches_fine_constant_pieces(model):
 
 
 def test_polyline_with_equal_models_is_the_straight_track():
-    from inject.render import render_polyline
-    from inject.trajectory import Polyline
-
+    from inject import Polyline, render_polyline
     seg = Segment(60.2, 80.7, 25.0, 150.0)
     mid_x, mid_y = seg.x0 + 70 * np.cos(np.radians(25)), seg.y0 + 70 * np.sin(np.radians(25))
     poly = Polyline((seg.x0, mid_x, seg.x1), (seg.y0, mid_y, seg.y1))
@@ -174,9 +169,7 @@ def test_polyline_with_equal_models_is_the_straight_track():
 def test_polyline_brightness_ramp_and_bend_conserve_flux():
     """A bent track whose satellite brightens 4x along it: flux is the trapezoid of its
     vertices' charge per pixel, and the bend joins without gap or overlap."""
-    from inject.render import render_polyline
-    from inject.trajectory import Polyline
-
+    from inject import Polyline, render_polyline
     dim = StreakModel(550, 70, mag=6.5)
     poly = Polyline((300.0, 420.5, 480.0), (300.0, 350.2, 470.9))
     image = np.zeros((800, 820))

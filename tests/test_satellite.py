@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from inject.errors import InputError
+from inject import Box, Disk, InputError, shape_from_dict
 from inject.instrument import ARCSEC_PER_RAD
-from inject.satellite import Box, Composite, Disk, Part, shape_from_dict
+from inject.satellite import Composite, Part
 
 
 def moments(profile, scale=0.005, n=400):

@@ -63,10 +63,8 @@ def test_every_satellite_has_a_record(tmp_path, capsys):
 
 
 def test_plan_json_carries_the_same_records(capsys):
-    from inject.errors import OrbitWarning
-    from inject.exposure.plan import make_plan, satellite_records
-    from inject.exposure.scene import parse_focal_scene
-
+    from inject import OrbitWarning, make_plan, parse_focal_scene
+    from inject.exposure.plan import satellite_records
     with pytest.warns(OrbitWarning):
         fscene = parse_focal_scene(RAW)
     records = satellite_records(make_plan(fscene))

@@ -2,13 +2,11 @@
 import numpy as np
 import pytest
 
+from inject import DEFAULT_SCENE, InputError, SceneError, apply_overrides, parse_scene, simulate
 from inject.camera.detector import ITL, bleed_saturation, detector_from_spec
-from inject.config import DEFAULT_SCENE, parse_scene, sky_level
-from inject.errors import InputError, SceneError
+from inject.config import sky_level
 from inject.maskplanes import MASK_PLANES
 from inject.photometry import sky_per_pixel
-from inject.scene import simulate
-from inject.schema import apply_overrides
 
 BASE = ["detector.nx=300", "detector.ny=260", "stars=false", "satellites.0.track.x0=10",
         "satellites.0.track.y0=40", "satellites.0.track.angle=20"]

@@ -5,8 +5,8 @@ import yaml
 from astropy.io import fits
 from astropy.table import Table
 
+from inject import StreakModel
 from inject.cli.main import main
-from inject.streak import StreakModel
 
 SCENE = {
     "seed": 3, "band": "g", "zenith": 70, "detector": {"type": "itl", "nx": 400, "ny": 300},

@@ -5,10 +5,9 @@ import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+from inject import make_plan, parse_focal_scene
 from inject.camera import layout as fp
 from inject.exposure import runner as parallel
-from inject.exposure.plan import make_plan
-from inject.exposure.scene import parse_focal_scene
 from inject.io.atomic import STALE_AFTER_S, atomic_path, remove_stale_temporaries
 
 OLD = time.time() - 10 * STALE_AFTER_S

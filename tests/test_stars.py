@@ -6,9 +6,8 @@ from astropy.io import fits
 from astropy.table import Table
 from scipy import stats
 
+from inject import FileFormatError, InputError, SceneError, pointing_wcs
 from inject import stars as st
-from inject.camera.wcs import pointing_wcs
-from inject.errors import FileFormatError, InputError, SceneError
 from inject.scene import rng
 
 PIXEL = 0.2
@@ -250,8 +249,7 @@ def test_full_ccd_twenty_thousand_stars():
 # --- scene glue ---------------------------------------------------------------------------
 
 def test_scene_with_stars():
-    from inject.config import DEFAULT_SCENE, parse_scene
-    from inject.schema import apply_overrides
+    from inject import DEFAULT_SCENE, apply_overrides, parse_scene
     scene = parse_scene(apply_overrides(DEFAULT_SCENE, [
         "detector.nx=300", "detector.ny=200", "satellites=[]", "zenith=0",
         "stars.galactic_l=90", "stars.galactic_b=30"]))
