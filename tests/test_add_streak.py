@@ -1,5 +1,4 @@
 """`inject add-streak`: injection into a user's FITS image, which is never modified."""
-import hashlib
 
 import numpy as np
 import pytest
@@ -11,10 +10,6 @@ from inject.cli.main import main
 
 ARGS = ["--height", "550", "--zenith", "70", "--mag", "8", "--x0", "20.5", "--y0", "60.2",
         "--angle", "15", "--track-length", "100"]
-
-
-def digest(path):
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 @pytest.fixture
@@ -47,7 +42,7 @@ def lsst_image(tmp_path):
     return path
 
 
-def test_plain_image_in_adu(plain_image, tmp_path):
+def test_plain_image_in_adu(plain_image, tmp_path, digest):
     before = digest(plain_image)
     out = tmp_path / "out.fits"
     assert main(["add-streak", str(plain_image), "-o", str(out), *ARGS, "--no-noise"]) == 0
@@ -114,7 +109,7 @@ def test_unreadable_input(tmp_path, capsys, content):
     assert not (tmp_path / "o.fits").exists()
 
 
-def test_output_must_differ_from_input(plain_image, capsys):
+def test_output_must_differ_from_input(plain_image, capsys, digest):
     before = digest(plain_image)
     assert main(["add-streak", str(plain_image), "-o", str(plain_image), *ARGS,
                  "--overwrite"]) == 2

@@ -7,7 +7,7 @@ file without ``--overwrite``, and inputs are never modified. Tests marked xfail(
 bugs still to fix.
 """
 import errno
-import hashlib
+import functools
 import math
 import os
 import sys
@@ -65,25 +65,15 @@ STREAK_ARGS = ["--height", "550", "--zenith", "70", "--x0", "10.5", "--y0", "20.
                "--angle", "15", "--track-length", "20", "--no-noise"]
 
 
-def digest(path):
-    with open(path, "rb") as stream:
-        return hashlib.sha256(stream.read()).hexdigest()
+@pytest.fixture
+def cli(cli):
+    """The command line, and an error must be its only line (no warning before it)."""
+    return functools.partial(cli, strict=True)
 
 
 def leftovers(directory):
     """Temporary files of inject.io.atomic left in a directory."""
     return [name for name in os.listdir(directory) if name.startswith(".inject-")]
-
-
-def run(capsys, *argv):
-    """Run the CLI; return (status, stderr) after checking that an error is one clean line."""
-    status = main([str(a) for a in argv])
-    captured = capsys.readouterr()
-    if status != 0:
-        assert "Traceback" not in captured.err
-        assert captured.err.count("\n") == 1, captured.err
-        assert captured.err.startswith(f"inject {argv[0]}: error: ")
-    return status, captured.err
 
 
 @pytest.fixture
@@ -138,8 +128,8 @@ def test_errors_are_value_errors(cls):
     (["--height", "550", "--ref-range", "0"], "ref_range_km=0.0"),
     (["--height", "550", "--pixel-scale", "0"], "pixel_scale_arcsec=0.0"),
 ])
-def test_profile_bad_values(capsys, argv, needle):
-    status, err = run(capsys, "profile", *argv)
+def test_profile_bad_values(cli, argv, needle):
+    status, _, err = cli("profile", *argv)
     assert status == 2
     assert needle in err
 
@@ -321,9 +311,9 @@ def test_errors_print_nothing_on_stdout(capsys):
     ("pointing={ra: 10}", "pointing: missing keys ['dec']"),
     ("sky={airmass_scaling: maybe}", "sky.airmass_scaling='maybe'"),
 ])
-def test_simulate_bad_values(capsys, scene, tmp_path, override, needle):
+def test_simulate_bad_values(cli, scene, tmp_path, override, needle):
     out = tmp_path / "out.fits"
-    status, err = run(capsys, "simulate", scene, "-o", out, override)
+    status, _, err = cli("simulate", scene, "-o", out, override)
     assert status == 2
     assert needle in err
     assert not out.exists() and not leftovers(tmp_path)
@@ -366,13 +356,13 @@ BAD_SCENES = {
 
 
 @pytest.mark.parametrize("name", list(BAD_SCENES))
-def test_bad_scene_files(capsys, tmp_path, name):
+def test_bad_scene_files(cli, tmp_path, name, digest):
     text, needle = BAD_SCENES[name]
     path = tmp_path / "bad.yaml"
     path.write_text(text)
     before = digest(path)
     out = tmp_path / "out.fits"
-    status, err = run(capsys, "simulate", path, "-o", out)
+    status, _, err = cli("simulate", path, "-o", out)
     assert status == 2 and needle in err
     assert not out.exists() and digest(path) == before
     # The same through the Python API: a SceneError, which is also a ValueError.
@@ -388,11 +378,11 @@ def test_bad_scene_files(capsys, tmp_path, name):
     "!!python/object/new:os.system ['touch {marker}']",
     "!!python/module:os",
 ])
-def test_unsafe_yaml_tags_are_refused_and_never_run(capsys, tmp_path, tag):
+def test_unsafe_yaml_tags_are_refused_and_never_run(cli, tmp_path, tag):
     marker = tmp_path / "PWNED"
     path = tmp_path / "unsafe.yaml"
     path.write_text(f"seed: 1\nsatellites: {tag.format(marker=marker)}\n")
-    status, err = run(capsys, "simulate", path, "-o", tmp_path / "out.fits")
+    status, _, err = cli("simulate", path, "-o", tmp_path / "out.fits")
     assert status == 2 and "not valid YAML" in err and str(path) in err
     assert not marker.exists()
     with pytest.raises(SceneError):
@@ -400,13 +390,13 @@ def test_unsafe_yaml_tags_are_refused_and_never_run(capsys, tmp_path, tag):
     assert not marker.exists()
 
 
-def test_missing_scene_file(capsys, tmp_path):
-    status, err = run(capsys, "simulate", tmp_path / "nope.yaml", "-o", tmp_path / "o.fits")
+def test_missing_scene_file(cli, tmp_path):
+    status, _, err = cli("simulate", tmp_path / "nope.yaml", "-o", tmp_path / "o.fits")
     assert status == 2 and "nope.yaml" in err and "cannot read" in err
 
 
-def test_scene_file_is_a_directory(capsys, tmp_path):
-    status, err = run(capsys, "simulate", tmp_path, "-o", tmp_path / "o.fits")
+def test_scene_file_is_a_directory(cli, tmp_path):
+    status, _, err = cli("simulate", tmp_path, "-o", tmp_path / "o.fits")
     assert status == 2 and "cannot read" in err
 
 
@@ -427,11 +417,11 @@ def booby_trapped_module(tmp_path, monkeypatch):
     sys.modules.pop(name, None)
 
 
-def test_scene_cannot_name_a_masking_function(capsys, tmp_path, booby_trapped_module):
+def test_scene_cannot_name_a_masking_function(cli, tmp_path, booby_trapped_module):
     name, marker = booby_trapped_module
     path = tmp_path / "scene.yaml"
     path.write_text(SCENE + f"masker: {name}:mask\n")
-    status, err = run(capsys, "simulate", path, "-o", tmp_path / "o.fits")
+    status, _, err = cli("simulate", path, "-o", tmp_path / "o.fits")
     assert status == 2 and "unknown keys ['masker']" in err
     assert not marker.exists()
 
@@ -578,12 +568,12 @@ def _cube(path, image):
     (_truncated, "not a readable FITS file"), (_garbage, "not a readable FITS file"),
     (_empty, "not a readable FITS file"), (_header_only, "not a readable FITS file"),
     (_table_only, "no 2-D image"), (_cube, "no 2-D image")])
-def test_add_streak_unreadable_input(capsys, tmp_path, image, make, needle):
+def test_add_streak_unreadable_input(cli, tmp_path, image, make, needle, digest):
     bad = tmp_path / "bad.fits"
     make(bad, image)
     before = digest(bad)
     out = tmp_path / "out.fits"
-    status, err = run(capsys, "add-streak", bad, "-o", out, *STREAK_ARGS)
+    status, _, err = cli("add-streak", bad, "-o", out, *STREAK_ARGS)
     assert status == 2 and str(bad) in err and needle in err
     assert not out.exists() and not leftovers(tmp_path)
     assert digest(bad) == before
@@ -591,14 +581,14 @@ def test_add_streak_unreadable_input(capsys, tmp_path, image, make, needle):
         read_exposure(bad)
 
 
-def test_add_streak_missing_input(capsys, tmp_path):
-    status, err = run(capsys, "add-streak", tmp_path / "nope.fits", "-o", tmp_path / "o.fits",
+def test_add_streak_missing_input(cli, tmp_path):
+    status, _, err = cli("add-streak", tmp_path / "nope.fits", "-o", tmp_path / "o.fits",
                       *STREAK_ARGS)
     assert status == 2 and "nope.fits: no such file" in err
 
 
-def test_add_streak_input_is_a_directory(capsys, tmp_path):
-    status, err = run(capsys, "add-streak", tmp_path, "-o", tmp_path / "o.fits", *STREAK_ARGS)
+def test_add_streak_input_is_a_directory(cli, tmp_path):
+    status, _, err = cli("add-streak", tmp_path, "-o", tmp_path / "o.fits", *STREAK_ARGS)
     assert status == 2 and "not a readable FITS file" in err
 
 
@@ -611,22 +601,22 @@ def test_add_streak_input_is_a_directory(capsys, tmp_path):
     (["--track-length", "-5"], "length=-5.0"),
     (["--ra0", "10", "--dec0", "5"], "has no WCS"),
 ])
-def test_add_streak_bad_values(capsys, tmp_path, image, argv, needle):
+def test_add_streak_bad_values(cli, tmp_path, image, argv, needle, digest):
     base = dict(zip(STREAK_ARGS[:-1:2], STREAK_ARGS[1::2]))
     for key, value in zip(argv[::2], argv[1::2]):
         base[key] = value
     args = [item for pair in base.items() for item in pair] + ["--no-noise"]
     out = tmp_path / "out.fits"
     before = digest(image)
-    status, err = run(capsys, "add-streak", image, "-o", out, *args)
+    status, _, err = cli("add-streak", image, "-o", out, *args)
     assert status == 2 and needle in err
     assert not out.exists() and digest(image) == before
 
 
-def test_add_streak_needs_a_gain(capsys, tmp_path):
+def test_add_streak_needs_a_gain(cli, tmp_path):
     path = tmp_path / "adu.fits"
     fits.PrimaryHDU(np.zeros((20, 30), np.float32)).writeto(path)
-    status, err = run(capsys, "add-streak", path, "-o", tmp_path / "o.fits", *STREAK_ARGS)
+    status, _, err = cli("add-streak", path, "-o", tmp_path / "o.fits", *STREAK_ARGS)
     assert status == 2 and "--gain" in err
 
 
@@ -651,7 +641,7 @@ def unwritable_dir(tmp_path):
 
 
 @pytest.mark.parametrize("option", ["-o", "--exr", "--png", "--truth"])
-def test_simulate_output_not_writable(capsys, scene, tmp_path, option):
+def test_simulate_output_not_writable(cli, scene, tmp_path, option):
     where = unwritable_dir(tmp_path)
     target = where / "out.bin"
     argv = ["simulate", scene, "-o", tmp_path / "ok.fits"]
@@ -659,27 +649,27 @@ def test_simulate_output_not_writable(capsys, scene, tmp_path, option):
         argv[3] = target
     else:
         argv += [option, target]
-    status, err = run(capsys, *argv)
+    status, _, err = cli(*argv)
     assert status == 2 and str(target) in err
     assert not (tmp_path / "ok.fits").exists()  # checked before any work or writing
     assert not target.exists()
 
 
-def test_add_streak_output_not_writable(capsys, tmp_path, image):
+def test_add_streak_output_not_writable(cli, tmp_path, image):
     target = unwritable_dir(tmp_path) / "out.fits"
-    status, err = run(capsys, "add-streak", image, "-o", target, *STREAK_ARGS)
+    status, _, err = cli("add-streak", image, "-o", target, *STREAK_ARGS)
     assert status == 2 and str(target) in err
 
 
-def test_output_directory_missing(capsys, scene, tmp_path):
+def test_output_directory_missing(cli, scene, tmp_path):
     target = tmp_path / "no" / "such" / "dir" / "out.fits"
-    status, err = run(capsys, "simulate", scene, "-o", target)
+    status, _, err = cli("simulate", scene, "-o", target)
     assert status == 2 and "does not exist" in err and str(target) in err
 
 
-def test_output_is_a_directory(capsys, scene, tmp_path):
+def test_output_is_a_directory(cli, scene, tmp_path):
     (tmp_path / "d").mkdir()
-    status, err = run(capsys, "simulate", scene, "-o", tmp_path / "d", "--overwrite")
+    status, _, err = cli("simulate", scene, "-o", tmp_path / "d", "--overwrite")
     assert status == 2 and str(tmp_path / "d") in err
     assert (tmp_path / "d").is_dir() and not leftovers(tmp_path)
 
@@ -715,7 +705,7 @@ def test_atomic_path_full_disk_leaves_target_untouched(tmp_path):
     assert not leftovers(tmp_path)
 
 
-def test_simulate_full_disk(capsys, monkeypatch, scene, tmp_path):
+def test_simulate_full_disk(capsys, monkeypatch, scene, tmp_path, cli, digest):
     out = tmp_path / "out.fits"
     assert main(["simulate", str(scene), "-o", str(out)]) == 0
     capsys.readouterr()
@@ -732,27 +722,27 @@ def test_simulate_full_disk(capsys, monkeypatch, scene, tmp_path):
         return real_write(self, data)
 
     monkeypatch.setattr(_DigestStream, "write", full_in_the_data)
-    status, err = run(capsys, "simulate", scene, "-o", out, "--overwrite")
+    status, _, err = cli("simulate", scene, "-o", out, "--overwrite")
     assert status == 2 and "No space left on device" in err and str(out) in err
     assert digest(out) == before and not leftovers(tmp_path)
 
 
-def test_add_streak_full_disk(capsys, monkeypatch, tmp_path, image):
+def test_add_streak_full_disk(cli, monkeypatch, tmp_path, image):
     out = tmp_path / "out.fits"
     out.write_bytes(b"previous")
     monkeypatch.setattr(fits.HDUList, "writeto", lambda self, *a, **k: enospc())
-    status, err = run(capsys, "add-streak", image, "-o", out, *STREAK_ARGS, "--overwrite")
+    status, _, err = cli("add-streak", image, "-o", out, *STREAK_ARGS, "--overwrite")
     assert status == 2 and "No space left on device" in err
     assert out.read_bytes() == b"previous" and not leftovers(tmp_path)
 
 
 @pytest.mark.parametrize("option", ["--exr", "--png", "--truth"])
-def test_full_disk_on_the_rename(capsys, monkeypatch, scene, tmp_path, option):
+def test_full_disk_on_the_rename(cli, monkeypatch, scene, tmp_path, option):
     """ENOSPC as the finished temporary file is moved into place (EXR, PNG, CSV writers)."""
     fits_out, other = tmp_path / "out.fits", tmp_path / "out.other"
     other.write_bytes(b"previous")
     fail_move_onto(monkeypatch, other)
-    status, err = run(capsys, "simulate", scene, "-o", fits_out, option, other, "--overwrite")
+    status, _, err = cli("simulate", scene, "-o", fits_out, option, other, "--overwrite")
     assert status == 2 and "No space left on device" in err and str(other) in err
     assert other.read_bytes() == b"previous" and not leftovers(tmp_path)
     assert not fits_out.exists()  # moved into place first, then taken back
@@ -778,53 +768,51 @@ def exr_writer_fails(monkeypatch):
     monkeypatch.setattr(OpenImageIO.ImageOutput, "create", staticmethod(lambda *a: None))
 
 
-def test_simulate_failing_exr_leaves_no_fits(capsys, scene, tmp_path, exr_writer_fails):
-    status, err = run(capsys, *simulate_all(scene, tmp_path))
+def test_simulate_failing_exr_leaves_no_fits(cli, scene, tmp_path, exr_writer_fails):
+    status, _, err = cli(*simulate_all(scene, tmp_path))
     assert status == 2 and str(tmp_path / "out.exr") in err
     assert sorted(os.listdir(tmp_path)) == ["scene.yaml"]  # no FITS, no temporaries
 
 
-def test_simulate_failing_exr_keeps_every_previous_output(capsys, scene, tmp_path,
-                                                         exr_writer_fails):
+def test_simulate_failing_exr_keeps_every_previous_output(cli, scene, tmp_path, exr_writer_fails):
     for name in ALL_OUTPUTS:
         (tmp_path / name).write_bytes(f"previous {name}".encode())
-    status, err = run(capsys, *simulate_all(scene, tmp_path, "--overwrite"))
+    status, _, err = cli(*simulate_all(scene, tmp_path, "--overwrite"))
     assert status == 2 and str(tmp_path / "out.exr") in err
     for name in ALL_OUTPUTS:
         assert (tmp_path / name).read_bytes() == f"previous {name}".encode()
     assert not leftovers(tmp_path)
 
 
-def test_simulate_failing_last_move_restores_replaced_outputs(capsys, monkeypatch, scene,
-                                                              tmp_path):
+def test_simulate_failing_last_move_restores_replaced_outputs(cli, monkeypatch, scene, tmp_path):
     """The CSV cannot be moved into place: the FITS, EXR and PNG already moved are undone
     (the replaced FITS restored, the new EXR and PNG removed)."""
     (tmp_path / "out.fits").write_bytes(b"previous FITS")
     fail_move_onto(monkeypatch, tmp_path / "out.csv")
-    status, err = run(capsys, *simulate_all(scene, tmp_path, "--overwrite"))
+    status, _, err = cli(*simulate_all(scene, tmp_path, "--overwrite"))
     assert status == 2 and "No space left on device" in err and str(tmp_path / "out.csv") in err
     assert sorted(os.listdir(tmp_path)) == ["out.fits", "scene.yaml"]
     assert (tmp_path / "out.fits").read_bytes() == b"previous FITS"
 
 
 @pytest.mark.parametrize("existing", ALL_OUTPUTS)
-def test_simulate_existing_target_writes_nothing(capsys, scene, tmp_path, existing):
+def test_simulate_existing_target_writes_nothing(cli, scene, tmp_path, existing):
     (tmp_path / existing).write_bytes(b"keep me")
-    status, err = run(capsys, *simulate_all(scene, tmp_path))
+    status, _, err = cli(*simulate_all(scene, tmp_path))
     assert status == 2 and str(tmp_path / existing) in err and "--overwrite" in err
     assert sorted(os.listdir(tmp_path)) == sorted(["scene.yaml", existing])
     assert (tmp_path / existing).read_bytes() == b"keep me"
 
 
 @pytest.mark.parametrize("second", ["out.fits", "./out.fits"])
-def test_simulate_same_target_twice(capsys, scene, tmp_path, monkeypatch, second):
+def test_simulate_same_target_twice(cli, scene, tmp_path, monkeypatch, second):
     monkeypatch.chdir(tmp_path)
-    status, err = run(capsys, "simulate", scene, "-o", "out.fits", "--exr", second)
+    status, _, err = cli("simulate", scene, "-o", "out.fits", "--exr", second)
     assert status == 2 and "given for two outputs" in err
     assert os.listdir(tmp_path) == ["scene.yaml"]
 
 
-def test_evaluate_writes_all_its_files_or_none(capsys, monkeypatch, tmp_path):
+def test_evaluate_writes_all_its_files_or_none(cli, monkeypatch, tmp_path):
     """The campaign's tables are written, then a plot fails: no table is left behind."""
     import matplotlib.figure
 
@@ -836,12 +824,12 @@ def test_evaluate_writes_all_its_files_or_none(capsys, monkeypatch, tmp_path):
     monkeypatch.setattr(cli_evaluate, "run_campaign", lambda *a, **k: (rows, rows))
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", enospc)
     out = tmp_path / "ev"
-    status, err = run(capsys, "evaluate", "--out", out)
+    status, _, err = cli("evaluate", "--out", out)
     assert status == 2 and "No space left on device" in err and "completeness.png" in err
     assert not out.exists()  # not even the folder made for the campaign
 
 
-def test_evaluate_refuses_to_replace_an_earlier_campaign(capsys, monkeypatch, tmp_path):
+def test_evaluate_refuses_to_replace_an_earlier_campaign(cli, monkeypatch, tmp_path):
     """Existing outputs in --out stop the campaign before it runs, unless --overwrite."""
     import inject.cli.evaluate as cli_evaluate
 
@@ -852,7 +840,7 @@ def test_evaluate_refuses_to_replace_an_earlier_campaign(capsys, monkeypatch, tm
     def campaign(*args, **kwargs):
         raise AssertionError("the campaign ran before its outputs were checked")
     monkeypatch.setattr(cli_evaluate, "run_campaign", campaign)
-    status, err = run(capsys, "evaluate", "--out", out)
+    status, _, err = cli("evaluate", "--out", out)
     assert status == 2 and "summary.md: exists; pass --overwrite" in err
     assert (out / "summary.md").read_text() == "an earlier campaign"
 
@@ -929,7 +917,7 @@ def test_output_group_undoes_its_moves(monkeypatch, tmp_path, hard_links):
 # --- Existing outputs are not replaced without --overwrite ---------------------------------
 
 @pytest.mark.parametrize("option", ["-o", "--exr", "--png", "--truth"])
-def test_simulate_never_replaces_without_overwrite(capsys, scene, tmp_path, option):
+def test_simulate_never_replaces_without_overwrite(cli, scene, tmp_path, option):
     existing = tmp_path / "existing.out"
     existing.write_bytes(b"keep me")
     fresh = tmp_path / "fresh.fits"
@@ -938,7 +926,7 @@ def test_simulate_never_replaces_without_overwrite(capsys, scene, tmp_path, opti
         argv[3] = existing
     else:
         argv += [option, existing]
-    status, err = run(capsys, *argv)
+    status, _, err = cli(*argv)
     assert status == 2 and str(existing) in err and "--overwrite" in err
     assert existing.read_bytes() == b"keep me"
     assert not fresh.exists()  # every output is checked before anything is written
@@ -946,10 +934,10 @@ def test_simulate_never_replaces_without_overwrite(capsys, scene, tmp_path, opti
     assert existing.read_bytes() != b"keep me"
 
 
-def test_add_streak_never_replaces_without_overwrite(capsys, tmp_path, image):
+def test_add_streak_never_replaces_without_overwrite(cli, tmp_path, image):
     out = tmp_path / "out.fits"
     out.write_bytes(b"keep me")
-    status, err = run(capsys, "add-streak", image, "-o", out, *STREAK_ARGS)
+    status, _, err = cli("add-streak", image, "-o", out, *STREAK_ARGS)
     assert status == 2 and "--overwrite" in err and out.read_bytes() == b"keep me"
     assert main(["add-streak", str(image), "-o", str(out), *STREAK_ARGS, "--overwrite"]) == 0
     with fits.open(out) as hdus:
@@ -958,16 +946,16 @@ def test_add_streak_never_replaces_without_overwrite(capsys, tmp_path, image):
 
 # --- Inputs are never modified -------------------------------------------------------------
 
-def test_simulate_never_modifies_the_scene_file(capsys, scene, tmp_path):
+def test_simulate_never_modifies_the_scene_file(capsys, scene, tmp_path, cli, digest):
     before, mtime = digest(scene), os.stat(scene).st_mtime_ns
     assert main(["simulate", str(scene), "-o", str(tmp_path / "a.fits"),
                  "satellites.0.mag=3"]) == 0
     capsys.readouterr()
-    run(capsys, "simulate", scene, "-o", tmp_path / "b.fits", "zenith=95")
+    cli("simulate", scene, "-o", tmp_path / "b.fits", "zenith=95")
     assert digest(scene) == before and os.stat(scene).st_mtime_ns == mtime
 
 
-def test_add_streak_never_modifies_its_input(capsys, tmp_path, image):
+def test_add_streak_never_modifies_its_input(capsys, tmp_path, image, cli, digest):
     before, mtime = digest(image), os.stat(image).st_mtime_ns
     out = tmp_path / "out.fits"
     assert main(["add-streak", str(image), "-o", str(out), *STREAK_ARGS]) == 0
@@ -975,9 +963,9 @@ def test_add_streak_never_modifies_its_input(capsys, tmp_path, image):
     out_before = digest(out)
     assert main(["add-streak", str(out), "-o", str(tmp_path / "twice.fits"), *STREAK_ARGS]) == 0
     capsys.readouterr()
-    run(capsys, "add-streak", image, "-o", tmp_path / "bad.fits", "--height", "-1",
+    cli("add-streak", image, "-o", tmp_path / "bad.fits", "--height", "-1",
         "--x0", "1", "--y0", "1")
-    status, err = run(capsys, "add-streak", image, "-o", image, *STREAK_ARGS, "--overwrite")
+    status, _, err = cli("add-streak", image, "-o", image, *STREAK_ARGS, "--overwrite")
     assert status == 2 and "never modified" in err
     assert digest(image) == before and os.stat(image).st_mtime_ns == mtime
     assert digest(out) == out_before
@@ -997,38 +985,38 @@ def test_truncated_fits_gives_one_line_in_a_real_process(tmp_path, image):
     assert proc.stderr.count("\n") == 1, proc.stderr
 
 
-def test_simulate_refuses_to_replace_its_scene_file(capsys, scene):
+def test_simulate_refuses_to_replace_its_scene_file(cli, scene, digest):
     before = digest(scene)
-    status, err = run(capsys, "simulate", scene, "-o", scene, "--overwrite")
+    status, _, err = cli("simulate", scene, "-o", scene, "--overwrite")
     assert status == 2 and digest(scene) == before
 
 
-def test_non_utf8_scene_file(capsys, tmp_path):
+def test_non_utf8_scene_file(cli, tmp_path):
     path = tmp_path / "binary.yaml"
     path.write_bytes(b"\xff\xfe\x00seed: 1\n" + bytes(range(128, 256)))
-    status, err = run(capsys, "simulate", path, "-o", tmp_path / "o.fits")
+    status, _, err = cli("simulate", path, "-o", tmp_path / "o.fits")
     assert status == 2 and str(path) in err
 
 
 @pytest.mark.parametrize("parts", ["5", "[5]"])
-def test_composite_parts_of_the_wrong_type(capsys, scene, tmp_path, parts):
-    status, err = run(capsys, "simulate", scene, "-o", tmp_path / "o.fits",
+def test_composite_parts_of_the_wrong_type(cli, scene, tmp_path, parts):
+    status, _, err = cli("simulate", scene, "-o", tmp_path / "o.fits",
                       f"satellites.0.shape={{type: composite, parts: {parts}}}")
     assert status == 2 and "parts" in err
 
 
 @pytest.mark.parametrize("option", ["--x0", "--y0", "--angle"])
-def test_add_streak_nan_track(capsys, tmp_path, image, option):
+def test_add_streak_nan_track(cli, tmp_path, image, option):
     base = dict(zip(STREAK_ARGS[:-1:2], STREAK_ARGS[1::2])) | {"--angle": "0"} | {option: "nan"}
     base.pop("--track-length")  # a crossing track
     args = [item for pair in base.items() for item in pair]
-    status, err = run(capsys, "add-streak", image, "-o", tmp_path / "o.fits", *args)
+    status, _, err = cli("add-streak", image, "-o", tmp_path / "o.fits", *args)
     assert status == 2 and f"{option.lstrip('-')}" in err and "nan" in err
     assert "np.float64" not in err
 
 
-def test_add_streak_negative_seed(capsys, tmp_path, image):
-    status, err = run(capsys, "add-streak", image, "-o", tmp_path / "o.fits", *STREAK_ARGS,
+def test_add_streak_negative_seed(cli, tmp_path, image):
+    status, _, err = cli("add-streak", image, "-o", tmp_path / "o.fits", *STREAK_ARGS,
                       "--seed", "-1")
     assert status == 2 and "seed" in err
 
@@ -1041,8 +1029,8 @@ def test_add_streak_negative_seed(capsys, tmp_path, image):
     ("satellites.0.track={vertices: [{x: 1, y: 2}, {x: 9, y: 2, zenith: 95}]}",
      "satellites[0].track.vertices[1].zenith"),
 ])
-def test_scene_errors_name_their_key(capsys, scene, tmp_path, override, where):
-    status, err = run(capsys, "simulate", scene, "-o", tmp_path / "o.fits", override)
+def test_scene_errors_name_their_key(cli, scene, tmp_path, override, where):
+    status, _, err = cli("simulate", scene, "-o", tmp_path / "o.fits", override)
     assert status == 2 and where in err
 
 
@@ -1192,7 +1180,7 @@ def test_masking_api_bad_input(tmp_path, name):
         call(tmp_path)
 
 
-def test_shape_type_a_list_on_the_command_line(capsys, scene, tmp_path):
-    status, err = run(capsys, "simulate", scene, "-o", tmp_path / "o.fits",
+def test_shape_type_a_list_on_the_command_line(cli, scene, tmp_path):
+    status, _, err = cli("simulate", scene, "-o", tmp_path / "o.fits",
                       "satellites.0.shape.type=[box]")
     assert status == 2 and "shape.type=['box']" in err

@@ -29,18 +29,6 @@ from inject.validate import check
 SMALL = ["detector.nx=64", "detector.ny=64", "stars=false"]
 
 
-def run(capsys, *argv):
-    """Run the CLI: ``(status, stderr)``; an error is its last line, one line, after only
-    one-line warnings and progress lines."""
-    status = main([str(a) for a in argv])
-    err = capsys.readouterr().err
-    if status:
-        lines = err.splitlines()
-        assert "Traceback" not in err and lines[-1].startswith(f"inject {argv[0]}: error: "), err
-        assert all(line.startswith((f"inject {argv[0]}: warning: ", "[")) for line in lines[:-1])
-    return status, err
-
-
 @pytest.fixture
 def no_work(monkeypatch):
     """Fail the test if a scene is simulated: the checks must come first."""
@@ -128,8 +116,8 @@ def test_the_documented_table_has_every_range():
     # Inside every range, but the brightest pixel would hold more than can be drawn.
     ("satellites.0.mag=-29", "expected charge per pixel from satellites[0]="),
 ])
-def test_scene_ranges(capsys, tmp_path, no_work, override, needle):
-    status, err = run(capsys, "simulate", "sample_fields/default.yaml", "-o",
+def test_scene_ranges(cli, tmp_path, no_work, override, needle):
+    status, _, err = cli("simulate", "sample_fields/default.yaml", "-o",
                       tmp_path / "x.fits", *SMALL, override)
     assert status == 2 and needle in err, err
     assert os.listdir(tmp_path) == []
@@ -252,8 +240,8 @@ def test_yaml_merge_keys_may_still_override(tmp_path):
     (["--height", "550", "--ref-range", "1e8"], "--ref-range=100000000.0"),
     (["--height", "550", "--seeing", "40"], "seeing=40.0"),
 ])
-def test_profile_ranges(capsys, argv, needle):
-    status, err = run(capsys, "profile", *argv)
+def test_profile_ranges(cli, argv, needle):
+    status, _, err = cli("profile", *argv)
     assert status == 2 and needle in err, err
 
 
@@ -279,14 +267,14 @@ def test_profile_prints_inputs_with_every_digit(capsys):
     (["--x0", "3", "--y0", "3", "--seed", "0"], "--seed=0: must be >= 1"),
     (["--x0", "3", "--y0", "3", "--height", "20"], "--height=20.0"),
 ])
-def test_add_streak_ranges(capsys, tmp_path, argv, needle):
+def test_add_streak_ranges(cli, tmp_path, argv, needle):
     from astropy.io import fits
 
     image = tmp_path / "in.fits"
     fits.PrimaryHDU(np.zeros((20, 30), np.float32)).writeto(image)
     argv = ["add-streak", image, "-o", tmp_path / "out.fits", "--height", "550", "--gain", "1",
             *argv]
-    status, err = run(capsys, *argv)
+    status, _, err = cli(*argv)
     assert status == 2 and needle in err, err
     assert sorted(os.listdir(tmp_path)) == ["in.fits"]
 
@@ -295,8 +283,8 @@ def test_add_streak_ranges(capsys, tmp_path, argv, needle):
 
 @pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs /proc and /sys")
 @pytest.mark.parametrize("folder", ["/proc", "/sys", "/sys/kernel"])
-def test_outputs_under_proc_and_sys(capsys, no_work, folder):
-    status, err = run(capsys, "simulate", "sample_fields/default.yaml", "-o",
+def test_outputs_under_proc_and_sys(cli, no_work, folder):
+    status, _, err = cli("simulate", "sample_fields/default.yaml", "-o",
                       f"{folder}/x.fits", *SMALL)
     assert status == 2 and f"{folder}/x.fits" in err
 
@@ -328,8 +316,8 @@ def test_quicklook_format_follows_the_name(capsys, tmp_path, name, magic):
     assert (tmp_path / name).read_bytes().startswith(magic)
 
 
-def test_quicklook_under_a_data_name_is_refused_first(capsys, tmp_path, no_work):
-    status, err = run(capsys, "simulate", "sample_fields/default.yaml", "-o",
+def test_quicklook_under_a_data_name_is_refused_first(cli, tmp_path, no_work):
+    status, _, err = cli("simulate", "sample_fields/default.yaml", "-o",
                       tmp_path / "x.fits", "--png", tmp_path / "q.fits", *SMALL)
     assert status == 2 and "q.fits: a quicklook is a picture, not FITS data" in err
     assert os.listdir(tmp_path) == []
@@ -341,21 +329,21 @@ EVALUATE = ["--seeds", "1", "--mags", "11", "--heights", "550", "--streak-free",
             "--detector", "64"]
 
 
-def test_evaluate_names_the_failing_masker_and_image(capsys, tmp_path):
+def test_evaluate_names_the_failing_masker_and_image(cli, tmp_path):
     out = tmp_path / "new" / "campaign"
-    status, err = run(capsys, "evaluate", "-o", out, "--masker", "os.path:join", *EVALUATE)
+    status, _, err = cli("evaluate", "-o", out, "--masker", "os.path:join", *EVALUATE)
     assert status == 2
     assert "masker os.path:join failed on image 1 (550 km, mag 11.00, seed 1): TypeError" in err
     assert os.listdir(tmp_path) == []  # neither folder is left behind
 
 
-def test_evaluate_keeps_a_folder_it_did_not_make(capsys, tmp_path):
+def test_evaluate_keeps_a_folder_it_did_not_make(cli, tmp_path):
     (tmp_path / "notes.txt").write_text("mine")
-    status, _ = run(capsys, "evaluate", "--out", tmp_path, "--masker", "os.path:join", *EVALUATE)
+    status, _, _ = cli("evaluate", "--out", tmp_path, "--masker", "os.path:join", *EVALUATE)
     assert status == 2 and os.listdir(tmp_path) == ["notes.txt"]
 
 
-def test_evaluate_checks_optional_maskers_before_simulating(capsys, tmp_path, monkeypatch):
+def test_evaluate_checks_optional_maskers_before_simulating(cli, tmp_path, monkeypatch):
     import inject.cli.evaluate as cli_evaluate
     import inject.masking.external as external
     from inject import MaskingError
@@ -367,23 +355,23 @@ def test_evaluate_checks_optional_maskers_before_simulating(capsys, tmp_path, mo
         raise AssertionError("an image was simulated before the maskers were checked")
     monkeypatch.setattr(cli_evaluate, "campaign_images", images)
     out = tmp_path / "campaign"
-    status, err = run(capsys, "evaluate", "--out", out, "--masker", "inject", "--masker",
+    status, _, err = cli("evaluate", "--out", out, "--masker", "inject", "--masker",
                       "findsat_mrt", *EVALUATE)
     assert status == 2 and "needs acstools" in err
     assert not out.exists()
 
 
-def test_masker_returning_a_wrong_shape_is_one_line(capsys, tmp_path):
-    status, err = run(capsys, "evaluate", "--out", tmp_path / "c", "--masker",
+def test_masker_returning_a_wrong_shape_is_one_line(cli, tmp_path):
+    status, _, err = cli("evaluate", "--out", tmp_path / "c", "--masker",
                       "numpy:ravel", *EVALUATE)
     assert status == 2 and "masker numpy:ravel" in err and "returned a mask of shape" in err
 
 
-def test_evaluate_seeds_stay_clear_of_the_streak_free_seeds(capsys, tmp_path):
+def test_evaluate_seeds_stay_clear_of_the_streak_free_seeds(cli, tmp_path):
     """The streak-free images use seeds 1001 on: a campaign of more seeds would reuse them."""
     from inject.cli.evaluate import STREAK_FREE_SEED0
 
     out = tmp_path / "campaign"
-    status, err = run(capsys, "evaluate", "-o", out, "--seeds", STREAK_FREE_SEED0 + 1,
+    status, _, err = cli("evaluate", "-o", out, "--seeds", STREAK_FREE_SEED0 + 1,
                       "--mags", "11", "--heights", "550", "--detector", "64")
     assert status == 2 and "--seeds" in err and not out.exists()

@@ -1,7 +1,6 @@
 """Streak masking (inject.masking): detection, line and extent, FWHM, mask widths, lost pixels,
 the ``inject mask`` command."""
 import argparse
-import hashlib
 import json
 
 import numpy as np
@@ -307,11 +306,7 @@ def mask_namespace(*argv):
     return parser.parse_args(["mask", *map(str, argv)])
 
 
-def digest(path):
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def test_command_json_and_masked_file(simulated_file, tmp_path, capsys):
+def test_command_json_and_masked_file(simulated_file, tmp_path, capsys, digest):
     before = digest(simulated_file)
     out = tmp_path / "masked.fits"
     args = mask_namespace(simulated_file, "--json", "--out", out)

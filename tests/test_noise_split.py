@@ -133,31 +133,26 @@ def test_variance_and_read_noise_per_amplifier():
         assert abs(values.mean()) < 5 * sigma / np.sqrt(values.size)
 
 
-def scene(*overrides):
-    return parse_scene(apply_overrides(DEFAULT_SCENE, ["detector.nx=300", "detector.ny=260",
-                                                       *overrides]))
-
-
-def test_scene_without_streaks_matches_its_variance():
+def test_scene_without_streaks_matches_its_variance(small_scene):
     """Sky, stars and noise with no satellite: the image scatters as its VARIANCE says."""
-    res = simulate(scene("satellites=[]", "cosmic_rays=0"))
+    res = simulate(small_scene("satellites=[]", "cosmic_rays=0", nx=300, ny=260))
     assert res.image.dtype == np.float32 and res.variance.dtype == np.float32
     pulls = (res.image - (res.variance - ITL.read_noise ** 2)) / np.sqrt(res.variance)
     assert abs(pulls.mean()) < 5 / np.sqrt(pulls.size)
     assert pulls.std() == pytest.approx(1.0, abs=0.02)
 
 
-def test_variance_holds_the_stars_expected_charge():
+def test_variance_holds_the_stars_expected_charge(small_scene):
     """The stars' charge is drawn stamp by stamp, yet VARIANCE is the whole expected charge:
     the noise-free image of the same scene (same star field) plus the read noise squared."""
-    noisy = simulate(scene("cosmic_rays=0", "satellites=[]"))
-    clean = simulate(scene("cosmic_rays=0", "satellites=[]", "noise=false"))
+    noisy = simulate(small_scene("cosmic_rays=0", "satellites=[]", nx=300, ny=260))
+    clean = simulate(small_scene("cosmic_rays=0", "satellites=[]", "noise=false", nx=300, ny=260))
     assert clean.image.max() - clean.image.min() > 1e3  # stars are there
     np.testing.assert_allclose(noisy.variance, clean.image + ITL.read_noise ** 2, rtol=2e-6)
 
 
-def test_streak_free_model_is_not_allocated_and_reads_back_as_zeros(tmp_path):
-    sc = scene("satellites=[]")
+def test_streak_free_model_is_not_allocated_and_reads_back_as_zeros(tmp_path, small_scene):
+    sc = small_scene("satellites=[]", nx=300, ny=260)
     res = simulate(sc)
     assert res.streak_model.shape == sc.detector.shape
     assert res.streak_model.strides == (0, 0) and not res.streak_model.any()  # no memory
@@ -204,8 +199,8 @@ def test_streamed_planes_give_the_bytes_of_astropys_write(tmp_path, overrides):
     assert streamed.read_bytes() == dense.read_bytes()
 
 
-def test_with_a_streak_the_model_is_written_and_masked():
-    res = simulate(scene())
+def test_with_a_streak_the_model_is_written_and_masked(small_scene):
+    res = simulate(small_scene(nx=300, ny=260))
     assert res.streak_model.strides != (0, 0) and res.streak_model.max() > 0
     assert (res.mask & (1 << 10)).any()
 

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from inject import DEFAULT_SCENE, InputError, SceneError, apply_overrides, parse_scene, simulate
+from inject import InputError, SceneError, simulate
 from inject.camera.detector import ITL, bleed_saturation, detector_from_spec
 from inject.config import sky_level
 from inject.maskplanes import MASK_PLANES
@@ -12,36 +12,32 @@ BASE = ["detector.nx=300", "detector.ny=260", "stars=false", "satellites.0.track
         "satellites.0.track.y0=40", "satellites.0.track.angle=20"]
 
 
-def scene(*overrides):
-    return parse_scene(apply_overrides(DEFAULT_SCENE, BASE + list(overrides)))
-
-
-def test_sky_noise_matches_variance():
-    res = simulate(scene("satellites=[]"))
+def test_sky_noise_matches_variance(small_scene):
+    res = simulate(small_scene(*BASE, "satellites=[]"))
     sky = sky_per_pixel("g", 30.0)
     assert res.image.mean() == pytest.approx(sky, rel=2e-3)
     assert res.image.std() == pytest.approx(np.sqrt(res.variance.mean()), rel=0.02)
     np.testing.assert_allclose(res.variance, sky + ITL.read_noise ** 2)
 
 
-def test_same_seed_bit_identical_other_seed_not():
-    a, b = simulate(scene()), simulate(scene())
+def test_same_seed_bit_identical_other_seed_not(small_scene):
+    a, b = simulate(small_scene(*BASE)), simulate(small_scene(*BASE))
     np.testing.assert_array_equal(a.image, b.image)
-    c = simulate(scene("seed=2"))
+    c = simulate(small_scene(*BASE, "seed=2"))
     assert not np.array_equal(a.image, c.image)
     np.testing.assert_array_equal(a.streak_model, c.streak_model)  # the truth has no noise
 
 
-def test_streak_flux_recovered_within_poisson():
-    res = simulate(scene("satellites.0.mag=9"))
+def test_streak_flux_recovered_within_poisson(small_scene):
+    res = simulate(small_scene(*BASE, "satellites.0.mag=9"))
     signal = (res.image - res.sky_level).sum()
     expected = res.streak_model.sum()
     sigma = np.sqrt(res.variance.sum())
     assert abs(signal - expected) < 4 * sigma
 
 
-def test_saturating_streak_bleeds_and_conserves_charge():
-    sat = scene("satellites.0.mag=1", "noise=false", "sky=false",
+def test_saturating_streak_bleeds_and_conserves_charge(small_scene):
+    sat = small_scene(*BASE, "satellites.0.mag=1", "noise=false", "sky=false",
                 "satellites.0.track.angle=0", "satellites.0.track.y0=130")
     res = simulate(sat)
     sat_bit = 1 << MASK_PLANES["SAT"]
@@ -64,9 +60,9 @@ def test_bleed_respects_e2v_midline():
     assert np.count_nonzero(column[:20] >= 1e5) == 5
 
 
-def test_units_adu_divides_by_amp_gain():
-    e = simulate(scene("noise=false"))
-    adu = simulate(scene("noise=false", "units=adu"))
+def test_units_adu_divides_by_amp_gain(small_scene):
+    e = simulate(small_scene(*BASE, "noise=false"))
+    adu = simulate(small_scene(*BASE, "noise=false", "units=adu"))
     np.testing.assert_allclose(adu.image, e.image / ITL.gain)
 
 
@@ -79,27 +75,28 @@ def test_per_amp_gains_and_cutout():
         detector_from_spec({"type": "itl", "gains": [1.0, 2.0]})
 
 
-def test_sky_options():
-    assert sky_level(scene("sky=false")) == 0
-    assert sky_level(scene("sky.level=123.5")) == 123.5
-    dark = sky_level(scene())
-    assert sky_level(scene("sky.airmass_scaling=true")) == pytest.approx(
+def test_sky_options(small_scene):
+    assert sky_level(small_scene(*BASE, "sky=false")) == 0
+    assert sky_level(small_scene(*BASE, "sky.level=123.5")) == 123.5
+    dark = sky_level(small_scene(*BASE))
+    assert sky_level(small_scene(*BASE, "sky.airmass_scaling=true")) == pytest.approx(
         dark / np.cos(np.radians(70)))
-    assert sky_level(scene("sky.mag=21.25")) == pytest.approx(dark * 10 ** 0.4)
+    assert sky_level(small_scene(*BASE, "sky.mag=21.25")) == pytest.approx(dark * 10 ** 0.4)
     with pytest.raises(SceneError, match="unknown keys"):
-        sky_level(scene("sky.colour=blue"))
+        sky_level(small_scene(*BASE, "sky.colour=blue"))
 
 
-def test_cosmic_rays_and_dark_current():
-    res = simulate(scene("cosmic_rays=2.0", "dark_current=0.5", "satellites=[]", "sky=false"))
+def test_cosmic_rays_and_dark_current(small_scene):
+    res = simulate(small_scene(*BASE, "cosmic_rays=2.0", "dark_current=0.5", "satellites=[]",
+                               "sky=false"))
     cr = (res.mask & (1 << MASK_PLANES["CR"])) != 0
     assert cr.any()
     assert np.median(res.image[~cr]) == pytest.approx(15.0, abs=1.0)
 
 
-def test_raw_layout_with_bias_and_overscan():
+def test_raw_layout_with_bias_and_overscan(small_scene):
 
-    res = simulate(scene("detector.type=e2v", "detector.nx=1024", "detector.ny=2100",
+    res = simulate(small_scene(*BASE, "detector.type=e2v", "detector.nx=1024", "detector.ny=2100",
                          "detector.layout=raw", "detector.bias=1200", "stars=false"))
     det = detector_from_spec({"type": "e2v"})
     seg_w = det.prescan + det.amp_nx + det.serial_overscan

@@ -1,0 +1,54 @@
+"""Fixtures shared by the test files: the command line, file digests and small scenes."""
+import hashlib
+
+import pytest
+
+from inject import DEFAULT_SCENE, apply_overrides, parse_scene
+from inject.cli.main import main
+
+
+def _sha256(path):
+    with open(path, "rb") as stream:
+        return hashlib.sha256(stream.read()).hexdigest()
+
+
+@pytest.fixture
+def digest():
+    """``digest(path)``: SHA-256 of a file's bytes (hex), to tell whether a file changed."""
+    return _sha256
+
+
+@pytest.fixture
+def cli(capsys):
+    """``cli(command, *args)``: run ``inject`` in-process; return ``(status, out, err)``.
+
+    A failure must end in one clean line, ``inject <command>: error: ...``, after nothing but
+    one-line warnings and progress lines (no traceback); ``strict=True`` allows nothing before
+    it.
+    """
+    def run(*argv, strict=False):
+        status = main([str(a) for a in argv])
+        out, err = capsys.readouterr()
+        if status != 0:
+            lines = err.splitlines()
+            assert "Traceback" not in err, err
+            assert lines and lines[-1].startswith(f"inject {argv[0]}: error: "), err
+            if strict:
+                assert len(lines) == 1, err
+            else:
+                assert all(line.startswith((f"inject {argv[0]}: warning: ", "["))
+                           for line in lines[:-1]), err
+        return status, out, err
+
+    return run
+
+
+@pytest.fixture
+def small_scene():
+    """``small_scene(*overrides, nx=256, ny=256)``: the default scene on a cut-out of the CCD,
+    with ``key.path=value`` overrides, parsed."""
+    def build(*overrides, nx=256, ny=256):
+        return parse_scene(apply_overrides(
+            DEFAULT_SCENE, [f"detector.nx={nx}", f"detector.ny={ny}", *overrides]))
+
+    return build
