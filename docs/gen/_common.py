@@ -18,8 +18,3 @@ def module_exists(dotted):
     """True if the module ``dotted`` (``inject.camera.layout``) has a source file here."""
     path = ROOT.joinpath(*dotted.split("."))
     return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
-
-
-def first_existing(*candidates):
-    """The first of ``candidates`` (dotted module names) that exists, or None."""
-    return next((name for name in candidates if module_exists(name)), None)

@@ -11,59 +11,61 @@ from pathlib import Path
 import mkdocs_gen_files
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ROOT, first_existing, importable  # noqa: E402
+from _common import ROOT, importable, module_exists  # noqa: E402
 
 #: (page, title, introduction, [(module, earlier name or None), ...])
 PAGES = [
     ("physics", "Physics",
      "From an orbit, a line of sight and a satellite to the streak's profile and charge.",
-     [("inject.instrument", None), ("inject.geometry", None), ("inject.satellite", None),
-      ("inject.photometry", None), ("inject.profile", None), ("inject.streak", None)]),
+     ["inject.instrument", "inject.geometry", "inject.satellite",
+      "inject.photometry", "inject.profile", "inject.streak"]),
     ("rendering", "Rendering",
      "Tracks on the pixel grid and the renderer that sweeps a profile along them, with the "
      "brute-force reference and the baselines it is measured against.",
-     [("inject.trajectory", None), ("inject.render", None), ("inject.reference", None),
-      ("inject.baselines", None)]),
+     ["inject.trajectory", "inject.render", "inject.reference",
+      "inject.baselines"]),
     ("scenes", "CCD scenes and add-streak",
      "Scene files, star fields, one simulated CCD, and injection into an existing image.",
-     [("inject.config", None), ("inject.stars", None),
-      ("inject.scene", None), ("inject.addstreak", None)]),
+     ["inject.config", "inject.stars",
+      "inject.scene", "inject.addstreak"]),
     ("camera", "Camera",
      "LSSTCam: the focal-plane layout and distortion, the two sensor types, and every WCS "
      "builder.",
-     [("inject.camera.layout", "inject.focalplane"), ("inject.camera.detector", "inject.detector"),
-      ("inject.camera.wcs", "inject.wcs")]),
+     ["inject.camera.layout", "inject.camera.detector",
+      "inject.camera.wcs"]),
     ("orbits", "Orbits",
      "Real passes from TLEs or circular orbits, their conversion into tracks, and the "
      "optional lumos-sat brightness.",
-     [("inject.orbits.passes", "inject.orbits"), ("inject.orbits.tracks", None),
-      ("inject.orbits.lumos", "inject.lumos_brightness")]),
+     ["inject.orbits.passes", "inject.orbits.tracks",
+      "inject.orbits.lumos"]),
     ("exposure", "Whole exposure",
      "Focal-plane scenes, the plan of which CCD gets which streak, one CCD of the exposure, "
      "the runner (process pool or Dask) and the mosaic.",
-     [("inject.exposure.scene", "inject.focalscene"), ("inject.exposure.plan", None),
-      ("inject.exposure.ccd", None), ("inject.exposure.runner", "inject.parallel"),
-      ("inject.exposure.mosaic", "inject.io.mosaic")]),
+     ["inject.exposure.scene", "inject.exposure.plan",
+      "inject.exposure.ccd", "inject.exposure.runner",
+      "inject.exposure.mosaic"]),
     ("io", "Files",
      "FITS, OpenEXR and quicklook writers, the reader of users' files, and atomic output.",
-     [("inject.io", None), ("inject.io.atomic", None), ("inject.io.fits", None),
-      ("inject.io.exr", None), ("inject.io.quicklook", None), ("inject.io.reader", None)]),
+     ["inject.io", "inject.io.atomic", "inject.io.fits",
+      "inject.io.exr", "inject.io.quicklook", "inject.io.reader"]),
     ("masking", "Masking",
      "Detection, measurement and masking of streaks, and the scoring of maskers against "
      "injected truth.",
-     [("inject.masking", None), ("inject.masking.run", None), ("inject.masking.detect", None),
-      ("inject.masking.measure", None), ("inject.masking.mask", None),
-      ("inject.masking.geometry", None), ("inject.masking.evaluate", None),
-      ("inject.masking.external", None), ("inject.masking.baseline", None)]),
+     ["inject.masking", "inject.masking.run", "inject.masking.detect",
+      "inject.masking.measure", "inject.masking.mask",
+      "inject.masking.geometry", "inject.masking.evaluate",
+      "inject.masking.external", "inject.masking.baseline"]),
     ("cli", "Command line",
-     "The parser and entry point of the `inject` command; every command's options are in "
-     "[Command line](../cli.md).",
-     [("inject.cli.main", "inject.cli")]),
+     "The parser and entry point of the `inject` command, and one module per command; every "
+     "command's options are in [Command line](../cli.md).",
+     ["inject.cli.main", "inject.cli.options", "inject.cli.profile", "inject.cli.simulate",
+      "inject.cli.add_streak", "inject.cli.focalplane", "inject.cli.satellite_pass",
+      "inject.cli.mask", "inject.cli.evaluate"]),
     ("foundations", "Foundations",
      "Errors, the input ranges, the scene-schema helpers every parser uses, clean stops on "
      "signals, and the mask planes: the modules every other part builds on.",
-     [("inject.errors", None), ("inject.validate", None), ("inject.schema", None),
-      ("inject.signals", None), ("inject.maskplanes", None)]),
+     ["inject.errors", "inject.validate", "inject.schema",
+      "inject.signals", "inject.maskplanes"]),
 ]
 
 
@@ -80,13 +82,11 @@ def layers():
 
 
 #: Per-module options (the command line's module holds one private helper per command).
-OPTIONS = {"inject.cli.main": "members: [build_parser, main]",
-           "inject.cli": "members: [build_parser, main]"}
+OPTIONS = {"inject.cli.main": "members: [build_parser, main]"}
 
 for page, title, intro, modules in PAGES:
     lines = [f"# {title}", "", intro, ""]
-    found = [first_existing(*(m for m in pair if m)) for pair in modules]
-    found = [m for m in found if m]
+    found = [m for m in modules if module_exists(m)]
     for module in found:
         lines.append(f"::: {module}")
         if module in OPTIONS:
@@ -104,8 +104,7 @@ index = ["# API", "",
          "line. Each page documents the modules of one part.", "",
          "| part | modules |", "|---|---|"]
 for page, title, _, modules in PAGES:
-    found = [first_existing(*(m for m in pair if m)) for pair in modules]
-    names = ", ".join(f"`{m}`" for m in found if m)
+    names = ", ".join(f"`{m}`" for m in modules if module_exists(m))
     index.append(f"| [{title}]({page}.md) | {names} |")
 
 # The names ``inject`` itself exports (imported on first use), with the page of each.

@@ -1,7 +1,6 @@
 """Write reference/cli.md from the ``inject`` command's own argparse parsers at build time, so
 the page shows exactly the options and defaults the installed code accepts."""
 import argparse
-import importlib
 import os
 import sys
 from pathlib import Path
@@ -12,20 +11,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import importable  # noqa: E402
 
 importable()
+from inject.cli.main import build_parser  # noqa: E402
+
 os.environ["COLUMNS"] = "96"  # argparse wraps the help to the terminal's width: fix it
-
-
-def build_parser():
-    """The package's parser builder: ``inject.cli.main`` (the command-line package), else
-    ``inject.cli`` (the single module it was before)."""
-    for name in ("inject.cli.main", "inject.cli"):
-        try:
-            module = importlib.import_module(name)
-        except ImportError:
-            continue
-        if hasattr(module, "build_parser"):
-            return module.build_parser()
-    raise ImportError("no build_parser in inject.cli.main or inject.cli")
 
 
 def subcommands(parser):
