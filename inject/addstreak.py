@@ -4,9 +4,10 @@ Only the injected charge gets Poisson noise (the image already has its own); VAR
 the injected charge's Poisson variance and MASK gets the STREAK plane (on the first free bit if
 the file has none), and SAT where an integer image reaches its ADC limit. The pixels go back in
 the file's own storage (see :mod:`inject.io.reader`): pixels the streak does not reach are
-unchanged bit for bit. IMAGE, MASK and VARIANCE of an afw file written without ``EXTNAME`` get
-``EXTNAME = EXTTYPE`` (as afw writes today; lsst-images needs it); their other cards stay. The
-input file is never modified.
+unchanged bit for bit, and undefined ones (``BLANK``) take no charge: neither the image, nor
+TRUTH's ``charge_in_image_e``, nor INJECTED_MODEL counts any there. IMAGE, MASK and VARIANCE
+of an afw file written without ``EXTNAME`` get ``EXTNAME = EXTTYPE`` (as afw writes today;
+lsst-images needs it); their other cards stay. The input file is never modified.
 """
 import numpy as np
 from astropy.io import fits
@@ -14,7 +15,7 @@ from astropy.table import Table, vstack
 
 from inject.errors import InputError
 from inject.io.fits import truth_table
-from inject.maskplanes import FLAG_SATURATED, STREAK_MASK_SIGMA
+from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, STREAK_MASK_SIGMA
 from inject.render import Budget
 from inject.scene import render_tracks
 from inject.validate import positive
@@ -49,7 +50,7 @@ def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()
     Returns
     -------
     model_e : ndarray
-        The injected charge, e- (noise-free).
+        The injected charge, e- (noise-free), 0 on undefined pixels.
     truth : list of dict
         Rows with ``FLAG_SATURATED`` set where an integer image reached its ADC limit (or
         its ``SATURATE`` level) under the streak.
@@ -65,7 +66,7 @@ def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()
     rng = _check_arguments(exposure, models, tracks, rng)
     positive("gain", gain)
     image = exposure.image
-    model_e, truth = render_tracks(image.shape, models, tracks, budget)
+    model_e, truth = _render(image.shape, models, tracks, budget, exposure.defined())
     # The model can dip a few 1e-6 of its peak below zero (interpolation): not a charge.
     model_e = np.clip(model_e, 0, None)
     injected = rng.poisson(model_e).astype(np.float64) if noise else model_e
@@ -97,6 +98,27 @@ def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()
         exposure.mark_changed(names.index("INJECTED_MODEL"))
     else:
         exposure.hdus.append(fits.ImageHDU(model_e.astype(np.float32), name="INJECTED_MODEL"))
+    return model_e, truth
+
+
+def _render(shape, models, tracks, budget, usable):
+    """:func:`~inject.scene.render_tracks`, with the charge only on ``usable`` pixels: each
+    TRUTH row counts what its streak puts there (flag 2 if that is short of the whole streak's,
+    flag 1 if nothing)."""
+    if usable.all():
+        return render_tracks(shape, models, tracks, budget)
+    model_e, truth = np.zeros(shape), []
+    for model, track in zip(models, tracks):
+        one, (row,) = render_tracks(shape, [model], [track], budget)
+        one[~usable] = 0.0
+        model_e += one
+        row["charge_in_image_e"] = charge = float(one.sum())
+        expected = row["flux_per_px_e"] * row["length_px"]
+        if charge <= 0:
+            row["flags"] = (row["flags"] | FLAG_OFF_IMAGE) & ~FLAG_CLIPPED
+        elif charge < expected * (1 - 2 * budget.flux_tolerance):
+            row["flags"] |= FLAG_CLIPPED
+        truth.append(row)
     return model_e, truth
 
 

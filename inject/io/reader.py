@@ -8,8 +8,10 @@ Writing (:meth:`InputExposure.write`) copies every HDU that was not changed byte
 the input (archive tables and their heap, checksums and all), and rewrites the pixels it was
 asked to change in the file's own storage: integers stay integers of the same BITPIX, BZERO
 and BSCALE (rounded, clipped at the type's range), floats stay floats, so that every pixel the
-change does not reach comes back bit-identical. A tile-compressed image is compressed again
-losslessly: integers with their own algorithm (RICE_1 for a lossy HCOMPRESS), floats that were
+change does not reach comes back bit-identical; undefined integer pixels (``BLANK``) are never
+changed. A tile-compressed image is compressed again losslessly: integers with their own
+algorithm (RICE_1 for a lossy HCOMPRESS; the same integers, scaling and ``BLANK`` when astropy
+shows them as floats), floats that were
 quantised (lossy) with GZIP_2 and no quantisation (``quantize_level=0``), which keeps exactly
 the values the input decompresses to (the file grows).
 """
@@ -126,10 +128,51 @@ class InputExposure:
         blank = header.get("BLANK") if stored.dtype.kind in "iu" else None
         return stored, float(header.get("BSCALE", 1.0)), float(header.get("BZERO", 0.0)), blank
 
+    def defined(self, index=None):
+        """Pixels of HDU ``index`` (default: the image) that hold a value: not an integer
+        image's undefined value (``BLANK``; astropy shows it as NaN when the HDU is scaled or
+        compressed).
+
+        Returns
+        -------
+        ndarray of bool
+        """
+        index = self.image_index if index is None else index
+        hdu = self.hdus[index]
+        data = np.asarray(hdu.data)
+        if self._is_plain(index):
+            stored, _, _, blank = self._stored_array(index)
+            if blank is not None:
+                return stored != blank
+        elif data.dtype.kind in "iu" and hdu.header.get("BLANK") is not None:
+            return data != hdu.header["BLANK"]  # made in memory, unscaled
+        elif data.dtype.kind == "f" and self._compressed_storage(index) is not None:
+            return ~np.isnan(data)
+        return np.ones(data.shape, dtype=bool)
+
+    def _compressed_storage(self, index):
+        """``(dtype, bscale, bzero, blank)`` of a tile-compressed HDU of the input that stores
+        integers astropy shows as floats (scaled, or with ``BLANK``: NaN), else None."""
+        hdu = self.hdus[index]
+        if not (isinstance(hdu, fits.CompImageHDU) and self.source is not None
+                and index < len(self._originals) and hdu is self._originals[index]
+                and np.asarray(hdu.data).dtype.kind == "f"):
+            return None
+        start, data, _ = self.spans[index]
+        table = fits.Header.fromstring(self.source[start:data].decode("ascii"))
+        zbitpix = table.get("ZBITPIX")
+        if zbitpix not in (8, 16, 32, 64):
+            return None
+        blank = table.get("BLANK", table.get("ZBLANK"))
+        return (np.dtype(_BITPIX[zbitpix]).newbyteorder("="), float(table.get("BSCALE", 1.0)),
+                float(table.get("BZERO", 0.0)), None if blank is None else int(blank))
+
     def add(self, index, delta, saturation=None):
         """Add ``delta`` (physical units) to the pixels of HDU ``index`` where it is not 0.
 
-        Integer pixels are rounded and clipped at their type's range; nothing else changes.
+        Integer pixels are rounded and clipped at their type's range (one step inside it if
+        ``BLANK`` is at that end: a clipped pixel stays defined); undefined (``BLANK``) pixels
+        stay undefined; nothing else changes.
 
         Parameters
         ----------
@@ -145,36 +188,36 @@ class InputExposure:
         saturated : ndarray of bool
             Changed integer pixels at or above the saturation level (all False for floats).
         """
-        sel = np.isfinite(delta) & (delta != 0)
+        sel = np.isfinite(delta) & (delta != 0) & self.defined(index)
         saturated = np.zeros(delta.shape, dtype=bool)
         hdu = self.hdus[index]
         if self._is_plain(index):
             stored, bscale, bzero, blank = self._stored_array(index)
             new = stored.copy()
-            if blank is not None:
-                sel &= stored != blank  # undefined pixels stay undefined
             physical = stored[sel].astype(np.float64) * bscale + bzero + delta[sel]
             if stored.dtype.kind == "f":
                 new[sel] = ((physical - bzero) / bscale).astype(stored.dtype)
             else:
-                info = np.iinfo(stored.dtype)
-                values = np.clip(np.rint((physical - bzero) / bscale), info.min, info.max)
+                values, saturated[sel] = _to_integers(physical, stored.dtype, bscale, bzero,
+                                                      blank, saturation)
                 new[sel] = values.astype(stored.dtype)
-                top = info.max * bscale + bzero
-                limit = top if saturation is None else min(saturation, top)
-                saturated[sel] = values * bscale + bzero >= limit
             self._stored[index] = new
             values = new[sel].astype(np.float64) * bscale + bzero
         else:  # compressed (or made in memory): astropy's physical values
             data = np.asarray(hdu.data)
             physical = data[sel].astype(np.float64) + delta[sel]
-            if data.dtype.kind == "f":
+            storage = self._compressed_storage(index)
+            if storage is not None:  # integers shown as floats: rounded as they will be stored
+                dtype, bscale, bzero, blank = storage
+                values, saturated[sel] = _to_integers(physical, dtype, bscale, bzero, blank,
+                                                      saturation)
+                values = values * bscale + bzero
+            elif data.dtype.kind == "f":
                 values = physical
             else:
-                info = np.iinfo(data.dtype)
-                values = np.clip(np.rint(physical), info.min, info.max)
-                limit = info.max if saturation is None else min(saturation, info.max)
-                saturated[sel] = values >= limit
+                blank = hdu.header.get("BLANK")
+                values, saturated[sel] = _to_integers(physical, data.dtype, 1.0, 0.0, blank,
+                                                      saturation)
             self._changed.add(index)
         memory = np.array(hdu.data)  # native copy, what readers of ``hdus`` see
         memory[sel] = values.astype(memory.dtype)
@@ -305,9 +348,22 @@ class InputExposure:
             if original:  # plain, or compressed and untouched
                 parts.append(self._plain_bytes(index, primary))
             else:
-                parts.append(_serialise(_lossless(hdu), primary,
+                storage = self._compressed_storage(index)
+                parts.append(_serialise(_lossless(hdu, storage), primary,
                                         checksum="CHECKSUM" in hdu.header))
         return b"".join(parts)
+
+
+def _to_integers(physical, dtype, bscale, bzero, blank, saturation):
+    """Physical values as the stored integers of ``dtype`` (rounded, clipped at the type's
+    range, kept off ``blank``), and whether each reaches ``saturation`` (default: the top)."""
+    info = np.iinfo(dtype)
+    low = info.min + 1 if blank == info.min else info.min
+    high = info.max - 1 if blank == info.max else info.max
+    values = np.clip(np.rint((physical - bzero) / bscale), low, high)
+    top = high * bscale + bzero
+    limit = top if saturation is None else min(saturation, top)
+    return values, values * bscale + bzero >= limit
 
 
 def _with_checksum(content, primary):
@@ -320,12 +376,15 @@ def _with_checksum(content, primary):
     return buffer.getvalue()[len(prefix):]
 
 
-def _lossless(hdu):
-    """``hdu``, or a copy of a tile-compressed one set to compress its pixels losslessly."""
+def _lossless(hdu, storage=None):
+    """``hdu``, or a copy of a tile-compressed one set to compress its pixels losslessly
+    (``storage``: :meth:`InputExposure._compressed_storage`, for integers shown as floats)."""
     if not isinstance(hdu, fits.CompImageHDU):
         return hdu
     data = np.asarray(hdu.data)
     kind = hdu.compression_type
+    if storage is not None:
+        return _integers_compressed(hdu, data, storage)
     if data.dtype.kind == "f":
         if kind.startswith("GZIP") and not hdu.quantize_level:
             return hdu
@@ -340,6 +399,32 @@ def _lossless(hdu):
     return fits.CompImageHDU(data, header=header, name=hdu.name, compression_type=kind,
                              tile_shape=tuple(int(n) for n in hdu.tile_shape),
                              quantize_level=level)
+
+
+def _integers_compressed(hdu, data, storage):
+    """A tile-compressed copy of ``hdu`` storing ``data`` (physical floats, NaN undefined) as
+    the integers, ``BSCALE``, ``BZERO`` and ``BLANK`` of ``storage``, losslessly."""
+    dtype, bscale, bzero, blank = storage
+    undefined = np.isnan(data)
+    info = np.iinfo(dtype)
+    stored = np.clip(np.rint((np.where(undefined, bzero, data) - bzero) / bscale),
+                     info.min, info.max).astype(dtype)
+    if blank is not None:
+        stored[undefined] = blank
+    kind = hdu.compression_type
+    if kind == "HCOMPRESS_1" and hdu.hcomp_scale:
+        kind = "RICE_1"
+    header = hdu.header.copy()
+    for key in ("BZERO", "BSCALE", "BLANK", "BITPIX"):
+        header.remove(key, ignore_missing=True)
+    new = fits.CompImageHDU(stored, header=header, name=hdu.name, compression_type=kind,
+                            tile_shape=tuple(int(n) for n in hdu.tile_shape))
+    # Set after the pixels, so that astropy writes them as they are and records the scaling.
+    if bscale != 1.0 or bzero != 0.0:
+        new.header["BSCALE"], new.header["BZERO"] = bscale, bzero
+    if blank is not None:
+        new.header["BLANK"] = blank
+    return new
 
 
 def _serialise(hdu, primary, checksum=False):

@@ -1,0 +1,115 @@
+"""add-streak, pass and simulate where files and options are unusual: undefined (BLANK, NaN)
+pixels, VARIANCE in ADU, sky starts far from the image, warnings, output names, and VARIANCE
+without noise.
+
+The expectations are computed here from the inputs (the streak's flux per pixel times the
+length that lands on defined pixels, the sky and read noise over the amplifiers' gains), not
+read back from the code under test.
+"""
+import numpy as np
+import pytest
+from astropy.io import fits
+from astropy.table import Table
+
+from inject import StreakModel
+from inject.cli.main import main
+
+GAIN = 1.25
+SHAPE = (80, 160)  # ny, nx
+#: A horizontal streak from x = 20.5 to 120.5 along y = 40.3; columns x >= CUT are undefined.
+STREAK = ["--height", "550", "--zenith", "60", "--x0", "20.5", "--y0", "40.3", "--angle", "0",
+          "--track-length", "100"]
+CUT = 70
+
+
+def _flux_per_px(mag):
+    """e- per pixel of track of the streak STREAK draws (LSST's 0.2" pixels)."""
+    return StreakModel(550, 60, mag=mag).flux_per_px
+
+
+def _masked_image_file(path, image_hdu):
+    """IMAGE (``image_hdu``), MASK and VARIANCE typed by EXTTYPE, as afw writes them."""
+    image_hdu.header["EXTTYPE"] = "IMAGE"
+    image_hdu.header["GAIN"] = GAIN
+    mask_header = fits.Header({"EXTTYPE": "MASK"})
+    mask_header["HIERARCH MP_BAD"], mask_header["HIERARCH MP_SAT"] = 0, 1
+    mask = fits.ImageHDU(np.zeros(SHAPE, np.int32), header=mask_header)
+    variance = fits.ImageHDU(np.full(SHAPE, 50.0, np.float32),
+                             header=fits.Header({"EXTTYPE": "VARIANCE"}))
+    fits.HDUList([fits.PrimaryHDU(), image_hdu, mask, variance]).writeto(path)
+    return path
+
+
+# -- BLANK: undefined integer pixels ----------------------------------------------------------
+
+BLANK_KINDS = {
+    # kind: (stored dtype, BSCALE, BZERO, BLANK, compressed)
+    "int16-scaled": (np.int16, 2.0, 1000.0, -32768, False),
+    "int32": (np.int32, 1.0, 0.0, -999, False),
+    "uint16-top": (np.int16, 1.0, 32768.0, 32767, False),  # BLANK at the type's top
+    "rice-int16": (np.int16, 1.0, 0.0, -32768, True),
+    "rice-int16-scaled": (np.int16, 0.5, 200.0, -32768, True),
+}
+
+
+def _blank_file(tmp_path, kind):
+    """A MaskedImage whose integer IMAGE holds BLANK in every column x >= CUT."""
+    dtype, bscale, bzero, blank, compressed = BLANK_KINDS[kind]
+    stored = np.full(SHAPE, 300, dtype)
+    stored[:, CUT:] = blank
+    path = tmp_path / f"{kind}.fits"
+    if compressed:
+        hdu = fits.CompImageHDU(stored, compression_type="RICE_1")
+    else:
+        hdu = fits.ImageHDU(stored)
+    _masked_image_file(path, hdu)
+    # The stored integers and their cards as a writer of such files leaves them (astropy
+    # would rescale the pixels if the cards were set before writing).
+    with fits.open(path, mode="update", do_not_scale_image_data=True) as hdus:
+        header = hdus[1].header
+        if (bscale, bzero) != (1.0, 0.0):
+            header["BSCALE"], header["BZERO"] = bscale, bzero
+        header["BLANK"] = blank
+    with fits.open(path, do_not_scale_image_data=True) as hdus:
+        assert np.array_equal(hdus[1].data, stored)
+    return path, stored, blank
+
+
+@pytest.mark.parametrize("kind", sorted(BLANK_KINDS))
+def test_blank_pixels_stay_blank_and_get_no_charge(tmp_path, kind):
+    path, stored, blank = _blank_file(tmp_path, kind)
+    out = tmp_path / "out.fits"
+    assert main(["add-streak", str(path), "-o", str(out), *STREAK, "--mag", "4",
+                 "--no-noise"]) == 0
+    with fits.open(out, do_not_scale_image_data=True) as hdus:
+        new = np.array(hdus[1].data)
+        assert (new.dtype.kind, new.dtype.itemsize) == ("i", stored.dtype.itemsize)
+        assert hdus[1].header["BLANK"] == blank
+    undefined = stored == blank
+    assert np.all(new[undefined] == blank)
+    assert np.any(new[~undefined] != stored[~undefined])  # the streak did land
+    with fits.open(out) as hdus:
+        truth = Table(hdus["TRUTH"].data)
+        model = hdus["INJECTED_MODEL"].data
+        variance = hdus[3].data
+    # The streak's first CUT - 20.5 = 49.5 px lie on defined pixels: half its charge.
+    expected = _flux_per_px(4) * (CUT - 20.5)
+    assert truth["charge_in_image_e"][0] == pytest.approx(expected, rel=0.02)
+    assert truth["flags"][0] & 2  # part of the streak is lost
+    assert np.all(model[undefined] == 0)
+    assert np.all(variance[undefined] == 50.0)
+
+
+def test_blank_at_the_top_is_not_produced_by_clipping(tmp_path):
+    """BLANK = the type's largest value: a pixel clipped there would turn undefined."""
+    path, stored, blank = _blank_file(tmp_path, "uint16-top")
+    out = tmp_path / "out.fits"
+    assert main(["add-streak", str(path), "-o", str(out), *STREAK, "--mag", "-2",
+                 "--no-noise"]) == 0
+    with fits.open(out, do_not_scale_image_data=True) as hdus:
+        new = hdus[1].data
+        sat = (hdus[2].data & 2) != 0  # MASK's SAT plane (afw's bit 1)
+    defined = stored != blank
+    assert np.count_nonzero(new[defined] == blank) == 0
+    assert np.any(new[defined] == blank - 1) and np.all(sat[defined] == (new[defined]
+                                                                          == blank - 1))
