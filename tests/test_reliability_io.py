@@ -113,3 +113,31 @@ def test_blank_at_the_top_is_not_produced_by_clipping(tmp_path):
     assert np.count_nonzero(new[defined] == blank) == 0
     assert np.any(new[defined] == blank - 1) and np.all(sat[defined] == (new[defined]
                                                                           == blank - 1))
+
+
+# -- VARIANCE in ADU ----------------------------------------------------------------------------
+
+def test_adu_variance_is_electron_variance_over_gain_squared(tmp_path):
+    """``units: adu`` with noise: VARIANCE (ADU^2) per amplifier = (sky + read noise^2) /
+    gain^2, and the image's own scatter agrees with it."""
+    gains = [1.2 + 0.25 * i for i in range(16)]  # ITL amplifiers are 509 px wide
+    sky, read_noise = 900.0, 6.0
+    scene = tmp_path / "adu.yaml"
+    scene.write_text(
+        "seed: 3\nband: g\nexptime: 30\nseeing: 0.7\nzenith: 30\n"
+        f"detector: {{type: itl, nx: 1100, ny: 60, gains: {gains}, read_noise: {read_noise}}}\n"
+        f"sky: {{level: {sky}}}\nstars: false\nnoise: true\nunits: adu\nsatellites: []\n")
+    out = tmp_path / "adu.fits"
+    assert main(["simulate", str(scene), "-o", str(out)]) == 0
+    with fits.open(out) as hdus:
+        image = hdus["IMAGE"].data.astype(np.float64)
+        variance = hdus["VARIANCE"].data.astype(np.float64)
+        assert hdus["VARIANCE"].header["BUNIT"] == "adu**2"
+    for amp, columns in enumerate((slice(0, 509), slice(509, 1018), slice(1018, 1100))):
+        expected = (sky + read_noise ** 2) / gains[amp] ** 2
+        np.testing.assert_allclose(variance[:, columns], expected, rtol=1e-5)
+        scatter = image[:, columns].var()
+        n = image[:, columns].size
+        # The sample variance of n Gaussian draws: relative error sqrt(2 / n) (< 0.025 here).
+        assert scatter == pytest.approx(expected, rel=5 * np.sqrt(2 / n))
+        assert image[:, columns].mean() == pytest.approx(sky / gains[amp], rel=1e-3)
