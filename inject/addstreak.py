@@ -27,6 +27,64 @@ def robust_sigma(image):
     return 1.4826 * float(np.median(np.abs(values - np.median(values))))
 
 
+def sky_to_array(wcs, ra, dec, shape, name="ra, dec"):
+    """Array pixel ``(x, y)`` of sky position ``(ra, dec)`` (deg, the WCS's frame) in an image
+    of ``shape`` with celestial WCS ``wcs``, SIP or other distortion included.
+
+    The position must lie where the WCS's projection has a pixel: within 90 deg of the
+    reference point (CRVAL) for TAN, where the projection of the position and back gives it
+    again. It may lie far off the image: a distortion polynomial is fitted over the image
+    only, so off it the distortion is held at its value on the image's nearest edge (on and
+    near the image this is the full WCS's exact inverse, as ``all_world2pix`` gives it).
+
+    Raises
+    ------
+    InputError
+        (named ``name``) The projection has no pixel for the position, or the distortion
+        cannot be inverted there.
+    """
+    ra, dec = float(ra), float(dec)
+    reference = wcs.wcs.crval
+    distance = _separation_deg(ra, dec, reference[0], reference[1])
+    where = (f"{distance:.4g} deg from the WCS's reference point ({reference[0]:.6g}, "
+             f"{reference[1]:.6g})")
+    projection = wcs.wcs.ctype[0][5:8] or "linear"
+    if projection == "TAN" and distance >= 90.0:
+        raise InputError(name, (ra, dec), f"is {where}: the TAN projection has no pixel 90 "
+                                          f"deg or more from it")
+    with np.errstate(invalid="ignore"):
+        u = np.array(wcs.wcs_world2pix([[ra, dec]], 0)[0], dtype=np.float64)
+        back = wcs.wcs_pix2world([u], 0)[0] if np.all(np.isfinite(u)) else (np.nan, np.nan)
+    if not (np.all(np.isfinite(u)) and _separation_deg(ra, dec, *back) < 1e-6):
+        raise InputError(name, (ra, dec), f"is {where}: the WCS's {projection} projection has "
+                                          f"no pixel there")
+    if not wcs.has_distortion:
+        return float(u[0]), float(u[1])
+    ny, nx = shape
+    low, high = np.array([-0.5, -0.5]), np.array([nx - 0.5, ny - 0.5])
+    x = u.copy()
+    for _ in range(100):  # fixed point x = u - d(x), d = the distortion (small: contracting)
+        edge = np.clip(x, low, high)
+        new = u - (wcs.pix2foc([edge], 0)[0] - edge)
+        if not np.all(np.isfinite(new)):
+            break
+        step, x = np.max(np.abs(new - x)), new
+        if step < 1e-10 * max(1.0, float(np.max(np.abs(x)))):
+            return float(x[0]), float(x[1])
+    raise InputError(name, (ra, dec), f"is {where}: the WCS's distortion cannot be inverted "
+                                      f"there")
+
+
+def _separation_deg(ra1, dec1, ra2, dec2):
+    """Angle between two sky positions, deg (Vincenty's formula: exact at every angle)."""
+    ra1, dec1, ra2, dec2 = np.radians([ra1, dec1, ra2, dec2])
+    dra = ra2 - ra1
+    num = np.hypot(np.cos(dec2) * np.sin(dra),
+                   np.cos(dec1) * np.sin(dec2) - np.sin(dec1) * np.cos(dec2) * np.cos(dra))
+    den = np.sin(dec1) * np.sin(dec2) + np.cos(dec1) * np.cos(dec2) * np.cos(dra)
+    return float(np.degrees(np.arctan2(num, den)))
+
+
 def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()):
     """Add streaks into an :class:`~inject.io.reader.InputExposure` (in memory).
 

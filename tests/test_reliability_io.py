@@ -141,3 +141,87 @@ def test_adu_variance_is_electron_variance_over_gain_squared(tmp_path):
         # The sample variance of n Gaussian draws: relative error sqrt(2 / n) (< 0.025 here).
         assert scatter == pytest.approx(expected, rel=5 * np.sqrt(2 / n))
         assert image[:, columns].mean() == pytest.approx(sky / gains[amp], rel=1e-3)
+
+
+# -- --ra0/--dec0 -------------------------------------------------------------------------------
+
+def _afw_file(tmp_path):
+    """The afw-layout Exposure of tests/test_lsst_files.py (TAN-SIP about (150, 2), 150 x 120
+    px, xy0 = (100, 200)) and its IMAGE header."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    try:
+        from check_lsst import write_afw_exposure
+    finally:
+        sys.path.pop(0)
+    path = write_afw_exposure(tmp_path / "calexp.fits")
+    return path, fits.getheader(path, 1)
+
+
+def _gnomonic_deg(ra, dec, ra0, dec0):
+    """Standard coordinates (xi East, eta North), deg, of (ra, dec) about (ra0, dec0)."""
+    ra, dec, ra0, dec0 = np.radians([ra, dec, ra0, dec0])
+    cos_c = np.sin(dec0) * np.sin(dec) + np.cos(dec0) * np.cos(dec) * np.cos(ra - ra0)
+    xi = np.cos(dec) * np.sin(ra - ra0) / cos_c
+    eta = (np.cos(dec0) * np.sin(dec) - np.sin(dec0) * np.cos(dec) * np.cos(ra - ra0)) / cos_c
+    return np.degrees(xi), np.degrees(eta)
+
+
+def _sip_start(header, ra, dec):
+    """Array pixel of (ra, dec) by the documented rule, written out: the TAN pixel, less the
+    SIP distortion at the nearest point of the image (fixed point)."""
+    xi, eta = _gnomonic_deg(ra, dec, header["CRVAL1"], header["CRVAL2"])
+    pc = np.array([[header.get("PC1_1", 1.0), header.get("PC1_2", 0.0)],
+                   [header.get("PC2_1", 0.0), header.get("PC2_2", 1.0)]])
+    pc *= np.array([[header["CDELT1"]], [header["CDELT2"]]])
+    centre = np.array([header["CRPIX1"] - 1, header["CRPIX2"] - 1])  # array pixels
+    linear = centre + np.linalg.solve(pc, [xi, eta])
+
+    def distortion(p):
+        u, v = p - centre
+        return np.array([sum(header.get(f"{ab}_{i}_{j}", 0.0) * u ** i * v ** j
+                             for i in range(3) for j in range(3)) for ab in "AB"])
+    high = np.array([header["NAXIS1"] - 0.5, header["NAXIS2"] - 0.5])
+    x = linear
+    for _ in range(200):
+        x = linear - distortion(np.clip(x, -0.5, high))
+    return x
+
+
+def test_ra_dec_far_off_a_sip_image(tmp_path):
+    """5 deg off a TAN-SIP image (astropy's inverse diverges there): the start by the rule, and
+    a long streak from it reaches the image."""
+    path, header = _afw_file(tmp_path)
+    # 5 deg East of the reference point, 30 rows below it: x far to the left of the image.
+    ra = 155.0
+    dec = float(np.degrees(np.arctan(np.tan(np.radians(2.0)) * np.cos(np.radians(5.0)))))
+    dec -= 30 * 5.5e-5
+    x, y = _sip_start(header, ra, dec)
+    assert x < -9e4 and 0 < y < header["NAXIS2"] - 1
+    out = tmp_path / "out.fits"
+    assert main(["add-streak", str(path), "-o", str(out), "--height", "550", "--zenith", "60",
+                 "--mag", "7", "--ra0", repr(ra), "--dec0", repr(dec), "--angle", "0",
+                 "--track-length", str(-x + 100), "--no-noise"]) == 0
+    truth = Table.read(out, hdu="TRUTH")
+    assert truth["x0"][0] == pytest.approx(x, abs=1e-3)
+    assert truth["y0"][0] == pytest.approx(y, abs=1e-3)
+    assert truth["charge_in_image_e"][0] > 0
+
+
+@pytest.mark.parametrize("extra, words", [
+    (["--ra0", "150"], "give both"),
+    (["--dec0", "2"], "give both"),
+    (["--ra0", "240.5", "--dec0", "2"], "90.43 deg from"),  # beyond the TAN hemisphere
+    (["--ra0", "330", "--dec0", "-2"], "180 deg from"),    # the opposite point
+])
+def test_ra_dec_refused_in_one_line(tmp_path, capsys, extra, words):
+    path, _ = _afw_file(tmp_path)
+    out = tmp_path / "out.fits"
+    assert main(["add-streak", str(path), "-o", str(out), "--height", "550", "--mag", "7",
+                 *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("inject add-streak: error: --ra0/--dec0") and err.count("\n") == 1
+    assert words in err
+    assert not out.exists()

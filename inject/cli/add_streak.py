@@ -32,7 +32,9 @@ def add_add_streak_parser(sub):
     track.add_argument("--y0", type=float, help="start y")
     track.add_argument("--parent", action="store_true",
                        help="--x0/--y0 are LSST parent pixels (afw's xy0 convention)")
-    track.add_argument("--ra0", type=float, metavar="DEG", help="start RA (needs a WCS)")
+    track.add_argument("--ra0", type=float, metavar="DEG",
+                       help="start RA (needs a WCS, and --dec0; less than 90 deg from a TAN "
+                            "WCS's reference point, off the image too)")
     track.add_argument("--dec0", type=float, metavar="DEG", help="start Dec (needs a WCS)")
     track.add_argument("--angle", type=float, default=0.0, metavar="DEG",
                        help="track angle, counter-clockwise from +x")
@@ -51,7 +53,7 @@ def add_add_streak_parser(sub):
 def run_add_streak(args):
     """The ``inject add-streak`` command (``args`` from :func:`add_add_streak_parser`)."""
     # The engine (GalSim, astropy): imported when the command runs, not for --help.
-    from inject.addstreak import add_streaks
+    from inject.addstreak import add_streaks, sky_to_array
     from inject.io.reader import read_exposure
     from inject.trajectory import Track
 
@@ -63,6 +65,8 @@ def run_add_streak(args):
         value = getattr(args, option)
         if value is not None:
             check(quantity, value, f"--{option.replace('_', '-')}")
+    if (args.ra0 is None) != (args.dec0 is None):
+        raise InputError("--ra0/--dec0", (args.ra0, args.dec0), "give both")
     check_writable(args.output, args.overwrite)
     exposure = read_exposure(args.input)
     wcs = exposure.wcs
@@ -78,7 +82,8 @@ def run_add_streak(args):
             raise InputError("--ra0/--dec0", (args.ra0, args.dec0),
                              "give either --ra0/--dec0 or --x0/--y0 (with --parent)")
         # The full WCS (SIP included): array pixels, as FITS headers give them.
-        args.x0, args.y0 = (float(v) for v in wcs.all_world2pix(args.ra0, args.dec0, 0))
+        args.x0, args.y0 = sky_to_array(wcs, args.ra0, args.dec0, exposure.image_hdu.data.shape,
+                                        "--ra0/--dec0")
     if args.x0 is None or args.y0 is None:
         raise InputError("--x0/--y0", (args.x0, args.y0), "give a start point (or --ra0/--dec0)")
     if args.parent:
