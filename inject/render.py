@@ -627,6 +627,15 @@ class RenderResult:
     plan: RenderPlan
 
 
+@dataclass(frozen=True)
+class PolylineResult:
+    """What a rendered polyline added: its charge, and how far its widest swept profile
+    reaches from the track (support across plus end cap along, px)."""
+
+    charge_added: float
+    reach_px: float
+
+
 def render_segment(image, swept, segment, flux_per_px, flux_end=None):
     """Add one segment's streak charge into ``image`` (in place).
 
@@ -846,8 +855,8 @@ def render_polyline(image, polyline, models, budget=Budget(), cache=PROFILE_CACH
 
     Returns
     -------
-    float
-        Charge added.
+    PolylineResult
+        The charge added and the reach of the widest profile used.
     """
     if len(models) != len(polyline.xs):
         raise InputError("models", len(models), f"need one per vertex ({len(polyline.xs)})")
@@ -862,7 +871,7 @@ def render_polyline(image, polyline, models, budget=Budget(), cache=PROFILE_CACH
         return swept_profile(model, angle, budget, cache=local,
                              snap=model.profile_key in recurring)
 
-    total, vertex = 0.0, 0
+    total, vertex, reach = 0.0, 0, 0.0
     for seg in polyline.segments():
         while (polyline.xs[vertex], polyline.ys[vertex]) != (seg.x0, seg.y0):
             vertex += 1  # skip repeated vertices (zero-length pieces)
@@ -875,7 +884,8 @@ def render_polyline(image, polyline, models, budget=Budget(), cache=PROFILE_CACH
                   (second, seg.x0 + half * c, seg.y0 + half * s, mid, f1))
         for model, x, y, fa, fb in halves:
             piece = type(seg)(x, y, seg.angle_deg, half)
-            total += render_segment(image, profile_for(model, seg.angle_deg), piece,
-                                    fa, fb).charge_added
+            swept = profile_for(model, seg.angle_deg)
+            reach = max(reach, swept.plan.support_px + swept.plan.cap_px)
+            total += render_segment(image, swept, piece, fa, fb).charge_added
         vertex += 1
-    return total
+    return PolylineResult(total, reach)

@@ -36,7 +36,7 @@ from inject.render import (
 )
 from inject.stars import add_star_field
 from inject.streak import StreakModel
-from inject.trajectory import Polyline, Segment
+from inject.trajectory import Polyline, Segment, clip_path
 
 #: Random streams, one per purpose, spawned from the scene seed (numpy SeedSequence).
 STREAMS = {"stars": 0, "noise": 1, "cosmic_rays": 2, "raw": 3, "star_noise": 4}
@@ -182,6 +182,8 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0,
         expected = model.flux_per_px * ends[-1]
         truth[i] = _truth_row(model, track, ends, charge, expected, own)
         counter.step()
+    for i, row in enumerate(truth):
+        row["satellite"] = i
     return model_image, truth
 
 
@@ -215,22 +217,86 @@ _VERTEX_FIELDS = {"height": "height_km", "zenith": "zenith_deg", "phi": "phi_deg
 
 
 def _render_polyline_track(image, model, track, budget, cache=PROFILE_CACHE):
-    """Render a polyline track whose vertices may override the model; return its truth row."""
+    """Render a polyline track whose vertices may override the model; return its truth row,
+    which describes the part of the track the image receives (:mod:`inject.truth`)."""
     vertex_models = [replace(model, **{_VERTEX_FIELDS[k]: v for k, v in vertex.items()
                                        if k in _VERTEX_FIELDS})
                      for vertex in track.vertices]
     poly = Polyline(tuple(v["x"] for v in track.vertices), tuple(v["y"] for v in track.vertices))
-    charge = render_polyline(image, poly, vertex_models, budget, cache)
-    pieces = poly.segments()
-    fluxes = [m.flux_per_px for m in vertex_models]
-    expected = sum(0.5 * (a + b) * seg.length
-                   for a, b, seg in zip(fluxes[:-1], fluxes[1:], pieces))
-    ends = (poly.xs[0], poly.ys[0], poly.xs[-1], poly.ys[-1], sum(s.length for s in pieces))
-    # The row's geometry and photometry are the first vertex's (its values override the
-    # satellite's), as in a focal-plane scene; the charge is the whole track's.
-    row = _truth_row(vertex_models[0], track, ends, charge, expected, budget)
+    rendered = render_polyline(image, poly, vertex_models, budget, cache)
+    fluxes = np.array([m.flux_per_px for m in vertex_models])
+    steps = np.hypot(np.diff(poly.xs), np.diff(poly.ys))
+    expected = float(np.sum(0.5 * (fluxes[:-1] + fluxes[1:]) * steps))
+    part = _received_part(poly, steps, image.shape, rendered.reach_px)
+    if part is None:  # nowhere near the image: described at its first vertex
+        x, y = poly.xs[0], poly.ys[0]
+        row = _truth_row(vertex_models[0], track, (x, y, x, y, 0.0), rendered.charge_added,
+                         expected, budget)
+    else:
+        (s0, s1), ends = part
+        middle, angle, flux = _along(poly, steps, vertex_models, fluxes, 0.5 * (s0 + s1))
+        row = _truth_row(middle, replace(track, angle=angle), (*ends, s1 - s0),
+                         rendered.charge_added, expected, budget)
+        cum = np.concatenate([[0.0], np.cumsum(steps)])
+        inside = [_along(poly, steps, vertex_models, fluxes, s)[2] for s in (s0, s1)]
+        inside += list(fluxes[(cum > s0) & (cum < s1)])
+        row.update(flux_per_px_e=flux, flux_per_px_min_e=float(min(inside)),
+                   flux_per_px_max_e=float(max(inside)))
     row["n_vertices"] = len(poly.xs)
     return row
+
+
+def _received_part(poly, steps, shape, reach):
+    """``((s0, s1), (x0, y0, x1, y1))``: the stretch of a polyline, by length along it, from
+    where it first enters the image grown by ``reach`` px to where it last leaves; None if it
+    never does."""
+    ny, nx = shape
+    pieces = clip_path(poly.xs, poly.ys,
+                       (-0.5 - reach, nx - 0.5 + reach, -0.5 - reach, ny - 0.5 + reach))
+    if not pieces:
+        return None
+    cum = np.concatenate([[0.0], np.cumsum(steps)])
+    (k0, t0, _), (k1, _, t1) = pieces[0], pieces[-1]
+    s0, s1 = cum[k0] + t0 * steps[k0], cum[k1] + t1 * steps[k1]
+    point = [(poly.xs[k] + t * (poly.xs[k + 1] - poly.xs[k]),
+              poly.ys[k] + t * (poly.ys[k + 1] - poly.ys[k])) for k, t in ((k0, t0), (k1, t1))]
+    return (float(s0), float(s1)), (*point[0], *point[1])
+
+
+#: Model fields that vary along a polyline, interpolated between its vertices.
+_VARYING = ("height_km", "zenith_deg", "phi_deg", "mag", "range_km", "angular_speed_rad_s")
+
+
+def _along(poly, steps, models, fluxes, s):
+    """The streak model, track angle and charge per pixel of track (as rendered: linear
+    between vertices) at length ``s`` along a polyline."""
+    cum = np.cumsum(steps)
+    k = min(int(np.searchsorted(cum, s)), len(steps) - 1)
+    while steps[k] == 0 and k > 0:  # a repeated vertex: the piece before it
+        k -= 1
+    f = (s - (cum[k] - steps[k])) / steps[k] if steps[k] > 0 else 0.0
+    a, b = models[k], models[k + 1]
+    fields = {}
+    for name in _VARYING:
+        va, vb = getattr(a, name), getattr(b, name)
+        if va is not None and vb is not None:
+            fields[name] = va + f * (vb - va)
+    angle = float(np.degrees(np.arctan2(poly.ys[k + 1] - poly.ys[k], poly.xs[k + 1] - poly.xs[k])))
+    flux = float(fluxes[k] + f * (fluxes[k + 1] - fluxes[k]))
+    return replace(a, **fields), angle, flux
+
+
+def _saturates_here(row, saturated):
+    """Whether a streak that can reach full well left a saturated pixel on this image: a SAT
+    pixel within three FWHM (plus two pixels of bleed) of the part of the track described."""
+    if row["flags"] & FLAG_OFF_IMAGE or not len(saturated[0]):
+        return False
+    y, x = (np.asarray(v, float) for v in saturated)
+    x0, y0, x1, y1 = row["x0"], row["y0"], row["x1"], row["y1"]
+    dx, dy = x1 - x0, y1 - y0
+    t = np.clip(((x - x0) * dx + (y - y0) * dy) / max(dx * dx + dy * dy, 1e-12), 0.0, 1.0)
+    distance = np.hypot(x - (x0 + t * dx), y - (y0 + t * dy))
+    return bool(np.any(distance <= 3 * row["fwhm_arcsec"] / row["pixel_scale_arcsec"] + 2))
 
 
 def _truth_row(model, track, ends, charge, expected, budget):
@@ -250,6 +316,8 @@ def _truth_row(model, track, ends, charge, expected, budget):
         "angular_speed_rad_s": g.angular_speed_rad_s, "t_eff_s": g.t_eff_s,
         "apparent_mag": model.apparent_mag, "flux_per_px_e": model.flux_per_px,
         "fwhm_arcsec": model.fwhm_arcsec, "peak_e_per_px": model.peak_e_per_px,
+        "flux_per_px_min_e": model.flux_per_px, "flux_per_px_max_e": model.flux_per_px,
+        "pixel_scale_arcsec": model.pixel_scale,
         "charge_in_image_e": float(charge), "n_vertices": 2, "flags": flags,
     }
 
@@ -484,7 +552,7 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
         mask[streaks > threshold] |= 1 << MASK_PLANES["STREAK"]
     mask[saturated] |= 1 << MASK_PLANES["SAT"]
     for row in truth:
-        if row["peak_e_per_px"] + sky >= det.full_well:
+        if row["peak_e_per_px"] + sky >= det.full_well and _saturates_here(row, saturated):
             row["flags"] |= FLAG_SATURATED
     if scene.units == "adu":
         gain = det.per_pixel("gain")

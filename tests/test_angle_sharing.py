@@ -235,7 +235,7 @@ def test_polyline_snaps_only_profiles_that_recur():
     for models, snapped in ((own, False), (shared, True)):
         cache = ProfileCache()
         image = np.zeros((200, 300))
-        charge = render_polyline(image, poly, models, cache=cache)
+        charge = render_polyline(image, poly, models, cache=cache).charge_added
         orientation_keys = [k for k in cache._items if k[0] == "orientation"]
         assert bool(orientation_keys) == snapped
         swept = [v for v, _ in cache._items.values() if isinstance(v, SweptProfile)]

@@ -426,14 +426,25 @@ def test_simulate_an_orbit_scene(tmp_path, capsys):
         from inject.maskplanes import FLAG_OFF_IMAGE
         truth = hdul["TRUTH"].data[0]
         assert not truth["flags"] & FLAG_OFF_IMAGE
-    # TRUTH describes the streak drawn (its first vertex), not the scene's zenith and phi.
-    from inject import apply_overrides, parse_scene
-    first = parse_scene(resolve_ccd_orbits(apply_overrides(
+    # TRUTH describes the streak drawn, at the middle of the part the image receives (not
+    # the scene's zenith and phi): the vertices' values interpolated at that point.
+    from inject.config import parse_scene
+    from inject.schema import apply_overrides
+    vertices = parse_scene(resolve_ccd_orbits(apply_overrides(
         yaml.safe_load(path.read_text()), ["detector.nx=256", "detector.ny=256"]))
-    ).satellites[0].track.vertices[0]
-    assert truth["zenith_deg"] == pytest.approx(first["zenith"], abs=1e-9)
-    assert truth["phi_deg"] == pytest.approx(first["phi"], abs=1e-9)
-    assert truth["height_km"] == pytest.approx(first["height"], abs=1e-9)
+    ).satellites[0].track.vertices
+    xs, ys = np.array([v["x"] for v in vertices]), np.array([v["y"] for v in vertices])
+    steps = np.hypot(np.diff(xs), np.diff(ys))
+    along = np.concatenate([[0.0], np.cumsum(steps)])
+    mid_x = 0.5 * (truth["x0"] + truth["x1"])
+    mid_y = 0.5 * (truth["y0"] + truth["y1"])
+    s = along[int(np.argmin(np.hypot(xs - mid_x, ys - mid_y)))]  # vertices 0.1 s apart
+    for key, column in (("zenith", "zenith_deg"), ("phi", "phi_deg"), ("height", "height_km")):
+        expected = np.interp(s, along, [v[key] for v in vertices])
+        spacing = np.abs(np.diff([v[key] for v in vertices])).max()
+        assert truth[column] == pytest.approx(expected, abs=spacing + 1e-9)
+    assert truth["length_px"] == pytest.approx(np.hypot(truth["x1"] - truth["x0"],
+                                                        truth["y1"] - truth["y0"]), rel=1e-3)
 
 
 def test_ccd_scene_orbit_that_misses_says_why():

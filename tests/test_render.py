@@ -173,7 +173,8 @@ def test_polyline_brightness_ramp_and_bend_conserve_flux():
     dim = StreakModel(550, 70, mag=6.5)
     poly = Polyline((300.0, 420.5, 480.0), (300.0, 350.2, 470.9))
     image = np.zeros((800, 820))
-    added = render_polyline(image, poly, [dim, PAPER_550, StreakModel(350, 70, mag=5.5)])
+    added = render_polyline(image, poly,
+                            [dim, PAPER_550, StreakModel(350, 70, mag=5.5)]).charge_added
     lengths = [s.length for s in poly.segments()]
     f = [dim.flux_per_px, PAPER_550.flux_per_px, StreakModel(350, 70, mag=5.5).flux_per_px]
     expected = 0.5 * (f[0] + f[1]) * lengths[0] + 0.5 * (f[1] + f[2]) * lengths[1]

@@ -65,7 +65,7 @@ PAGES = [
      "Errors, the input ranges, the scene-schema helpers every parser uses, clean stops on "
      "signals, and the mask planes: the modules every other part builds on.",
      ["inject.errors", "inject.validate", "inject.schema",
-      "inject.signals", "inject.maskplanes"]),
+      "inject.signals", "inject.maskplanes", "inject.truth"]),
 ]
 
 

@@ -21,6 +21,7 @@ from astropy.time import Time, TimeDelta
 from inject import __version__
 from inject.io.atomic import atomic_path
 from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, mask_header
+from inject.truth import TRUTH_COLUMNS, complete
 
 #: Extension types of afw's MaskedImage HDUs 1-3, in that order.
 MASKED_IMAGE_TYPES = ("IMAGE", "MASK", "VARIANCE")
@@ -123,9 +124,16 @@ def plane_header(exttype, xy0=(0, 0), wcs_header=None):
 
 
 def truth_table(rows):
-    """The TRUTH binary-table HDU (one row per streak, with a ``flags`` column)."""
-    table = Table(rows=rows) if rows else Table(names=["x0", "y0", "x1", "y1", "flags"])
-    hdu = fits.BinTableHDU(table, name="TRUTH")
+    """The TRUTH binary-table HDU: the columns of :data:`inject.truth.TRUTH_COLUMNS`, in their
+    order and types, with their units, whether there are rows or not."""
+    rows = complete(rows)
+    # TUNITn for the units FITS knows; "electron" is none of them (readers would warn), so
+    # the charge columns say it in their names (``_e``).
+    columns = [fits.Column(name=name, format={"i4": "J", "f8": "D"}[dtype],
+                           unit=unit if unit and unit != "electron" else None,
+                           array=np.array([row[name] for row in rows], dtype=dtype))
+               for name, (dtype, unit, _) in TRUTH_COLUMNS.items()]
+    hdu = fits.BinTableHDU.from_columns(columns, name="TRUTH")
     hdu.header["FLAG_OFF"] = (FLAG_OFF_IMAGE, "flag bit: track misses the image")
     hdu.header["FLAG_CLP"] = (FLAG_CLIPPED, "flag bit: part of the streak is off the image")
     hdu.header["FLAG_SAT"] = (FLAG_SATURATED, "flag bit: streak saturates")
