@@ -6,6 +6,10 @@ The expectations are computed here from the inputs (the streak's flux per pixel 
 length that lands on defined pixels, the sky and read noise over the amplifiers' gains), not
 read back from the code under test.
 """
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from astropy.io import fits
@@ -14,6 +18,7 @@ from astropy.table import Table
 from inject import StreakModel
 from inject.cli.main import main
 
+ROOT = Path(__file__).resolve().parents[1]
 GAIN = 1.25
 SHAPE = (80, 160)  # ny, nx
 #: A horizontal streak from x = 20.5 to 120.5 along y = 40.3; columns x >= CUT are undefined.
@@ -148,10 +153,7 @@ def test_adu_variance_is_electron_variance_over_gain_squared(tmp_path):
 def _afw_file(tmp_path):
     """The afw-layout Exposure of tests/test_lsst_files.py (TAN-SIP about (150, 2), 150 x 120
     px, xy0 = (100, 200)) and its IMAGE header."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    sys.path.insert(0, str(ROOT / "scripts"))
     try:
         from check_lsst import write_afw_exposure
     finally:
@@ -225,3 +227,39 @@ def test_ra_dec_refused_in_one_line(tmp_path, capsys, extra, words):
     assert err.startswith("inject add-streak: error: --ra0/--dec0") and err.count("\n") == 1
     assert words in err
     assert not out.exists()
+
+
+# -- warnings -----------------------------------------------------------------------------------
+
+PASS_ARGS = ["--exptime", "10", "--ra", "151.95", "--dec", "-25.73"]
+ORBIT = "height=550,inclination=53,raan=208.851,mean_anomaly=321.2313"
+
+
+def _stderr_lines(*args):
+    """Exit status and stderr lines of ``inject ARGS`` in a fresh interpreter (as typed: no
+    test harness recording the warnings in its place)."""
+    code = "import sys; from inject.cli.main import main; sys.exit(main(sys.argv[1:]))"
+    run = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
+                         cwd=ROOT)
+    lines = run.stderr.splitlines()
+    for line in lines:  # one line each, no path or source line of the library that warned
+        assert line.startswith(f"inject {args[0]}: "), line
+        assert ".py:" not in line and "site-packages" not in line
+    assert len(lines) == len(set(lines)), "a warning printed twice"
+    return run.returncode, lines
+
+
+def test_time_beyond_the_tables_warns_in_single_lines():
+    status, lines = _stderr_lines("pass", "--orbit", ORBIT, "--time", "2100-06-15T23:29:45",
+                                  *PASS_ARGS)
+    assert status == 0
+    iers = [line for line in lines if "beyond the bundled IERS table" in line]
+    assert len(iers) == 1 and iers[0].startswith("inject pass: warning: time 2100-06-15")
+    assert not any("polar motion" in line and "IERS table" not in line for line in lines)
+    # Then an error: the warnings before it are single lines too.
+    status, lines = _stderr_lines("pass", "--tle", "sample_fields/example_starlink_like.tle",
+                                  "--time", "2100-06-15T23:29:45", *PASS_ARGS)
+    assert status == 2
+    assert lines[-1].startswith("inject pass: error: orbit") and "days from" in lines[-1]
+    assert len(lines) > 1
+    assert all(line.startswith("inject pass: warning: ") for line in lines[:-1])

@@ -10,7 +10,8 @@ Each subcommand parses its options, calls the engine and prints or writes the re
 :class:`~inject.errors.InjectError` becomes a one-line message on stderr and exit status 2
 (``--traceback``, before or after the subcommand, shows the full stack instead); so do
 argparse's usage errors (without the usage block: ``inject simulate --help`` shows it).
-Warnings about implausible values (:class:`~inject.errors.InputWarning`) are one line too.
+Every warning is one line too, ``inject CMD: warning: ...``, each text once (a library's,
+such as ERFA's for a time beyond its tables, by its class name or reason, without a path).
 SIGINT, SIGTERM and SIGHUP stop a command cleanly (:mod:`inject.signals`: no temporary or
 half-moved file is left) with exit status 128 + the signal's number; a closed pipe on stdout
 (``inject profile --json | head``) ends it quietly, as Unix tools do.
@@ -18,6 +19,7 @@ half-moved file is left) with exit status 128 + the signal's number; a closed pi
 import argparse
 import functools
 import os
+import re
 import signal
 import sys
 import warnings
@@ -93,15 +95,41 @@ def build_parser():
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None,
-                  command="inject"):
-    """Input warnings as one line, ``inject CMD: warning: ...`` (others as Python shows them)."""
+                  command="inject", seen=None):
+    """Every warning as one line, ``inject CMD: warning: ...``, each text once per command
+    (``seen``: the texts shown so far); no file path or source line."""
+    text = _warning_text(message, category)
+    if seen is not None:
+        if text in seen:
+            return
+        seen.add(text)
+    print(f"{command}: warning: {text}", file=sys.stderr)
+
+
+#: ERFA's reasons (``yielded N of "REASON"``), as one line each whatever function gave them.
+_ERFA_REASONS = {
+    "dubious year": "a time lies beyond the leap-second table bundled with astropy: UTC "
+                    "after it is taken with the last leap second (ERFA: dubious year)",
+    "date outside": "a time lies outside 1900-2100, where ERFA's Earth ephemeris (epv00) "
+                    "is less accurate",
+}
+
+
+def _warning_text(message, category):
+    """The one-line text of a warning: inject's own as they are, ERFA's by their reason (the
+    same for every function and count), others after their class name."""
+    text = _one_line(message)
     if issubclass(category, (InputWarning, OrbitWarning)):
-        print(f"{command}: warning: {_one_line(message)}", file=sys.stderr)
-    else:
-        _python_showwarning(message, category, filename, lineno, file, line)
-
-
-_python_showwarning = warnings.showwarning
+        return text
+    if category.__name__ == "ErfaWarning":
+        match = re.match(r'ERFA function "(\w+)" yielded \d+ of "(.*)"', text)
+        if match:
+            function, reason = match.groups()
+            for key, words in _ERFA_REASONS.items():
+                if key in reason:
+                    return words
+            return f"ERFA {function}: {reason}"
+    return f"{category.__name__}: {text}"
 
 
 def _quiet_broken_pipe():
@@ -148,7 +176,8 @@ def _run(args, command):
     """Run the subcommand; an :class:`InjectError` is one line and status 2."""
     try:
         with warnings.catch_warnings():
-            warnings.showwarning = functools.partial(_show_warning, command=command)
+            warnings.showwarning = functools.partial(_show_warning, command=command,
+                                                     seen=set())
             args.func(args)
             sys.stdout.flush()  # a closed pipe shows here, where main catches it
     except InjectError as err:

@@ -27,6 +27,7 @@ uses mean polar motion) instead of an error.
 """
 import math
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -45,6 +46,7 @@ from astropy.coordinates import (
 )
 from astropy.time import Time
 from astropy.utils import iers
+from astropy.utils.exceptions import AstropyWarning
 from sgp4.api import SGP4_ERRORS, WGS72, Satrec, SatrecArray
 from sgp4.earth_gravity import wgs72
 from sgp4.exporter import export_tle
@@ -522,14 +524,29 @@ def altaz_basis(site):
 
 
 def _check_iers(times):
-    """One OrbitWarning if a time lies beyond the bundled IERS table."""
+    """One OrbitWarning if a time lies beyond the bundled IERS table; whether one does."""
     table = iers.earth_orientation_table.get()
     last = table["MJD"].max().to_value(u.d)
     if np.max(np.atleast_1d(times.utc.mjd)) > last:
         end = Time(last, format="mjd").utc.isot[:10]
         warnings.warn(f"time {Time(np.max(times.utc.mjd), format='mjd').utc.isot} is beyond the "
                       f"bundled IERS table (ends {end}): UT1 and polar motion extrapolated, "
-                      f"positions may be off by arcseconds", OrbitWarning, stacklevel=4)
+                      f"positions may be off by arcseconds", OrbitWarning, stacklevel=6)
+        return True
+    return False
+
+
+@contextmanager
+def _earth_orientation(times):
+    """Warn once (:func:`_check_iers`) if ``times`` lie beyond the bundled IERS table, and
+    within the block silence astropy's own warnings of the same (a repeat of it, with advice
+    to download a table, which this offline package never does)."""
+    beyond = _check_iers(times)
+    with warnings.catch_warnings():
+        if beyond:
+            for text in ("Tried to get polar motions", r"\(some\) times are outside of range"):
+                warnings.filterwarnings("ignore", message=text, category=AstropyWarning)
+        yield
 
 
 def _rot_z(angle):
@@ -596,7 +613,11 @@ class FieldFrame:
     def build(cls, times, pointing, site=RUBIN):
         """Compute the frames at ``times`` (warns once if they lie beyond the IERS table)."""
         times = Time(times)
-        _check_iers(times)
+        with _earth_orientation(times):
+            return cls._build(times, pointing, site)
+
+    @classmethod
+    def _build(cls, times, pointing, site):
         n = times.size
         loc = site.location
         frame = AltAz(obstime=times, location=loc)
