@@ -120,14 +120,17 @@ def test_plan_lists_the_ccds_the_footprint_reaches():
                                                 "angle": 61.0})])
     margins = margins_px(fscene)
     got = make_plan(fscene, margins).summary()["detectors"]
-    # Independent: points every 2 um along the line against each CCD grown by the margin.
+    # Independent: points every 2 um along the line, within the margin of each CCD's pixel
+    # area (the footprint's reach: a rectangle with rounded corners).
     a = np.radians(61.0)
     t = np.arange(-450.0, 450.0, 0.002)
     px, py = 13.0 + t * np.cos(a), -40.0 + t * np.sin(a)
     expected = []
     for c in fp.CCDS:
-        x0, x1, y0, y1 = c.bounds_mm(margins[0])
-        if np.any((px >= x0) & (px <= x1) & (py >= y0) & (py <= y1)):
+        x0, x1, y0, y1 = c.bounds_mm()
+        gap = np.hypot(np.maximum.reduce([x0 - px, 0 * px, px - x1]),
+                       np.maximum.reduce([y0 - py, 0 * py, py - y1]))
+        if np.any(gap <= margins[0] * fp.PIXEL_MM):
             expected.append(c.name)
     assert [d["name"] for d in got] == expected
     for d in got:
@@ -174,3 +177,19 @@ def test_cli_plan_json(tmp_path, capsys):
     assert main(["focalplane", str(scene), "--plan", "--detectors", "R00_S00"]) == 2
     err = capsys.readouterr().err
     assert "R00_S00" in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize("gap_px, planned", [(0.8, True), (1.2, False)])
+def test_a_ccd_counts_only_where_the_footprint_itself_reaches(gap_px, planned):
+    """A 45 deg track passing R22_S11's top-right corner at ``gap_px`` margins from it: it
+    lies inside the CCD's rectangle grown by the margin either way (the grown corner is
+    sqrt(2) margins away), but only within one margin does its footprint reach the CCD."""
+    ccd = fp.ccd("R22_S11")
+    margin = margins_px(focal())[0]
+    _, xmax, _, ymax = ccd.bounds_mm()
+    d = gap_px * margin * fp.PIXEL_MM  # the track's distance to the corner, mm
+    # Through the point at distance d from the corner along the outward diagonal, at -45 deg.
+    x0, y0 = xmax + d / np.sqrt(2), ymax + d / np.sqrt(2)
+    fscene = focal(satellites=[dict(SAT, track={"x0_mm": x0, "y0_mm": y0, "angle": -45.0})])
+    assert bool(ccd_streaks(fscene, ccd, (margin,))) == planned
+    assert (ccd in make_plan(fscene, (margin,)).streak_ccds()) == planned

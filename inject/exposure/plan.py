@@ -124,13 +124,41 @@ def ccd_streaks(fscene, ccd, margins):
         In satellite order; a polyline leaving and re-entering the CCD gives one per run.
     """
     shape = ccd_shape(fscene, ccd)
+    area = ccd.bounds_mm(0.0, shape)
     out = []
     for i, (whole, margin) in enumerate(zip(fscene.tracks, margins)):
+        reach_mm = margin * fp.PIXEL_MM
         for track in whole.parts():
             pieces = clip_path(track.xs, track.ys, ccd.bounds_mm(margin, shape))
             for run in _runs(pieces):
-                out.append(_ccd_streak(i, track, run, ccd))
+                # The grown rectangle's corners are farther than the margin from the CCD:
+                # a run that only cuts a corner leaves it no light.
+                if _run_distance(track, run, area) <= reach_mm:
+                    out.append(_ccd_streak(i, track, run, ccd))
     return out
+
+
+def _run_distance(track, run, box):
+    """Least distance (mm) from a run of clipped track pieces to a box ``(xmin, xmax, ymin,
+    ymax)`` (0 where the run crosses it)."""
+    xmin, xmax, ymin, ymax = box
+    corners = np.array([(xmin, ymin), (xmax, ymin), (xmin, ymax), (xmax, ymax)])
+    best = np.inf
+    for k, t0, t1 in run:
+        a = np.array([track.xs[k], track.ys[k]], float)
+        d = np.array([track.xs[k + 1], track.ys[k + 1]], float) - a
+        p0, p1 = a + t0 * d, a + t1 * d
+        if clip_path((p0[0], p1[0]), (p0[1], p1[1]), box):
+            return 0.0
+        for q in (p0, p1):  # an end of the piece to the box
+            best = min(best, np.hypot(max(xmin - q[0], 0.0, q[0] - xmax),
+                                      max(ymin - q[1], 0.0, q[1] - ymax)))
+        seg = p1 - p0
+        length2 = float(seg @ seg)
+        if length2 > 0:  # the box's corners to the piece
+            t = np.clip((corners - p0) @ seg / length2, 0.0, 1.0)
+            best = min(best, float(np.min(np.hypot(*(p0 + t[:, None] * seg - corners).T))))
+    return best
 
 
 def _runs(pieces):
