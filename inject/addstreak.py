@@ -4,16 +4,17 @@ Only the injected charge gets Poisson noise (the image already has its own); VAR
 the injected charge's Poisson variance and MASK gets the STREAK plane (on the first free bit if
 the file has none), and SAT where an integer image reaches its ADC limit. The pixels go back in
 the file's own storage (see :mod:`inject.io.reader`): pixels the streak does not reach are
-unchanged bit for bit, and undefined ones (``BLANK``) take no charge: neither the image, nor
-TRUTH's ``charge_in_image_e``, nor INJECTED_MODEL counts any there. IMAGE, MASK and VARIANCE
-of an afw file written without ``EXTNAME`` get ``EXTNAME = EXTTYPE`` (as afw writes today;
-lsst-images needs it); their other cards stay. The input file is never modified.
+unchanged bit for bit, and undefined ones (NaN, infinite, ``BLANK``) take no charge: neither
+the image, nor TRUTH's ``charge_in_image_e``, nor INJECTED_MODEL counts any there. IMAGE, MASK
+and VARIANCE of an afw file written without ``EXTNAME`` get ``EXTNAME = EXTTYPE`` (as afw
+writes today; lsst-images needs it); their other cards stay. The input file is never
+modified.
 """
 import numpy as np
 from astropy.io import fits
 from astropy.table import Table, vstack
 
-from inject.errors import InputError
+from inject.errors import FileFormatError, InputError
 from inject.io.fits import truth_table
 from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, STREAK_MASK_SIGMA
 from inject.render import Budget
@@ -108,7 +109,8 @@ def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()
     Returns
     -------
     model_e : ndarray
-        The injected charge, e- (noise-free), 0 on undefined pixels.
+        The injected charge, e- (noise-free), 0 on undefined pixels (NaN, infinite,
+        ``BLANK``).
     truth : list of dict
         Rows with ``FLAG_SATURATED`` set where an integer image reached its ADC limit (or
         its ``SATURATE`` level) under the streak.
@@ -119,12 +121,18 @@ def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()
         An argument is of the wrong kind, ``models`` and ``tracks`` differ in length, or
         ``gain`` is not a number > 0.
     FileFormatError
-        The mask has no free bit for a new plane.
+        The image has no usable pixel (every one NaN, infinite or ``BLANK``), or the mask has
+        no free bit for a new plane.
     """
     rng = _check_arguments(exposure, models, tracks, rng)
     positive("gain", gain)
     image = exposure.image
-    model_e, truth = _render(image.shape, models, tracks, budget, exposure.defined())
+    usable = exposure.defined()
+    if not usable.any():
+        raise FileFormatError(f"{exposure.path or 'the exposure'}: the image (HDU "
+                              f"{exposure.image_index}) has no usable pixel (every one NaN, "
+                              f"infinite or BLANK): nothing can take a streak")
+    model_e, truth = _render(image.shape, models, tracks, budget, usable)
     # The model can dip a few 1e-6 of its peak below zero (interpolation): not a charge.
     model_e = np.clip(model_e, 0, None)
     injected = rng.poisson(model_e).astype(np.float64) if noise else model_e

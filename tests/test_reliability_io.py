@@ -263,3 +263,42 @@ def test_time_beyond_the_tables_warns_in_single_lines():
     assert lines[-1].startswith("inject pass: error: orbit") and "days from" in lines[-1]
     assert len(lines) > 1
     assert all(line.startswith("inject pass: warning: ") for line in lines[:-1])
+
+
+# -- NaN pixels ---------------------------------------------------------------------------------
+
+def _float_file(tmp_path, image):
+    return _masked_image_file(tmp_path / "float.fits", fits.ImageHDU(image.astype(np.float32)))
+
+
+def test_nan_pixels_take_no_charge(tmp_path):
+    image = np.full(SHAPE, 100.0)
+    image[:, CUT:] = np.nan
+    path = _float_file(tmp_path, image)
+    out = tmp_path / "out.fits"
+    assert main(["add-streak", str(path), "-o", str(out), *STREAK, "--mag", "6",
+                 "--no-noise"]) == 0
+    with fits.open(out) as hdus:
+        truth = Table(hdus["TRUTH"].data)
+        model = hdus["INJECTED_MODEL"].data
+        new = hdus[1].data
+    assert np.all(np.isnan(new[:, CUT:])) and np.all(model[:, CUT:] == 0)
+    # Only the 49.5 px of the streak before column CUT land on pixels that hold a value.
+    assert truth["charge_in_image_e"][0] == pytest.approx(_flux_per_px(6) * (CUT - 20.5),
+                                                          rel=0.02)
+    assert truth["flags"][0] & 2
+    # The image gained what TRUTH says (electrons over the gain), nothing more.
+    added = np.nansum(new.astype(np.float64)) - np.nansum(image)
+    assert added * GAIN == pytest.approx(truth["charge_in_image_e"][0], rel=1e-4)
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # numpy's "Mean of empty slice", ...
+@pytest.mark.parametrize("fill", [np.nan, np.inf])
+def test_image_without_usable_pixels_is_refused(tmp_path, capsys, fill):
+    path = _float_file(tmp_path, np.full(SHAPE, fill))
+    out = tmp_path / "out.fits"
+    assert main(["add-streak", str(path), "-o", str(out), *STREAK, "--mag", "6"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("inject add-streak: error: ") and err.count("\n") == 1
+    assert "float.fits" in err and "no usable pixel" in err
+    assert not out.exists()

@@ -48,6 +48,7 @@ class InputExposure:
     mask_index: int | None
     variance_index: int | None
     source: bytes | None = field(default=None, repr=False)
+    path: str | None = None  # the file read, for messages
     spans: list = field(default_factory=list, repr=False)  # (header, data, end) per HDU
     _originals: list = field(default_factory=list, repr=False)
     _stored: dict = field(default_factory=dict, repr=False)  # index -> new stored array
@@ -129,9 +130,9 @@ class InputExposure:
         return stored, float(header.get("BSCALE", 1.0)), float(header.get("BZERO", 0.0)), blank
 
     def defined(self, index=None):
-        """Pixels of HDU ``index`` (default: the image) that hold a value: not an integer
-        image's undefined value (``BLANK``; astropy shows it as NaN when the HDU is scaled or
-        compressed).
+        """Pixels of HDU ``index`` (default: the image) that hold a value: finite, and not an
+        integer image's undefined value (``BLANK``; astropy shows it as NaN when the HDU is
+        scaled or compressed).
 
         Returns
         -------
@@ -140,15 +141,14 @@ class InputExposure:
         index = self.image_index if index is None else index
         hdu = self.hdus[index]
         data = np.asarray(hdu.data)
+        defined = np.isfinite(data) if data.dtype.kind == "f" else np.ones(data.shape, bool)
         if self._is_plain(index):
             stored, _, _, blank = self._stored_array(index)
             if blank is not None:
-                return stored != blank
+                defined &= stored != blank
         elif data.dtype.kind in "iu" and hdu.header.get("BLANK") is not None:
-            return data != hdu.header["BLANK"]  # made in memory, unscaled
-        elif data.dtype.kind == "f" and self._compressed_storage(index) is not None:
-            return ~np.isnan(data)
-        return np.ones(data.shape, dtype=bool)
+            defined &= data != hdu.header["BLANK"]  # made in memory, unscaled
+        return defined
 
     def _compressed_storage(self, index):
         """``(dtype, bscale, bzero, blank)`` of a tile-compressed HDU of the input that stores
@@ -495,7 +495,8 @@ def read_exposure(path):
         raise FileFormatError(f"{path}: MASK (HDU {roles['MASK']}) holds "
                               f"{hdus[roles['MASK']].data.dtype} values, not integer bits")
     return InputExposure(hdus, image_index, roles.get("MASK"), roles.get("VARIANCE"),
-                         source=source, spans=spans, _originals=list(hdus))
+                         source=source, path=os.fspath(path), spans=spans,
+                         _originals=list(hdus))
 
 
 def _is_image(hdu):
