@@ -195,10 +195,12 @@ RANGES = {r.name: r for r in (
           warn_hi=1, warn_why="LSSTCam's cooled CCDs have well under 1 e-/s/px"),
     Range("cosmic_rays", "per s per image", 0, 100, "each ray is drawn one at a time",
           warn_hi=10, warn_why="imSim uses ~0.2 per s per CCD"),
-    Range("detector.nx", "px", 1, 4096, "a cut-out of one sensor: at most ITL 4072 x 4000 or "
-          "e2v 4096 x 4004", integer=True),
-    Range("detector.ny", "px", 1, 4004, "a cut-out of one sensor: at most ITL 4072 x 4000 or "
-          "e2v 4096 x 4004", integer=True, options="evaluate --detector"),
+    Range("detector.nx", "px", 1, 4096, "a cut-out of one sensor, as a focal-plane scene's "
+          "cutout.nx (clipped to each CCD): at most ITL 4072 x 4000 or e2v 4096 x 4004",
+          integer=True),
+    Range("detector.ny", "px", 1, 4004, "a cut-out of one sensor, as a focal-plane scene's "
+          "cutout.ny (clipped to each CCD): at most ITL 4072 x 4000 or e2v 4096 x 4004",
+          integer=True, options="evaluate --detector"),
     Range("detector.gains", "e-/ADU", 0, 1000, "a gain is positive", lo_open=True,
           warn_lo=0.5, warn_hi=5, warn_why="LSSTCam's amplifiers have 1.4-1.8 e-/ADU"),
     Range("detector.read_noise", "e-", 0, 1000, "read noise is positive", lo_open=True,
@@ -372,13 +374,20 @@ def check_memory(needed, what):
 
 
 def parse_time(value, name="time"):
-    """An astropy :class:`~astropy.time.Time` (UTC) from an ISO 8601 string or a Time.
+    """An astropy :class:`~astropy.time.Time` (UTC) from an ISO 8601 string, a ``datetime``
+    or a Time.
+
+    A UTC offset (``2026-06-15T20:30:00-03:00``, or a YAML timestamp with one) is converted
+    to UTC, whether the time comes as a string (the command line, a quoted YAML value) or as
+    a YAML timestamp; a time without one is UTC.
 
     Raises
     ------
     InputError
         If ``value`` is not a readable time.
     """
+    from datetime import datetime, timezone
+
     from astropy.time import Time
 
     if isinstance(value, Time):
@@ -386,5 +395,15 @@ def parse_time(value, name="time"):
     try:
         return Time(value, scale="utc")
     except (ValueError, TypeError):
-        raise InputError(name, value,
-                         "must be an ISO 8601 UTC time, e.g. 2026-06-15T23:30:00") from None
+        pass
+    if isinstance(value, str):
+        # astropy reads no offsets; Python's ISO 8601 parser does (leap seconds aside, which
+        # astropy already read above when there is no offset).
+        try:
+            stamp = datetime.fromisoformat(value.strip())
+        except ValueError:
+            stamp = None
+        if stamp is not None and stamp.tzinfo is not None:
+            return Time(stamp.astimezone(timezone.utc).replace(tzinfo=None), scale="utc")
+    raise InputError(name, value, "must be an ISO 8601 time, UTC or with a UTC offset, e.g. "
+                                  "2026-06-15T23:30:00 or 2026-06-15T20:30:00-03:00")

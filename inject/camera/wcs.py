@@ -78,6 +78,9 @@ def _tan_wcs(ra, dec, crpix, cd, sip=False):
     wcs.wcs.crpix = [crpix[0] + 1, crpix[1] + 1]  # FITS pixels are 1-based
     wcs.wcs.cd = cd
     wcs.wcs.cunit = ["deg", "deg"]
+    # LONPOLE 180 at every dec: WCSLIB's default turns to 0 when CRVAL2 is +90 exactly, which
+    # would turn the field by 180 deg against a pointing next to the pole.
+    wcs.wcs.lonpole = 180.0
     return wcs
 
 

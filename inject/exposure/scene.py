@@ -26,7 +26,7 @@ from inject.config import (
 )
 from inject.errors import InjectError, SceneError
 from inject.orbits.tracks import orbit_focal_track
-from inject.schema import check_keys, number
+from inject.schema import check_keys, number, ranged
 from inject.trajectory import FocalTrack
 
 #: Keys of a focal-plane scene.
@@ -51,8 +51,9 @@ class FocalScene:
     ccds : tuple of inject.camera.layout.CCD
         The CCDs of the exposure (``detectors:``, default the 189 science CCDs).
     cutout : tuple or None
-        ``(ny, nx)``: simulate only pixels ``[0, ny) x [0, nx)`` of each CCD (tests, quick
-        looks); pixel coordinates and WCS stay those of the full CCD.
+        ``(ny, nx)``: simulate only pixels ``[0, ny) x [0, nx)`` of each CCD, each side
+        clipped to the CCD's own size (tests, quick looks); pixel coordinates and WCS stay
+        those of the full CCD.
     digest : str
         SHA-256 of the scene mapping (canonical JSON): what the manifest records.
     """
@@ -135,13 +136,18 @@ def parse_focal_scene(raw):
 
 
 def _cutout(spec):
+    """``(ny, nx)`` of a ``cutout:`` mapping, in the bounds of a CCD scene's ``detector.nx``
+    and ``ny``; a side not given is the largest sensor's, so that every CCD keeps its full
+    size there (:func:`inject.exposure.plan.ccd_shape` clips each side to the CCD's own)."""
     if spec is None:
         return None
-    check_keys("cutout", spec, {"nx", "ny"}, {"nx", "ny"})
-    nx, ny = (number(f"cutout.{k}", spec[k], int) for k in ("nx", "ny"))
-    if not (1 <= nx <= fp.ITL.nx and 1 <= ny <= fp.ITL.ny):
-        raise SceneError(f"cutout={spec!r}: nx must be in [1, {fp.ITL.nx}], ny in "
-                         f"[1, {fp.ITL.ny}] (the smaller sensor)")
+    check_keys("cutout", spec, {"nx", "ny"})
+    if not spec:
+        raise SceneError("cutout: give nx, ny or both (pixels)")
+    largest = {"nx": max(d.nx for d in fp.SENSORS.values()),
+               "ny": max(d.ny for d in fp.SENSORS.values())}
+    nx, ny = (ranged(f"detector.{k}", f"cutout.{k}", spec.get(k, largest[k]), int)
+              for k in ("nx", "ny"))
     return (ny, nx)
 
 
