@@ -918,7 +918,8 @@ def test_output_group_undoes_its_moves(monkeypatch, tmp_path, hard_links):
 
 @pytest.mark.parametrize("option", ["-o", "--exr", "--png", "--truth"])
 def test_simulate_never_replaces_without_overwrite(cli, scene, tmp_path, option):
-    existing = tmp_path / "existing.out"
+    # -o must be named as FITS; the other outputs take any name.
+    existing = tmp_path / ("existing.fits" if option == "-o" else "existing.out")
     existing.write_bytes(b"keep me")
     fresh = tmp_path / "fresh.fits"
     argv = ["simulate", scene, "-o", fresh]

@@ -302,3 +302,58 @@ def test_image_without_usable_pixels_is_refused(tmp_path, capsys, fill):
     assert err.startswith("inject add-streak: error: ") and err.count("\n") == 1
     assert "float.fits" in err and "no usable pixel" in err
     assert not out.exists()
+
+
+# -- output formats follow their names ----------------------------------------------------------
+
+#: The first bytes of each format, from its specification.
+MAGIC = {"svg": b"<?xml", "pdf": b"%PDF-", "jpg": b"\xff\xd8\xff", "png": b"\x89PNG\r\n\x1a\n"}
+EXAMPLE_PASS = ["--tle", str(ROOT / "sample_fields/example_starlink_like.tle"), "--time",
+                "2026-06-15T23:29:45", "--exptime", "30", "--ra", "151.95", "--dec", "-25.73"]
+
+
+@pytest.mark.parametrize("ext", sorted(MAGIC))
+def test_pass_plot_is_written_in_the_format_its_name_says(tmp_path, ext):
+    out = tmp_path / f"pass.{ext}"
+    assert main(["pass", *EXAMPLE_PASS, "--plot", str(out)]) == 0
+    assert out.read_bytes().startswith(MAGIC[ext])
+
+
+@pytest.mark.parametrize("name", ["pass.fits", "pass.csv", "pass.json"])
+def test_pass_plot_refuses_data_names(tmp_path, capsys, name):
+    out = tmp_path / name
+    assert main(["pass", *EXAMPLE_PASS, "--plot", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("inject pass: error: ") and err.count("\n") == 1
+    assert "picture" in err and not out.exists()
+
+
+@pytest.mark.parametrize("name", ["out.png", "out.jpg", "out.svg", "out.csv", "out"])
+def test_add_streak_output_must_be_a_fits_name(tmp_path, capsys, name):
+    path = _float_file(tmp_path, np.full(SHAPE, 100.0))
+    out = tmp_path / name
+    assert main(["add-streak", str(path), "-o", str(out), *STREAK, "--mag", "6"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("inject add-streak: error: ") and err.count("\n") == 1
+    assert ".fits" in err and not out.exists()
+
+
+@pytest.mark.parametrize("name, magic", [("out.fits", b"SIMPLE  ="), ("out.FIT", b"SIMPLE  ="),
+                                         ("out.fits.gz", b"\x1f\x8b"), ("out.fz", b"SIMPLE  =")])
+def test_add_streak_fits_names(tmp_path, name, magic):
+    path = _float_file(tmp_path, np.full(SHAPE, 100.0))
+    out = tmp_path / name
+    assert main(["add-streak", str(path), "-o", str(out), *STREAK, "--mag", "6"]) == 0
+    assert out.read_bytes().startswith(magic)
+    with fits.open(out) as hdus:
+        assert "TRUTH" in hdus
+
+
+def test_simulate_output_must_be_a_fits_name(tmp_path, capsys):
+    scene = tmp_path / "s.yaml"
+    scene.write_text("detector: {type: itl, nx: 64, ny: 64}\nstars: false\nsatellites: []\n")
+    out = tmp_path / "out.png"
+    assert main(["simulate", str(scene), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("inject simulate: error: ") and err.count("\n") == 1
+    assert not out.exists()

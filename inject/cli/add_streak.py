@@ -23,7 +23,8 @@ def add_add_streak_parser(sub):
                     "storage (integers stay integers, compressed HDUs are compressed "
                     "losslessly). The input is never modified.")
     p.add_argument("input", metavar="IN.fits")
-    add_output_option(p, "OUT.fits", "the copy with the streak")
+    add_output_option(p, "OUT.fits", "the copy with the streak: FITS, named .fits, .fit or "
+                                     ".fts (.gz after it: gzipped) or .fz")
     add_satellite_options(p)
     track = p.add_argument_group(
         "track (array pixels: pixel (0, 0) is the centre of the first pixel of the stored "
@@ -54,6 +55,7 @@ def run_add_streak(args):
     """The ``inject add-streak`` command (``args`` from :func:`add_add_streak_parser`)."""
     # The engine (GalSim, astropy): imported when the command runs, not for --help.
     from inject.addstreak import add_streaks, sky_to_array
+    from inject.io.fits import check_fits_name
     from inject.io.reader import read_exposure
     from inject.trajectory import Track
 
@@ -65,6 +67,7 @@ def run_add_streak(args):
         value = getattr(args, option)
         if value is not None:
             check(quantity, value, f"--{option.replace('_', '-')}")
+    check_fits_name(args.output, compressed=True)
     if (args.ra0 is None) != (args.dec0 is None):
         raise InputError("--ra0/--dec0", (args.ra0, args.dec0), "give both")
     check_writable(args.output, args.overwrite)

@@ -41,7 +41,8 @@ def add_pass_parser(sub):
                         "(--site=-30.2446,-70.7494,2647: with '=', as it starts with -)")
     p.add_argument("--json", action="store_true", help="one JSON object instead of a table")
     p.add_argument("--plot", metavar="OUT.png",
-                   help="the track on the focal plane, and range, speed, FWHM and peak along it")
+                   help="the track on the focal plane, and range, speed, FWHM and peak along "
+                        "it: PNG, or the format its extension names (.jpg, .pdf, .svg, ...)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --plot file")
     p.set_defaults(func=run_pass)
 
@@ -129,10 +130,14 @@ def run_pass(args):
                                          "rotation": args.rotation},
                                         {"ra": "--ra", "dec": "--dec", "rotation": "--rotation"}))
     if args.plot:
-        check_writable(args.plot, args.overwrite)  # fail before the work
+        from inject.io.quicklook import quicklook_format
+
+        # Fail before the work: a data name (.fits, .csv, ...) or an unwritable path.
+        plot_format = quicklook_format(args.plot, "the plot")
+        check_writable(args.plot, args.overwrite)
     report, p, track = pass_report(orbit, exposure, pointing, site)
     if args.plot:
-        write_plot(args.plot, report, p, track, args.overwrite)
+        write_plot(args.plot, report, p, track, args.overwrite, plot_format)
     if args.json:
         json.dump(report, sys.stdout)
         sys.stdout.write("\n")
@@ -176,9 +181,10 @@ def streak_along(p, idx, mag_ref=5.0):
     return np.array(fwhm), np.array(peak)
 
 
-def write_plot(path, report, p, track, overwrite=False):
+def write_plot(path, report, p, track, overwrite=False, file_format="png"):
     """The track on the focal-plane outline (crossed CCDs shaded) and panels of range, angular
-    speed, FWHM and peak surface brightness along the exposure."""
+    speed, FWHM and peak surface brightness along the exposure, as ``file_format`` (a
+    matplotlib format: :func:`inject.io.quicklook.quicklook_format` of the name)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle
@@ -229,4 +235,4 @@ def write_plot(path, report, p, track, overwrite=False):
             pax.set_xticklabels([])
     pax.set_xlabel("t from exposure start (s); dotted: in Earth's shadow", fontsize=7)
     with atomic_path(path, overwrite) as tmp:
-        fig.savefig(tmp, format="png", dpi=80)
+        fig.savefig(tmp, format=file_format, dpi=80)

@@ -15,7 +15,7 @@ def add_simulate_parser(sub):
                        description="Simulate one LSSTCam-like CCD from a YAML scene file.")
     p.add_argument("scene", help="YAML scene file (see sample_fields/)")
     add_output_option(p, "OUT.fits", "the FITS file (IMAGE, MASK, VARIANCE, STREAK_MODEL, "
-                                     "TRUTH)")
+                                     "TRUTH), named .fits, .fit or .fts")
     p.add_argument("--exr", metavar="OUT.exr", help="also write OpenEXR")
     p.add_argument("--png", metavar="OUT.png",
                    help="also write a quicklook picture: PNG, or the format its extension "
@@ -33,15 +33,16 @@ def run_simulate(args):
     """The ``inject simulate`` command: every output is written, or none (all-or-nothing)."""
     # The engine (GalSim, astropy, YAML): imported when the command runs, not for --help.
     from inject.config import parse_scene
-    from inject.io.fits import write_exposure
+    from inject.io.fits import check_fits_name, write_exposure
     from inject.orbits.tracks import resolve_ccd_orbits
     from inject.scene import simulate
     from inject.schema import apply_overrides, load_scene_file
 
+    check_fits_name(args.output)  # before the work: a picture name never holds FITS
     if args.png:
         from inject.io.quicklook import quicklook_format
 
-        quicklook_format(args.png)  # before the work
+        quicklook_format(args.png)
     raw = apply_overrides(load_scene_file(args.scene), args.overrides)
     scene = parse_scene(resolve_ccd_orbits(raw))  # orbit: satellites -> pixel tracks
     outputs = {option: path for option, path in (("-o", args.output), ("--exr", args.exr),

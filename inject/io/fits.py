@@ -19,12 +19,31 @@ from astropy.table import Table
 from astropy.time import Time, TimeDelta
 
 from inject import __version__
+from inject.errors import OutputError
 from inject.io.atomic import atomic_path
 from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, mask_header
 from inject.truth import TRUTH_COLUMNS, complete
 
 #: Extension types of afw's MaskedImage HDUs 1-3, in that order.
 MASKED_IMAGE_TYPES = ("IMAGE", "MASK", "VARIANCE")
+
+#: How a FITS output may be named (lower case).
+FITS_EXTENSIONS = (".fits", ".fit", ".fts")
+
+
+def check_fits_name(path, compressed=False):
+    """Raise :class:`~inject.errors.OutputError` unless ``path`` is named as a FITS file:
+    :data:`FITS_EXTENSIONS`, and with ``compressed`` also those followed by ``.gz`` (the file
+    is gzipped) or ``.fz`` (tile-compressed HDUs), so that a picture name (``.png``) never
+    holds FITS bytes."""
+    name = os.path.basename(os.fspath(path)).lower()
+    allowed = FITS_EXTENSIONS
+    if compressed:
+        allowed += tuple(ext + ".gz" for ext in FITS_EXTENSIONS) + (".fz",)
+    if not name.endswith(allowed):
+        names = ", ".join(FITS_EXTENSIONS) + (" (.gz after them to gzip it) or .fz"
+                                              if compressed else "")
+        raise OutputError(f"{path}: the output is a FITS file: name it {names}")
 
 
 def time_cards(scene):

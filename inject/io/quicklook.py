@@ -27,18 +27,19 @@ TRUTH_OFFSET_PT = 6.0
 TRUTH_COLOUR = "#ff8c00"
 
 
-def quicklook_format(path):
-    """The format :func:`write_quicklook` writes ``path`` in: the one its extension names
-    (:data:`FORMATS`: ``x.jpg`` is JPEG), else PNG.
+def quicklook_format(path, what="a quicklook"):
+    """The format a picture (:func:`write_quicklook`'s, ``inject pass --plot``'s) is written
+    in at ``path``: the one its extension names (:data:`FORMATS`: ``x.jpg`` is JPEG), else PNG.
 
     Raises
     ------
     OutputError
-        The extension is a data format's (:data:`REFUSED`: ``.fits``, ``.csv``, ...).
+        The extension is a data format's (:data:`REFUSED`: ``.fits``, ``.csv``, ...); the
+        message calls the picture ``what``.
     """
     ext = os.path.splitext(os.fspath(path))[1].lower()
     if ext in REFUSED:
-        raise OutputError(f"{path}: a quicklook is a picture, not {ext[1:].upper()} data: name "
+        raise OutputError(f"{path}: {what} is a picture, not {ext[1:].upper()} data: name "
                           f"it .png, .jpg, .pdf, .svg, ...")
     return FORMATS.get(ext, "png")
 
