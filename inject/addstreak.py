@@ -1,14 +1,14 @@
 """Inject streaks into an existing image (the user's own FITS).
 
 Only the injected charge gets Poisson noise (the image already has its own); VARIANCE grows by
-the injected charge's Poisson variance and MASK gets the STREAK plane (on the first free bit if
-the file has none), and SAT where an integer image reaches its ADC limit. The pixels go back in
-the file's own storage (see :mod:`inject.io.reader`): pixels the streak does not reach are
-unchanged bit for bit, and undefined ones (NaN, infinite, ``BLANK``) take no charge: neither
-the image, nor TRUTH's ``charge_in_image_e``, nor INJECTED_MODEL counts any there. IMAGE, MASK
-and VARIANCE of an afw file written without ``EXTNAME`` get ``EXTNAME = EXTTYPE`` (as afw
-writes today; lsst-images needs it); their other cards stay. The input file is never
-modified.
+the injected charge's Poisson variance (noise or not, unless asked to stay), MASK gets the
+STREAK plane (on the first free bit if the file has none), and SAT where an integer image
+reaches its ADC limit. The pixels go back in the file's own storage (see
+:mod:`inject.io.reader`): pixels the streak does not reach are unchanged bit for bit, and
+undefined ones (NaN, infinite, ``BLANK``) take no charge: neither the image, nor TRUTH's
+``charge_in_image_e``, nor INJECTED_MODEL counts any there. IMAGE, MASK and VARIANCE of an afw
+file written without ``EXTNAME`` get ``EXTNAME = EXTTYPE`` (as afw writes today; lsst-images
+needs it); their other cards stay. The input file is never modified.
 """
 import numpy as np
 from astropy.io import fits
@@ -86,7 +86,8 @@ def _separation_deg(ra1, dec1, ra2, dec2):
     return float(np.degrees(np.arctan2(num, den)))
 
 
-def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()):
+def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget(),
+                variance=True):
     """Add streaks into an :class:`~inject.io.reader.InputExposure` (in memory).
 
     Parameters
@@ -103,8 +104,14 @@ def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()
         Draws the Poisson noise of the injected charge; anything
         :func:`numpy.random.default_rng` takes (an int seeds a new generator).
     noise : bool
-        Add Poisson noise to the injected charge and its variance (``model / gain**2``) to
-        VARIANCE; else the exact model, and VARIANCE stays as it is (no noise was added).
+        Add Poisson noise to the injected charge; else the exact model.
+    budget : Budget
+    variance : bool
+        Add the injected charge's Poisson variance, ``model / gain**2`` (the file's units), to
+        VARIANCE, with or without ``noise`` (as LSST's source_injection, whose
+        ``inject_variance`` and ``add_noise`` are separate switches: the variance then
+        describes the noise real light of that brightness would have); else leave VARIANCE
+        as it is.
 
     Returns
     -------
@@ -141,10 +148,10 @@ def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()
     saturation = float(saturation) if isinstance(saturation, (int, float)) else None
     saturated = exposure.add(exposure.image_index, injected / gain, saturation)
     if exposure.variance_index is not None:
-        variance = np.asarray(exposure.hdus[exposure.variance_index].data, dtype=np.float64)
-        finite = variance[np.isfinite(variance)]
+        before = np.asarray(exposure.hdus[exposure.variance_index].data, dtype=np.float64)
+        finite = before[np.isfinite(before)]
         sigma = float(np.sqrt(np.median(finite))) if finite.size else 0.0
-        if noise:
+        if variance:
             exposure.add(exposure.variance_index, model_e / gain ** 2)
     else:
         sigma = robust_sigma(image)

@@ -357,3 +357,39 @@ def test_simulate_output_must_be_a_fits_name(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("inject simulate: error: ") and err.count("\n") == 1
     assert not out.exists()
+
+
+# -- VARIANCE with and without noise ------------------------------------------------------------
+
+AFW_STREAK = ["--height", "550", "--zenith", "60", "--mag", "7", "--x0", "30", "--y0", "40",
+              "--angle", "20", "--track-length", "80"]
+
+
+def test_no_noise_still_adds_the_model_variance(tmp_path):
+    """As LSST's source_injection (inject_variance on, add_noise off): VARIANCE (ADU^2) grows
+    by the charge (e-) over gain^2, i.e. by the image's increase (ADU) over the gain."""
+    path, _ = _afw_file(tmp_path)
+    gain = fits.getheader(path, 0)["GAIN"]  # afw writes it in the primary header
+    out = tmp_path / "out.fits"
+    assert main(["add-streak", str(path), "-o", str(out), *AFW_STREAK, "--no-noise"]) == 0
+    with fits.open(path) as old, fits.open(out) as new:
+        d_image = new[1].data.astype(np.float64) - old[1].data
+        d_variance = new[3].data.astype(np.float64) - old[3].data
+    # float32 storage: ~500 ADU images and ~64 ADU^2 variances round at 3e-5 and 4e-6.
+    np.testing.assert_allclose(d_variance, d_image / gain, atol=1e-4)
+    # The 80 px streak lies on the 150 x 120 image, 30 px from its edge at most: its charge is
+    # flux per px x length, less the seeing wings beyond the edges (~1%).
+    charge = d_variance.sum() * gain ** 2
+    expected = _flux_per_px(7) * 80
+    assert 0.97 * expected < charge < expected * (1 + 1e-4)
+
+
+@pytest.mark.parametrize("noise", [[], ["--no-noise"]])
+def test_no_variance_leaves_variance_as_it_was(tmp_path, noise):
+    path, _ = _afw_file(tmp_path)
+    out = tmp_path / "out.fits"
+    assert main(["add-streak", str(path), "-o", str(out), *AFW_STREAK, *noise,
+                 "--no-variance"]) == 0
+    with fits.open(path) as old, fits.open(out) as new:
+        assert np.array_equal(new[3].data.view(np.uint32), old[3].data.view(np.uint32))
+        assert np.any(new[1].data != old[1].data)  # the streak is in the image

@@ -18,7 +18,8 @@ def add_add_streak_parser(sub):
         "add-streak", help="inject a streak into an existing FITS image",
         description="Inject one streak into a FITS image: any 2-D image HDU, or an LSST "
                     "MaskedImage/Exposure (IMAGE, MASK, VARIANCE found by EXTTYPE as afw does; "
-                    "MASK gets a STREAK plane, VARIANCE the streak's Poisson variance). Pixels "
+                    "MASK gets a STREAK plane, VARIANCE the streak's Poisson variance, with "
+                    "or without noise, unless --no-variance). Pixels "
                     "the streak does not reach are written back unchanged in the file's own "
                     "storage (integers stay integers, compressed HDUs are compressed "
                     "losslessly). The input is never modified.")
@@ -46,7 +47,10 @@ def add_add_streak_parser(sub):
                                               "if BUNIT is electrons)")
     p.add_argument("--seed", type=int, default=1, help="seed of the injected charge's noise")
     p.add_argument("--no-noise", action="store_true",
-                   help="add the exact model, no Poisson noise (VARIANCE left as it is)")
+                   help="add the exact model, no Poisson noise (VARIANCE still grows by the "
+                        "model's Poisson variance, as in LSST's source_injection)")
+    p.add_argument("--no-variance", action="store_true",
+                   help="leave VARIANCE as it is (by default it grows by model / gain^2)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing OUT.fits")
     p.set_defaults(func=run_add_streak)
 
@@ -104,7 +108,8 @@ def run_add_streak(args):
                             "--pixel-scale" if pixel_scale is None else "the WCS's pixel scale")
     track = Track(args.x0, args.y0, args.angle, args.track_length)
     rng = np.random.default_rng(np.random.SeedSequence(args.seed))
-    _, truth = add_streaks(exposure, [model], [track], float(gain), rng, noise=not args.no_noise)
+    _, truth = add_streaks(exposure, [model], [track], float(gain), rng, noise=not args.no_noise,
+                           variance=not args.no_variance)
     exposure.write(args.output, args.overwrite)
     row = truth[0]
     x0, y0 = exposure.xy0
