@@ -424,3 +424,14 @@ def test_utc_offset_in_time_option_is_converted(cli):
     assert json.loads(offset) == json.loads(utc)
     status, _, err = cli("pass", "--time", "2026-06-15T20:29:59 -03:00 tomorrow", *common)
     assert status == 2 and "--time=" in err
+
+
+def test_job_slices_are_interleaved():
+    """``--job k --njobs n`` takes every n-th CCD from the k-th (so that the streak CCDs,
+    neighbours in id, spread over the jobs), written out here for 7 CCDs in 3 jobs."""
+    from inject.exposure.runner import slice_ccds
+
+    ccds = fp.CCDS[:7]
+    names = [[c.name for c in slice_ccds(ccds, job, 3)] for job in range(3)]
+    assert names == [["R01_S00", "R01_S10", "R01_S20"], ["R01_S01", "R01_S11"],
+                     ["R01_S02", "R01_S12"]]
