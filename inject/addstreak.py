@@ -6,13 +6,13 @@ STREAK plane (on the first free bit if the file has none), and SAT where an inte
 reaches its ADC limit. The pixels go back in the file's own storage (see
 :mod:`inject.io.reader`): pixels the streak does not reach are unchanged bit for bit, and
 undefined ones (NaN, infinite, ``BLANK``) take no charge: neither the image, nor TRUTH's
-``charge_in_image_e``, nor INJECTED_MODEL counts any there. IMAGE, MASK and VARIANCE of an afw
+``charge_in_image_e``, nor STREAK_MODEL counts any there. IMAGE, MASK and VARIANCE of an afw
 file written without ``EXTNAME`` get ``EXTNAME = EXTTYPE`` (as afw writes today; lsst-images
 needs it); their other cards stay. The input file is never modified.
 """
 import numpy as np
 from astropy.io import fits
-from astropy.table import Table, vstack
+from astropy.table import Table
 
 from inject.errors import FileFormatError, InputError
 from inject.io.fits import truth_table
@@ -164,14 +164,25 @@ def add_streaks(exposure, models, tracks, gain, rng, noise=True, budget=Budget()
     if saturated.any():
         _flag_saturated(truth, models, saturated)
     _append_truth(exposure, truth)
-    names = [h.name for h in exposure.hdus]
-    if "INJECTED_MODEL" in names:  # injecting into our own output
-        previous = exposure.hdus["INJECTED_MODEL"]
-        previous.data = (np.asarray(previous.data, np.float64) + model_e).astype(np.float32)
-        exposure.mark_changed(names.index("INJECTED_MODEL"))
-    else:
-        exposure.hdus.append(fits.ImageHDU(model_e.astype(np.float32), name="INJECTED_MODEL"))
+    _add_to_streak_model(exposure, model_e)
     return model_e, truth
+
+
+def _add_to_streak_model(exposure, model_e):
+    """STREAK_MODEL holds every streak's charge (e-): the input's (an inject file, or an
+    earlier injection) plus this one's, so that it sums to TRUTH's ``charge_in_image_e``."""
+    names = [h.name for h in exposure.hdus]
+    if "STREAK_MODEL" not in names and "INJECTED_MODEL" in names:  # older inject output
+        exposure.hdus["INJECTED_MODEL"].name = "STREAK_MODEL"
+        names = [h.name for h in exposure.hdus]
+    if "STREAK_MODEL" in names:
+        previous = exposure.hdus["STREAK_MODEL"]
+        previous.data = (np.asarray(previous.data, np.float64) + model_e).astype(np.float32)
+        exposure.mark_changed(names.index("STREAK_MODEL"))
+    else:
+        hdu = fits.ImageHDU(model_e.astype(np.float32), name="STREAK_MODEL")
+        hdu.header["BUNIT"] = ("electron", "noise-free injected streak charge")
+        exposure.hdus.append(hdu)
 
 
 def _render(shape, models, tracks, budget, usable):
@@ -241,8 +252,16 @@ def _append_truth(exposure, rows):
     new.header["PARENTX0"] = (x0, "LSST parent x of array x 0 (x0.. are array px)")
     new.header["PARENTY0"] = (y0, "LSST parent y of array y 0")
     if "TRUTH" in names:
+        # The input's rows first, completed to today's columns; the new streaks are numbered
+        # after them.
         old = Table(hdus["TRUTH"].data)
-        combined = vstack([old, Table(new.data)], metadata_conflicts="silent")
-        hdus[names.index("TRUTH")] = fits.BinTableHDU(combined, header=new.header, name="TRUTH")
+        earlier = [{k: row[k].item() if hasattr(row[k], "item") else row[k]
+                    for k in old.colnames} for row in old]
+        for k, row in enumerate(rows):
+            row["satellite"] = len(earlier) + k
+        combined = truth_table(earlier + list(rows))
+        for key in ("PARENTX0", "PARENTY0"):
+            combined.header[key] = (new.header[key], new.header.comments[key])
+        hdus[names.index("TRUTH")] = combined
     else:
         hdus.append(new)

@@ -146,6 +146,6 @@ def test_add_streak_truth(tmp_path):
     truth = Table.read(out, hdu="TRUTH")
     check_row(truth[0], 800.0, 35.0, 60.0, 6.5, "i")
     with fits.open(out) as hdus:
-        injected = hdus["INJECTED_MODEL"].data.astype(np.float64)
+        injected = hdus["STREAK_MODEL"].data.astype(np.float64)
     flux = expected_photometry(800.0, 35.0, 60.0, 6.5, "i")[-1]
     assert flux * 80 * (1 - 2e-3) < injected.sum() <= flux * 80 * (1 + 1e-4)

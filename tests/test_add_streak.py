@@ -50,7 +50,7 @@ def test_plain_image_in_adu(plain_image, tmp_path, digest):
     original = fits.getdata(plain_image).astype(np.float64)
     with fits.open(out) as hdus:
         added = hdus[0].data.astype(np.float64) - original
-        model = hdus["INJECTED_MODEL"].data.astype(np.float64)
+        model = hdus["STREAK_MODEL"].data.astype(np.float64)
         truth = Table(hdus["TRUTH"].data)
     expected = StreakModel(550, 70, mag=8).flux_per_px * 100
     # The seeing wings reach past the 200 x 240 image's edges: a little charge misses it.
@@ -66,7 +66,7 @@ def test_poisson_noise_only_on_injected_charge(plain_image, tmp_path):
     original = fits.getdata(plain_image).astype(np.float64)
     with fits.open(out) as hdus:
         added_e = (hdus[0].data.astype(np.float64) - original) * 1.6
-        model = hdus["INJECTED_MODEL"].data.astype(np.float64)
+        model = hdus["STREAK_MODEL"].data.astype(np.float64)
     bright = model > 200
     residual = (added_e - model)[bright] / np.sqrt(model[bright])
     assert abs(residual.mean()) < 0.1 and 0.9 < residual.std() < 1.1
@@ -89,7 +89,7 @@ def test_lsst_file_updates_variance_and_mask(lsst_image, tmp_path):
     out = tmp_path / "out.fits"
     assert main(["add-streak", str(lsst_image), "-o", str(out), *ARGS]) == 0
     with fits.open(out) as hdus:
-        model = hdus["INJECTED_MODEL"].data.astype(np.float64)
+        model = hdus["STREAK_MODEL"].data.astype(np.float64)
         np.testing.assert_allclose(hdus["VARIANCE"].data, 400.0 + model, rtol=1e-6)
         bit = hdus["MASK"].header["MP_STREAK"]
         assert bit not in (0, 1)

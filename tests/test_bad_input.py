@@ -942,7 +942,7 @@ def test_add_streak_never_replaces_without_overwrite(cli, tmp_path, image):
     assert status == 2 and "--overwrite" in err and out.read_bytes() == b"keep me"
     assert main(["add-streak", str(image), "-o", str(out), *STREAK_ARGS, "--overwrite"]) == 0
     with fits.open(out) as hdus:
-        assert "INJECTED_MODEL" in [h.name for h in hdus]
+        assert "STREAK_MODEL" in [h.name for h in hdus]
 
 
 # --- Inputs are never modified -------------------------------------------------------------

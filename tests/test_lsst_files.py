@@ -63,7 +63,7 @@ def test_afw_exposure_streak_mask_variance(afw_exposure, tmp_path):
     assert main(["add-streak", str(afw_exposure), "-o", str(out), *STREAK_ARGS, "--parent",
                  "--x0", str(XY0[0] + 30.0), "--y0", str(XY0[1] + 40.0), "--seed", "3"]) == 0
     before, after = _hdu_bytes(afw_exposure), _hdu_bytes(out)
-    assert len(after) == len(before) + 2  # + TRUTH and INJECTED_MODEL
+    assert len(after) == len(before) + 2  # + TRUTH and STREAK_MODEL
     for index in (0, 4, 5):  # primary and archive tables (heap included): byte for byte
         assert after[index] == before[index]
     with fits.open(afw_exposure) as old, fits.open(out) as new:
@@ -74,7 +74,7 @@ def test_afw_exposure_streak_mask_variance(afw_exposure, tmp_path):
             added = {c.keyword for c in new[index].header.cards if c.image not in old_cards}
             assert added == ({"EXTNAME", "MP_STREAK"} if index == 2 else {"EXTNAME"})
             assert new[index].header["EXTNAME"] == new[index].header["EXTTYPE"]
-        model = new["INJECTED_MODEL"].data.astype(np.float64)
+        model = new["STREAK_MODEL"].data.astype(np.float64)
         truth = Table(new["TRUTH"].data)
         # Parent pixels: the array start is the parent start minus xy0.
         assert truth["x0"][0] == pytest.approx(30.0) and truth["y0"][0] == pytest.approx(40.0)
@@ -199,7 +199,7 @@ def test_storage_kept_and_untouched_pixels_identical(tmp_path, kind):
                  "--mag", "1", "--x0", "20", "--y0", "30", "--angle", "25",
                  "--track-length", "90", "--no-noise"]) == 0
     with fits.open(out) as new, fits.open(path) as old:
-        model = new["INJECTED_MODEL"].data.astype(np.float64)
+        model = new["STREAK_MODEL"].data.astype(np.float64)
         reached = model > 0
         before, after = np.array(old[1].data), np.array(new[1].data)
         assert after.dtype == before.dtype
@@ -216,7 +216,7 @@ def test_storage_kept_and_untouched_pixels_identical(tmp_path, kind):
         if kind in ("uint16", "int32", "rice-int16"):
             top = np.iinfo(before.dtype).max
             expected = np.clip(np.rint(before.astype(np.float64) + model), None, top)
-            # INJECTED_MODEL is float32: a pixel of 3e5 e- may round the other way.
+            # STREAK_MODEL is float32: a pixel of 3e5 e- may round the other way.
             assert np.abs(after.astype(np.float64) - expected).max() <= 1
             assert np.mean(after == expected) > 0.99
             np.testing.assert_array_equal(sat, reached & (after == top))
@@ -370,7 +370,7 @@ def test_compressed_afw_exposure(afw_exposure, tmp_path):
     assert main(["add-streak", str(path), "-o", str(out), *STREAK_ARGS, "--x0", "30",
                  "--y0", "40"]) == 0
     with fits.open(path) as old, fits.open(out) as new:
-        reached = new["INJECTED_MODEL"].data > 0
+        reached = new["STREAK_MODEL"].data > 0
         for index in (1, 2, 3):
             assert isinstance(new[index], fits.CompImageHDU)
             a, b = np.array(old[index].data), np.array(new[index].data)
@@ -401,7 +401,7 @@ def test_checksums_stay_valid(tmp_path):
             for hdu in hdus:
                 hdu.data  # noqa: B018
             assert hdus[1].data.dtype.newbyteorder("=") == np.uint16
-            assert (hdus["INJECTED_MODEL"].data > 0).any()
+            assert (hdus["STREAK_MODEL"].data > 0).any()
             assert "CHECKSUM" in hdus[1].header and "CHECKSUM" in hdus[2].header
     stored, header = _stored(out, 1)
     assert stored.dtype.newbyteorder("=") == np.int16 and header["BZERO"] == 32768

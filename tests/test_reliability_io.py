@@ -95,7 +95,7 @@ def test_blank_pixels_stay_blank_and_get_no_charge(tmp_path, kind):
     assert np.any(new[~undefined] != stored[~undefined])  # the streak did land
     with fits.open(out) as hdus:
         truth = Table(hdus["TRUTH"].data)
-        model = hdus["INJECTED_MODEL"].data
+        model = hdus["STREAK_MODEL"].data
         variance = hdus[3].data
     # The streak's first CUT - 20.5 = 49.5 px lie on defined pixels: half its charge.
     expected = _flux_per_px(4) * (CUT - 20.5)
@@ -280,7 +280,7 @@ def test_nan_pixels_take_no_charge(tmp_path):
                  "--no-noise"]) == 0
     with fits.open(out) as hdus:
         truth = Table(hdus["TRUTH"].data)
-        model = hdus["INJECTED_MODEL"].data
+        model = hdus["STREAK_MODEL"].data
         new = hdus[1].data
     assert np.all(np.isnan(new[:, CUT:])) and np.all(model[:, CUT:] == 0)
     # Only the 49.5 px of the streak before column CUT land on pixels that hold a value.

@@ -134,3 +134,39 @@ def test_every_truth_table_has_the_same_columns(tmp_path, cli):
         empty_types = [hdul["TRUTH"].columns[n].format for n in TRUTH_COLUMNS]
     with fits.open(tmp_path / "one.fits") as hdul:
         assert [hdul["TRUTH"].columns[n].format for n in TRUTH_COLUMNS] == empty_types
+
+
+def _model_and_truth(path):
+    with fits.open(path) as hdul:
+        return (float(hdul["STREAK_MODEL"].data.astype(np.float64).sum()),
+                Table(hdul["TRUTH"].data))
+
+
+def test_streak_model_sums_to_truth_in_every_file(tmp_path, cli):
+    """``sum(STREAK_MODEL) == sum(TRUTH.charge_in_image_e)`` for a simulated file, for
+    add-streak into it (both streaks in one model, rows numbered on) and into a plain image;
+    the added rows carry the plate scale the WCS gave."""
+    scene = tmp_path / "s.yaml"
+    scene.write_text("detector: {type: itl, nx: 200, ny: 160}\nstars: false\nsky: false\n"
+                     "noise: false\npointing: {ra: 10, dec: -5}\nsatellites:\n"
+                     "  - {height: 550, mag: 8, shape: {type: box, length: 7.25, width: 2.65},\n"
+                     "     track: {x0: 10, y0: 20, angle: 30, length: 120}}\n")
+    simulated, added = tmp_path / "sim.fits", tmp_path / "added.fits"
+    assert cli("simulate", scene, "-o", simulated)[0] == 0
+    args = ["--height", "350", "--mag", "8", "--x0", "20", "--y0", "120", "--angle", "-10",
+            "--track-length", "150", "--no-noise"]
+    assert cli("add-streak", simulated, "-o", added, *args)[0] == 0
+    plain = tmp_path / "plain.fits"
+    header = fits.Header({"GAIN": 1.0})
+    fits.PrimaryHDU(np.zeros((160, 200), np.float32), header=header).writeto(plain)
+    plain_out = tmp_path / "plain_out.fits"
+    assert cli("add-streak", plain, "-o", plain_out, *args, "--pixel-scale", "0.2")[0] == 0
+    for path, n in ((simulated, 1), (added, 2), (plain_out, 1)):
+        total, truth = _model_and_truth(path)
+        assert len(truth) == n and list(truth["satellite"]) == list(range(n))
+        assert total == pytest.approx(float(np.sum(truth["charge_in_image_e"])), rel=1e-5)
+        assert np.all(np.isfinite(truth["pixel_scale_arcsec"]))
+    with fits.open(added) as hdul:
+        assert "INJECTED_MODEL" not in [h.name for h in hdul]
+        assert Table(hdul["TRUTH"].data)["pixel_scale_arcsec"][1] == pytest.approx(0.2,
+                                                                                    rel=1e-6)
