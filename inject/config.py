@@ -40,7 +40,7 @@ SIMULATE_BYTES_PER_PIXEL = 64
 #: and ``cutout``).
 COMMON_KEYS = frozenset({"seed", "band", "exptime", "seeing", "zenith", "sky", "stars", "noise",
                          "satellites", "pointing", "dark_current", "cosmic_rays", "units", "time",
-                         "site"})
+                         "site", "shadow_atmosphere_km"})
 SCENE_KEYS = COMMON_KEYS | {"detector"}
 #: A satellite's model keys, whatever its track is given as.
 SATELLITE_MODEL_KEYS = frozenset({"height", "phi", "shape", "mag", "ref_range"})
@@ -208,6 +208,8 @@ def parse_common(raw):
     pointing = parse_pointing(merged.get("pointing"))
     sky = parse_sky(merged["sky"])
     stars = parse_stars(merged["stars"], pointing)
+    if "shadow_atmosphere_km" in merged:  # used by orbits (inject.orbits.tracks)
+        ranged("shadow_atmosphere_km", "shadow_atmosphere_km", merged["shadow_atmosphere_km"])
     units = merged.get("units", "electron")
     if units not in ("electron", "adu"):
         raise SceneError(f"units={units!r}: choose electron or adu")

@@ -237,6 +237,9 @@ RANGES = {r.name: r for r in (
           "SGP4's along-track error for LEO reaches tens to hundreds of km (degrees on the "
           "sky) in two months", warn_hi=14, warn_why="after a week or two the position may be "
           "km off (drag)", options="pass --tle, pass --orbit epoch"),
+    Range("shadow_atmosphere_km", "km", 0, 200, "height of the grazing atmosphere taken to block "
+          "the Sun in Earth's shadow (0: the solid WGS84 Earth); above ~100 km the air is too "
+          "thin to matter", options="pass --shadow-atmosphere"),
     Range("site.lat", "deg", -90, 90, "geodetic latitude", options="pass --site"),
     Range("site.lon", "deg", -360, 360, "geodetic longitude (east positive)",
           options="pass --site"),

@@ -356,7 +356,7 @@ def test_shadow_entry_ends_the_streak_and_the_penumbra_fades_it():
     from inject.orbits.passes import aimed_orbit
     t_aim = Time("2026-06-15T23:27:00")
     orbit = aimed_orbit(t_aim, 60.0, 90.0)
-    exposure = Exposure(t_aim + 5 * u.s, 10.0)
+    exposure = Exposure(t_aim + 8 * u.s, 10.0)
     # Point at where the satellite appears at the middle of the exposure (ICRS as a star).
     first = compute_pass(orbit, exposure, Pointing(0.0, 0.0), t_s=[5.0])
     frame = AltAz(obstime=first.utc[0], location=RUBIN.location)
@@ -466,7 +466,7 @@ def _terminator_pass(aim_s=5.0):
     from inject.orbits.passes import aimed_orbit
     t_aim = Time("2026-06-15T23:27:00")
     orbit = aimed_orbit(t_aim, 60.0, 90.0)
-    exposure = Exposure(t_aim + 5 * u.s, 10.0)
+    exposure = Exposure(t_aim + 8 * u.s, 10.0)
     first = compute_pass(orbit, exposure, Pointing(0.0, 0.0), t_s=[aim_s])
     frame = AltAz(obstime=first.utc[0], location=RUBIN.location)
     c = SkyCoord(az=first.apparent_az_deg[0] * u.deg, alt=first.apparent_alt_deg[0] * u.deg,

@@ -39,6 +39,9 @@ def add_pass_parser(sub):
     p.add_argument("--site", metavar="LAT,LON,M",
                    help="geodetic latitude, longitude (deg) and height (m); default Rubin "
                         "(--site=-30.2446,-70.7494,2647: with '=', as it starts with -)")
+    p.add_argument("--shadow-atmosphere", type=float, default=0.0, metavar="KM",
+                   help="height of the grazing atmosphere taken to block the Sun in Earth's "
+                        "shadow (0: the solid WGS84 Earth)")
     p.add_argument("--json", action="store_true", help="one JSON object instead of a table")
     p.add_argument("--plot", metavar="OUT.png",
                    help="the track on the focal plane, and range, speed, FWHM and peak along "
@@ -64,7 +67,7 @@ def parse_orbit_option(text, time):
     return orbit_from_spec(values, time, "--orbit")
 
 
-def pass_report(orbit, exposure, pointing, site):
+def pass_report(orbit, exposure, pointing, site, atmosphere_km=0.0):
     """The ``inject pass`` result.
 
     Returns
@@ -82,9 +85,9 @@ def pass_report(orbit, exposure, pointing, site):
     """
     from inject.camera import layout as fp
     from inject.orbits.passes import TRACK_STEP_S, compute_pass, track_runs
-    p = compute_pass(orbit, exposure, pointing, site)
+    p = compute_pass(orbit, exposure, pointing, site, atmosphere_km=atmosphere_km)
     dense = compute_pass(orbit, exposure, pointing, site, step_s=TRACK_STEP_S,
-                         check_epoch=False)
+                         check_epoch=False, atmosphere_km=atmosphere_km)
     xd, yd, runs = track_runs(dense)
 
     def crossed(parts):
@@ -135,7 +138,9 @@ def run_pass(args):
         # Fail before the work: a data name (.fits, .csv, ...) or an unwritable path.
         plot_format = quicklook_format(args.plot, "the plot")
         check_writable(args.plot, args.overwrite)
-    report, p, track = pass_report(orbit, exposure, pointing, site)
+    atmosphere = RANGES["shadow_atmosphere_km"].check(args.shadow_atmosphere,
+                                                      "--shadow-atmosphere")
+    report, p, track = pass_report(orbit, exposure, pointing, site, atmosphere)
     if args.plot:
         write_plot(args.plot, report, p, track, args.overwrite, plot_format)
     if args.json:

@@ -706,12 +706,24 @@ def sun_itrs(times):
     return get_sun(times).transform_to(ITRS(obstime=times)).cartesian.xyz.to_value(u.km).T
 
 
-def illumination(r_sat_km, r_sun_km, earth_radius_km=R_EARTH_KM):
+#: WGS84 equatorial and polar radii, km.
+WGS84_A_KM, WGS84_B_KM = 6378.137, 6356.752314245
+#: Default height of the grazing atmosphere that blocks sunlight, km: 0, the solid Earth's
+#: geometric shadow. Sunlight grazing the limb below ~10-20 km is mostly absorbed and
+#: refracted away, so a satellite there is far dimmer than the geometric penumbra says; the
+#: height is a scene key (``shadow_atmosphere_km``) for those who want that margin.
+SHADOW_ATMOSPHERE_KM = 0.0
+
+
+def illumination(r_sat_km, r_sun_km, earth_radius_km=None, atmosphere_km=SHADOW_ATMOSPHERE_KM):
     """Fraction of the Sun's disc visible from the satellite (conical umbra/penumbra).
 
-    Both positions geocentric in one frame, km, shape (..., 3). The Earth is a sphere of radius
-    ``earth_radius_km`` with no atmosphere; the discs are flat circles of angular radii
-    ``asin(R_sun / d_sun)`` and ``asin(R / |r|)`` (Montenbruck & Gill 2000, 3.4.2).
+    Both positions geocentric in an Earth-fixed frame (z along the rotation axis), km, shape
+    (..., 3). The Earth is the WGS84 ellipsoid grown by ``atmosphere_km`` (the height below
+    which the grazing atmosphere is taken to block the Sun): scaling z by a/b makes it a
+    sphere of radius a, and lines, hence the shadow's geometry, stay lines. ``earth_radius_km``
+    instead takes a sphere of that radius (no scaling). The discs are flat circles of angular
+    radii ``asin(R_sun / d_sun)`` and ``asin(R / |r|)`` (Montenbruck & Gill 2000, 3.4.2).
 
     Returns
     -------
@@ -721,7 +733,12 @@ def illumination(r_sat_km, r_sun_km, earth_radius_km=R_EARTH_KM):
         ``"sunlit"``, ``"penumbra"`` or ``"umbra"``.
     """
     r_sat = np.asarray(r_sat_km, dtype=float)
-    to_sun = np.asarray(r_sun_km, dtype=float) - r_sat
+    r_sun = np.asarray(r_sun_km, dtype=float)
+    if earth_radius_km is None:
+        squash = np.array([1.0, 1.0, (WGS84_A_KM + atmosphere_km) / (WGS84_B_KM + atmosphere_km)])
+        r_sat, r_sun = r_sat * squash, r_sun * squash
+        earth_radius_km = WGS84_A_KM + atmosphere_km
+    to_sun = r_sun - r_sat
     d_sun = np.linalg.norm(to_sun, axis=-1)
     d_sat = np.linalg.norm(r_sat, axis=-1)
     a = np.arcsin(R_SUN_KM / d_sun)
@@ -742,14 +759,15 @@ def illumination(r_sat_km, r_sun_km, earth_radius_km=R_EARTH_KM):
     return fraction, state
 
 
-def sunlight(orbit, times):
+def sunlight(orbit, times, atmosphere_km=SHADOW_ATMOSPHERE_KM):
     """Visible fraction of the Sun's disc and shadow state of ``orbit`` at ``times``.
 
     See :func:`illumination`; the Sun from astropy's ``get_sun``, both in ITRS.
     """
     times = Time(times)
     r_teme, _ = propagate_teme([orbit], times)
-    return illumination(teme_to_itrs(r_teme[0], times), sun_itrs(times))
+    return illumination(teme_to_itrs(r_teme[0], times), sun_itrs(times),
+                        atmosphere_km=atmosphere_km)
 
 
 # --- the pass ------------------------------------------------------------------------------------
@@ -870,7 +888,8 @@ def _segment_distances(x, y):
 
 
 def compute_pass(orbit, exposure, pointing, site=RUBIN, step_s=1.0, t_s=None,
-                 field_radius_deg=FIELD_RADIUS_DEG, frame=None, check_epoch=True):
+                 field_radius_deg=FIELD_RADIUS_DEG, frame=None, check_epoch=True,
+                 atmosphere_km=SHADOW_ATMOSPHERE_KM):
     """The satellite through one exposure, sampled at least every ``step_s`` and at the middle.
 
     Parameters
@@ -889,6 +908,8 @@ def compute_pass(orbit, exposure, pointing, site=RUBIN, step_s=1.0, t_s=None,
         The tracked field at the sample times, when already built (shared across satellites).
     check_epoch : bool
         Apply :meth:`Orbit.check_epoch` (warn past 14 days, refuse past 60).
+    atmosphere_km : float
+        Height of the grazing atmosphere that blocks sunlight (:func:`illumination`).
 
     Returns
     -------
@@ -942,7 +963,7 @@ def compute_pass(orbit, exposure, pointing, site=RUBIN, step_s=1.0, t_s=None,
     v_perp = v_rel - _dot(v_rel, s)[:, None] * s
     ang_speed = np.linalg.norm(v_perp, axis=-1) / rng
 
-    frac, state = illumination(r_itrs, frame.sun_itrs)
+    frac, state = illumination(r_itrs, frame.sun_itrs, atmosphere_km=atmosphere_km)
 
     above = app_alt > 0.0
     ok = front & above

@@ -11,6 +11,7 @@ from inject.camera.wcs import Pointing
 from inject.errors import InjectError, OrbitWarning, SceneError
 from inject.instrument import LSST
 from inject.orbits.passes import (
+    SHADOW_ATMOSPHERE_KM,
     TRACK_STEP_S,
     Exposure,
     compute_pass,
@@ -18,7 +19,7 @@ from inject.orbits.passes import (
     site_from_spec,
     track_runs,
 )
-from inject.schema import check_keys, number
+from inject.schema import check_keys, number, ranged
 from inject.trajectory import FocalTrack
 from inject.validate import check_pointing, parse_time
 
@@ -60,7 +61,10 @@ def orbit_pass(where, spec, raw, exptime, pointing):
         time = parse_time(raw["time"], "time")
         orbit = orbit_from_spec(spec, time, where)
         site = site_from_spec(raw.get("site"))
-        return compute_pass(orbit, Exposure(time, exptime), pointing, site, step_s=TRACK_STEP_S)
+        atmosphere = ranged("shadow_atmosphere_km", "shadow_atmosphere_km",
+                            raw.get("shadow_atmosphere_km", SHADOW_ATMOSPHERE_KM))
+        return compute_pass(orbit, Exposure(time, exptime), pointing, site, step_s=TRACK_STEP_S,
+                            atmosphere_km=atmosphere)
     except SceneError:
         raise
     except InjectError as err:
