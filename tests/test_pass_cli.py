@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from astropy import units as u
 from astropy.coordinates import ICRS, AltAz, SkyCoord
 
@@ -484,16 +485,15 @@ def _pass_args(orbit, exposure, pointing, tmp_path):
 def test_pass_lists_only_the_sunlit_ccds_as_focalplane_renders(capsys, tmp_path):
     """`inject pass`'s detectors are the CCDs the focal-plane scene's (sunlit) track crosses;
     those crossed only in the umbra are listed apart, with no streak."""
-    from inject import parse_focal_scene
+    from inject import make_plan, parse_focal_scene
     orbit, exposure, pointing = _terminator_pass(aim_s=8.0)  # umbra entry in the field
     report, _ = run_json(capsys, *_pass_args(orbit, exposure, pointing, tmp_path))
     raw = _scene(exptime=exposure.exptime_s, time=exposure.start.isot,
                  pointing={"ra": pointing.ra_deg, "dec": pointing.dec_deg})
     raw["satellites"] = [{**raw["satellites"][0], "orbit": {"tle": list(orbit.tle_lines())}}]
-    track = parse_focal_scene(raw).tracks[0]
-    rendered = set()
-    for part in track.parts():
-        rendered.update(c.name for c in fp.ccds_reached(part.xs, part.ys))
+    raw["satellites"][0] = {k: raw["satellites"][0][k] for k in ("orbit",)} | {
+        "shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0}
+    rendered = {c.name for c in make_plan(parse_focal_scene(raw)).streak_ccds()}
     assert rendered and set(report["detectors"]) == rendered
     assert report["detectors_in_shadow"]  # the umbra part crosses CCDs too
     assert not rendered & set(report["detectors_in_shadow"])
@@ -555,3 +555,23 @@ def test_every_sunlit_part_is_rendered(monkeypatch):
             dx, dy = x1 - x0, y1 - y0
             t = np.clip(((gx - x0) * dx + (gy - y0) * dy) / (dx * dx + dy * dy), 0, 1)
             assert np.hypot(x0 + t * dx - gx, y0 + t * dy - gy).min() > 0.5
+
+
+def test_pass_and_focalplane_plan_agree_on_the_ccds(cli, tmp_path):
+    """The probe's case: the example pass at rotation 45, where the pass listed 15 CCDs and
+    the focal-plane plan rendered 19. Both now come from the plan (for the default
+    satellite, whose model the scene below shares)."""
+    tle = tmp_path / "sat.tle"
+    scene = yaml.safe_load((ROOT / "sample_fields" / "pass_example.yaml").read_text())
+    tle.write_text("\n".join(scene["satellites"][0]["orbit"]["tle"]) + "\n")
+    status, out, err = cli("pass", "--tle", tle, "--time", "2026-06-15T23:29:45",
+                           "--exptime", "30", "--ra", "151.95", "--dec", "-25.73",
+                           "--rotation", "45", "--json")
+    assert status == 0, err
+    listed = json.loads(out)["detectors"]
+    status, out, err = cli("focalplane", ROOT / "sample_fields" / "pass_example.yaml", "--plan",
+                           "--json", "pointing.rotation=45", "seeing=0.67", "zenith=70",
+                           "stars=true")
+    assert status == 0, err
+    planned = [d["name"] for d in json.loads(out)["detectors"]]
+    assert listed == planned and len(planned) > 15

@@ -3,6 +3,7 @@ and the CCDs its apparent track crosses."""
 import json
 import math
 import sys
+import warnings
 
 import numpy as np
 
@@ -64,10 +65,10 @@ def parse_orbit_option(text, time):
         if key in values:
             raise InputError("--orbit", text, f"{key} given twice")
         values[key] = value.strip()
-    return orbit_from_spec(values, time, "--orbit")
+    return orbit_from_spec(values, time, "--orbit"), values
 
 
-def pass_report(orbit, exposure, pointing, site, atmosphere_km=0.0):
+def pass_report(orbit, exposure, pointing, site, atmosphere_km=0.0, spec=None):
     """The ``inject pass`` result.
 
     Returns
@@ -96,9 +97,12 @@ def pass_report(orbit, exposure, pointing, site, atmosphere_km=0.0):
             reached.update(fp.ccds_reached(xd[run], yd[run]))
         return reached
 
-    # Only sunlit parts leave a streak (as inject focalplane renders them); CCDs crossed only
-    # in Earth's shadow are listed apart.
+    # Only sunlit parts leave a streak; the CCDs listed are those inject focalplane renders
+    # for this pass (its plan: where the footprint of the default satellite's sunlit streak
+    # reaches), CCDs crossed only in Earth's shadow apart.
     lit = crossed(track_runs(dense, lit_only=True)[2])
+    if spec is not None and lit:
+        lit = set(_planned_ccds(spec, exposure, pointing, site, atmosphere_km))
     detectors = [c.name for c in sorted(lit, key=lambda c: c.id)]
     dark = [c.name for c in sorted(crossed(runs) - lit, key=lambda c: c.id)]
     in_field = bool(detectors or dark)
@@ -120,13 +124,34 @@ def pass_report(orbit, exposure, pointing, site, atmosphere_km=0.0):
     return report, p, (dense, xd, yd, runs)
 
 
+def _planned_ccds(spec, exposure, pointing, site, atmosphere_km):
+    """The CCDs :func:`inject.exposure.plan.make_plan` renders for this pass: a focal-plane
+    scene of the default satellite (the paper's box, mag 5 at 550 km) on this orbit."""
+    from inject.config import DEFAULT_SCENE
+    from inject.exposure.plan import make_plan
+    from inject.exposure.scene import parse_focal_scene
+
+    sat = {k: v for k, v in DEFAULT_SCENE["satellites"][0].items()
+           if k in ("shape", "mag", "ref_range")}
+    raw = {"time": exposure.start.utc.isot, "exptime": exposure.exptime_s,
+           "pointing": pointing.as_mapping(), "shadow_atmosphere_km": atmosphere_km,
+           "site": {"lat": site.lat_deg, "lon": site.lon_deg, "height": site.height_m},
+           "satellites": [{**sat, "orbit": spec}]}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the pass above has said what there is to say
+        return make_plan(parse_focal_scene(raw)).streak_ccds()
+
+
 def run_pass(args):
     from inject.camera.wcs import Pointing
     from inject.orbits.passes import Exposure, orbit_from_spec, site_from_spec
 
     time = parse_time(args.time, "--time")
-    orbit = (orbit_from_spec({"tle": args.tle}, time, "--tle") if args.tle is not None
-             else parse_orbit_option(args.orbit, time))
+    if args.tle is not None:
+        spec = {"tle": args.tle}
+        orbit = orbit_from_spec(spec, time, "--tle")
+    else:
+        orbit, spec = parse_orbit_option(args.orbit, time)
     site = site_from_spec(args.site, "--site")
     exposure = Exposure(time, RANGES["exptime"].check(args.exptime, "--exptime"))
     pointing = Pointing(*check_pointing({"ra": args.ra, "dec": args.dec,
@@ -140,7 +165,7 @@ def run_pass(args):
         check_writable(args.plot, args.overwrite)
     atmosphere = RANGES["shadow_atmosphere_km"].check(args.shadow_atmosphere,
                                                       "--shadow-atmosphere")
-    report, p, track = pass_report(orbit, exposure, pointing, site, atmosphere)
+    report, p, track = pass_report(orbit, exposure, pointing, site, atmosphere, spec)
     if args.plot:
         write_plot(args.plot, report, p, track, args.overwrite, plot_format)
     if args.json:
@@ -209,10 +234,13 @@ def write_plot(path, report, p, track, overwrite=False, file_format="png"):
     lit = dense.sun_fraction > 0
     for run in runs:
         xs, ys = xd[run[0]:run[-1] + 1], yd[run[0]:run[-1] + 1]
-        ax.plot(xs, ys, color="#2b6cb0", lw=1.2)
-        dark = ~lit[run[0]:run[-1] + 1]
-        if dark.any():
-            ax.plot(np.where(dark, xs, np.nan), np.where(dark, ys, np.nan), color="#718096",
+        sun = lit[run[0]:run[-1] + 1]
+        # Solid where sunlit, dotted in Earth's shadow (each sample joins its neighbour on
+        # the side of its own light, so the two lines meet at the shadow's edge).
+        edge = sun | np.r_[sun[1:], False]
+        ax.plot(np.where(edge, xs, np.nan), np.where(edge, ys, np.nan), color="#2b6cb0", lw=1.2)
+        if (~sun).any():
+            ax.plot(np.where(~sun, xs, np.nan), np.where(~sun, ys, np.nan), color="#718096",
                     lw=1.2, ls=":")
     x, y = p.focal_mm()
     ax.plot(x, y, "o", ms=2.5, color="#2b6cb0")
