@@ -90,8 +90,13 @@ def deferred():
     """Hold stop signals until the block ends, then raise the first that arrived.
 
     Nestable; only the outermost block raises, even if the block itself failed (the stop
-    takes precedence). Outside :func:`handling` it changes nothing.
+    takes precedence). Outside :func:`handling`, and outside the main thread (where Python
+    delivers no signal: a worker thread's block must not hold, or raise, the main thread's
+    stop), it changes nothing.
     """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
     _state.depth += 1
     try:
         yield

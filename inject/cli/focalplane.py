@@ -1,4 +1,5 @@
 """``inject focalplane``: a focal-plane scene rendered CCD by CCD."""
+import gc
 import json
 import os
 import sys
@@ -150,19 +151,41 @@ def write_satellites(outdir, records):
     return path
 
 
+def _run_on_pool(plan, ccds, args):
+    """The run on a process pool. A stop (or an error) does not wait for the CCDs under way:
+    the runner has stopped the workers, and the fork server is ended too."""
+    from inject.exposure.runner import process_pool, run, stop_fork_server
+
+    pool = None
+    try:
+        pool = process_pool(args.workers)
+        result = run(plan, args.output, pool, ccds, overwrite=args.overwrite,
+                     retries=args.retries)
+    except BaseException as err:
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+        if isinstance(err, KeyboardInterrupt):  # a stop signal too (inject.signals.Stopped)
+            stop_fork_server()
+            # The interpreter's last collection walks every object of the libraries and the
+            # scene (0.5-1 s); the process is about to exit: leave them to it.
+            gc.freeze()
+        raise
+    pool.shutdown()
+    return result
+
+
 def _render(plan, ccds, args, records):
-    from inject.exposure.runner import DASK_MEMORY_LIMIT, dask_executor, process_pool, run
+    from inject.exposure.runner import DASK_MEMORY_LIMIT, dask_executor, run
 
     if args.scheduler:
-        executor = dask_executor(args.scheduler, args.workers,
-                                 args.memory_limit or DASK_MEMORY_LIMIT, args.retries)
+        with dask_executor(args.scheduler, args.workers,
+                           args.memory_limit or DASK_MEMORY_LIMIT, args.retries) as executor:
+            result = run(plan, args.output, executor, ccds, overwrite=args.overwrite,
+                         retries=args.retries)
     else:
         if args.memory_limit:
             raise InputError("--memory-limit", args.memory_limit, "only with --scheduler")
-        executor = process_pool(args.workers)  # shut down when the block ends
-    with executor as ex:
-        result = run(plan, args.output, ex, ccds, overwrite=args.overwrite,
-                     retries=args.retries)
+        result = _run_on_pool(plan, ccds, args)
     print(f"{args.output}: {len(result.rendered)} CCDs rendered, {len(result.skipped)} "
           f"already done, {len(result.failed)} failed", file=sys.stderr)
     write_satellites(args.output, records)

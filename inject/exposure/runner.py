@@ -9,11 +9,13 @@ change them.
 
 ``manifest.csv`` in the output directory has one row per CCD (``detector, id, vendor, file,
 sha256, streaks, seconds, status``, plus the scene's digest and the software version), rewritten
-atomically under a lock after every CCD, so a run killed partway (or several ``--job`` slices
-sharing the directory) leaves a manifest that says what is done. A rerun skips the CCDs whose
-file matches its row, redoes missing or corrupt ones, removes the temporary files a killed
-worker left (:func:`inject.io.atomic.remove_stale_temporaries`), and refuses to replace files of
-another scene (or of no recorded run) without ``overwrite``.
+atomically under a lock after every CCD; each CCD's file is moved into place together with its
+row (:func:`commit`), so a run stopped or killed partway (or several ``--job`` slices sharing
+the directory) leaves a manifest that says what is done. A stop signal cancels the CCDs not
+started and stops a process pool's workers at once (:func:`stop_workers`). A rerun skips the
+CCDs whose file matches its row, redoes missing or corrupt ones, removes the temporary files a
+killed worker left (:func:`inject.io.atomic.remove_stale_temporaries`), and refuses to replace
+files of another scene (or of no recorded run) without ``overwrite``.
 
 A CCD that fails does not stop the others; its row says ``failed`` with the error in one line.
 Failures on the input (an :class:`~inject.errors.InjectError` that is not a condition of the
@@ -33,6 +35,7 @@ import io
 import multiprocessing
 import os
 import resource
+import signal
 import sys
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -105,13 +108,15 @@ def render_ccd(task):
     """Simulate one CCD and write ``OUTDIR/<detector>.fits``; return its manifest row.
 
     In a worker process threads are limited first (a thread pool in the caller's process is
-    left alone). The file is replaced if present (the runner decided beforehand that it may
-    be).
+    left alone). The file is written beside its name, then moved into place and its row
+    recorded together, under the manifest's lock (:func:`commit`; a file present is replaced:
+    the runner decided beforehand that it may be).
     """
     if multiprocessing.parent_process() is not None:
         limit_threads()
     from inject.camera import layout as fp
     from inject.exposure.ccd import simulate_ccd
+    from inject.io.atomic import temporary_prefix
     from inject.io.fits import write_exposure
 
     start = time.perf_counter()
@@ -119,25 +124,47 @@ def render_ccd(task):
     scene, result, streaks, wcs = simulate_ccd(task.fscene, ccd, task.streaks)
     simulated = time.perf_counter()
     path = os.path.join(task.outdir, f"{ccd.name}.fits")
+    # A temporary name (removed by the clean-up of temporary files if this process dies).
+    part = os.path.join(task.outdir, f"{temporary_prefix()}part-{ccd.name}.fits")
     cards = {"DETNAME": (ccd.name, "detector name"),
              "DETECTOR": (ccd.id, "detector id (obs_lsst, 0-188)"),
              "VENDOR": (ccd.vendor.upper(), "sensor vendor"),
              "FPSCENE": (task.fscene.digest[:16], "focal-plane scene digest (sha256)")}
-    # The digest of the bytes as they are written: no second read of the file.
-    digest = write_exposure(path, scene, result, scene.detector.gain,
-                            wcs_header=wcs.to_header(relax=True), overwrite=True,
-                            primary_cards=cards)
-    if not task.keep:
-        os.remove(path)
-    end = time.perf_counter()
-    return {"detector": ccd.name, "id": ccd.id, "vendor": ccd.vendor,
-            "file": os.path.basename(path), "sha256": digest, "streaks": len(streaks),
-            "seconds": round(end - start, 3), "status": "done",
-            "scene_sha256": task.fscene.digest, "inject_version": __version__, "error": "",
-            # Not in the manifest: for benchmarks.
-            "simulate_s": simulated - start, "write_s": end - simulated,
-            "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-            "pid": os.getpid()}
+    try:
+        # The digest of the bytes as they are written: no second read of the file.
+        digest = write_exposure(part, scene, result, scene.detector.gain,
+                                wcs_header=wcs.to_header(relax=True), overwrite=True,
+                                primary_cards=cards)
+        end = time.perf_counter()
+        row = {"detector": ccd.name, "id": ccd.id, "vendor": ccd.vendor,
+               "file": os.path.basename(path), "sha256": digest, "streaks": len(streaks),
+               "seconds": round(end - start, 3), "status": "done",
+               "scene_sha256": task.fscene.digest, "inject_version": __version__, "error": ""}
+        commit(task.outdir, row, part if task.keep else None)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(part)  # not moved: a failure, a stop, or keep=False
+    return dict(row, **{  # Not in the manifest: for benchmarks.
+        "simulate_s": simulated - start, "write_s": end - simulated,
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "pid": os.getpid()})
+
+
+def commit(outdir, row, part=None):
+    """Move a CCD's finished file ``part`` into place (if given) and record its row, both under
+    the manifest's lock.
+
+    A stop signal arriving meanwhile waits until both are done: the manifest never says less
+    than the files.
+    """
+    from inject.signals import deferred
+
+    with deferred(), _manifest_lock(outdir):
+        rows = read_manifest(outdir)
+        if part is not None:
+            os.replace(part, os.path.join(outdir, row["file"]))
+        rows[row["detector"]] = {k: str(row.get(k, "")) for k in FIELDS}
+        _write_manifest(outdir, rows)
 
 
 def deterministic(err):
@@ -160,11 +187,41 @@ def error_text(err):
     return " ".join(text.split())[:MAX_ERROR]
 
 
+#: Set in the process pool's workers (:func:`_init_worker`).
+_POOL_WORKER = False
+
+
+def _init_worker():
+    """A process pool worker's start: one thread per library; the stop signals back to their
+    default action (an idle worker ends at once, without a traceback), except those ignored
+    (``nohup``). While a task runs, :func:`_attempt` makes them clean stops instead."""
+    global _POOL_WORKER
+    from inject.signals import STOP_SIGNALS
+
+    limit_threads()
+    for signum in STOP_SIGNALS:
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            signal.signal(signum, signal.SIG_DFL)
+    _POOL_WORKER = True
+
+
 def _attempt(render, task):
     """``render(task)`` in the worker, where a failure on the input becomes a ``failed`` row
-    (see :func:`deterministic`): returned, not raised, so that no one retries it."""
+    (see :func:`deterministic`): returned, not raised, so that no one retries it.
+
+    In a process pool's worker a stop signal (the runner stopping the pool, or Ctrl-C) ends
+    the task as it ends a command: the temporary files are removed, a file being committed is
+    committed with its row (:func:`commit`), and the worker process exits.
+    """
+    from inject.signals import Stopped, handling
+
     try:
-        return render(task)
+        with handling() if _POOL_WORKER else contextlib.nullcontext():
+            return render(task)
+    except Stopped as stop:
+        if _POOL_WORKER:
+            os._exit(stop.exit_status)  # the pool is being stopped: no result to send
+        raise
     except InjectError as err:
         if not deterministic(err):
             raise
@@ -174,15 +231,40 @@ def _attempt(render, task):
 # -------------------------------------------------------------------------------------------
 # The manifest
 
+#: The manifest's lock file; it exists only while a process holds the lock.
+LOCK = ".manifest.lock"
+
+
 @contextlib.contextmanager
 def _manifest_lock(outdir):
-    """An exclusive lock on the directory's manifest (``--job`` slices share it)."""
-    with open(os.path.join(outdir, ".manifest.lock"), "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+    """An exclusive lock on the directory's manifest (``--job`` slices and the workers share
+    it).
+
+    The lock file is removed by its holder before the lock is released, so none is left
+    behind. A process that locked a file just removed (it opened the name before the removal)
+    sees that the name no longer leads to its file, and tries again on a new one.
+    """
+    from inject.signals import deferred
+
+    path = os.path.join(outdir, LOCK)
+    fd = None
+    try:
+        while True:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            with contextlib.suppress(FileNotFoundError):
+                mine, named = os.fstat(fd), os.stat(path)
+                if (mine.st_dev, mine.st_ino) == (named.st_dev, named.st_ino):
+                    break
+            os.close(fd)
+            fd = None
+        yield
+    finally:
+        if fd is not None:
+            with deferred():
+                with contextlib.suppress(FileNotFoundError):
+                    os.remove(path)  # while still held: no one else can hold this file
+                os.close(fd)
 
 
 def read_manifest(outdir):
@@ -335,6 +417,66 @@ class RunResult:
                         [(row["detector"], row["error"]) for row in rows])
 
 
+def cancel(executor, futures):
+    """Cancel the futures not yet started. A process pool cancels its own (in its manager
+    thread, which may otherwise set a cancelled future's result and fail) and takes no more
+    work."""
+    if isinstance(executor, ProcessPoolExecutor):
+        executor.shutdown(wait=False, cancel_futures=True)
+    else:
+        for future in futures:
+            future.cancel()
+
+
+#: Seconds the stopped workers of a process pool have to end on their own (they stop at
+#: their next Python step, in milliseconds) before they are killed.
+STOP_GRACE_S = 0.5
+
+
+def stop_workers(executor, outdir=None, grace=STOP_GRACE_S):
+    """Stop a process pool's worker processes now, whatever they are doing.
+
+    Each worker gets SIGTERM: its task ends as a command's does (its temporary files removed;
+    a CCD being committed is committed with its row) and the process exits. A worker still
+    alive after ``grace`` seconds is killed, and its temporary files in ``outdir`` removed.
+    Other executors (threads, Dask) have no processes of their own to stop: their tasks
+    already under way finish (and commit) by themselves.
+
+    Returns
+    -------
+    int
+        The worker processes stopped.
+    """
+    processes = getattr(executor, "_processes", None)  # ProcessPoolExecutor's, by pid
+    if not processes:
+        return 0
+    for _ in range(3):  # the pool's own thread may change the mapping meanwhile
+        try:
+            workers = list(processes.values())
+            break
+        except RuntimeError:
+            continue
+    else:
+        return 0
+    for worker in workers:
+        with contextlib.suppress(Exception):
+            worker.terminate()
+    deadline = time.monotonic() + grace
+    for worker in workers:
+        with contextlib.suppress(Exception):
+            worker.join(max(0.0, deadline - time.monotonic()))
+    killed = [w for w in workers if w.is_alive()]
+    for worker in killed:
+        with contextlib.suppress(Exception):
+            worker.kill()
+            worker.join(5.0)
+    if killed and outdir is not None:
+        from inject.io.atomic import remove_temporaries_of
+
+        remove_temporaries_of(outdir, [w.pid for w in killed])
+    return len(workers)
+
+
 def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=None,
         keep=True):
     """Render CCDs of a focal-plane scene on ``executor``, resumably.
@@ -350,7 +492,8 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
     ccds : sequence of CCD, optional
         Default: the scene's.
     overwrite : bool
-        Replace files of another scene (or of no recorded run).
+        Replace the run of another scene in ``outdir`` (its CCD files and rows, whichever
+        CCDs this run renders) and files of no recorded run.
     retries : int
         Times a failed CCD is resubmitted (on top of the executor's own retries) before it is
         reported as failed; the other CCDs go on regardless. A CCD that fails on its input
@@ -362,6 +505,15 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
     Returns
     -------
     RunResult
+
+    Raises
+    ------
+    OutputError
+        As :func:`triage` says.
+    Stopped, KeyboardInterrupt
+        A stop signal: the queued CCDs are cancelled and a process pool's workers stopped
+        (:func:`stop_workers`) before it is raised; the CCDs committed before are ``done``
+        in the manifest, the others stay ``pending`` with no file of theirs left.
     """
     fscene = plan.fscene
     ccds = fscene.ccds if ccds is None else tuple(ccds)
@@ -375,8 +527,8 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
                   f"that was killed", file=sys.stderr)
         todo, done = triage(fscene, ccds, outdir, overwrite)
         rows = read_manifest(outdir)
-        # Pending rows first: a run killed before a CCD's row is written still marks its
-        # file as this scene's, to be checked and redone.
+        # Pending rows first: a run killed before a CCD's row says done still marks its file
+        # as this scene's, to be checked and redone.
         for c in todo:
             rows[c.name] = {"detector": c.name, "id": c.id, "vendor": c.vendor,
                             "file": f"{c.name}.fits", "status": "pending",
@@ -426,12 +578,14 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
                 if row["status"] == "failed":  # on its input (see _attempt): not retried
                     fail(ccd, row["error"])
                     continue
-                rendered.append(row)
-                update_manifest(outdir, [row])
+                rendered.append(row)  # committed with its row by the task (see commit)
                 progress.update(row)
+    except BaseException:
+        # A stop signal or a bug: nothing more is to start or finish.
+        cancel(executor, pending)
+        stop_workers(executor, outdir)
+        raise
     finally:
-        for future in pending:
-            future.cancel()
         progress.close()
     return RunResult(rendered, skipped, failed)
 
@@ -465,6 +619,18 @@ def start_fork_server():
     return context
 
 
+def stop_fork_server():
+    """End this process's fork server now, if it runs (:func:`start_fork_server` starts a new
+    one when a pool needs it): a command that stops need not wait for it to finish its
+    imports, or for its own exit, which takes seconds."""
+    from multiprocessing import forkserver
+
+    pid = getattr(getattr(forkserver, "_forkserver", None), "_forkserver_pid", None)
+    if pid:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGKILL)  # it holds nothing to save; its children are gone
+
+
 def process_pool(workers=None):
     """The default executor: a process pool of ``workers`` (default: the machine's cores),
     each worker limited to one thread per library.
@@ -475,7 +641,7 @@ def process_pool(workers=None):
     into that library.
     """
     return ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1,
-                               mp_context=start_fork_server(), initializer=limit_threads)
+                               mp_context=start_fork_server(), initializer=_init_worker)
 
 
 #: Memory limit per Dask LocalCluster worker. A full-size CCD (IMAGE, MASK, VARIANCE,

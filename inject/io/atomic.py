@@ -78,7 +78,9 @@ def _temporary(path, keep_open=False):
     the file as a live writer's for :func:`remove_stale_temporaries`.
     """
     directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=PREFIX, suffix=os.path.splitext(path)[1],
+    # The writer's process id in the name: who stops a process tidies up after it (see
+    # remove_temporaries_of).
+    fd, tmp = tempfile.mkstemp(prefix=temporary_prefix(), suffix=os.path.splitext(path)[1],
                                dir=directory)
     try:
         if keep_open:
@@ -96,6 +98,27 @@ def _temporary(path, keep_open=False):
     return (tmp, fd) if keep_open else tmp
 
 
+def temporary_prefix(pid=None):
+    """The prefix of the temporary files of process ``pid`` (default: this one):
+    ``.inject-<pid>-``."""
+    return f"{PREFIX}{os.getpid() if pid is None else pid}-"
+
+
+def remove_temporaries_of(directory, pids):
+    """Remove the temporary files that the processes ``pids`` left in ``directory``, whatever
+    their age: for a caller that has just killed those processes (the lock test of
+    :func:`remove_stale_temporaries` still guards a live writer that reused a pid).
+
+    Returns
+    -------
+    list of str
+        The files removed.
+    """
+    prefixes = tuple(temporary_prefix(pid) for pid in pids)
+    return _remove_unlocked(directory, lambda name, age: name.startswith(prefixes)) \
+        if prefixes else []
+
+
 def remove_stale_temporaries(directory):
     """Remove the temporary files (``.inject-*``) that a killed process left in ``directory``.
 
@@ -110,6 +133,12 @@ def remove_stale_temporaries(directory):
     list of str
         The files removed.
     """
+    return _remove_unlocked(directory, lambda name, age: age >= STALE_AFTER_S)
+
+
+def _remove_unlocked(directory, wanted):
+    """Remove the temporary files of ``directory`` for which ``wanted(name, age_s)`` holds and
+    no process holds the lock."""
     removed = []
     try:
         names = [n for n in os.listdir(directory) if n.startswith(PREFIX)]
@@ -119,7 +148,7 @@ def remove_stale_temporaries(directory):
     for name in names:
         path = os.path.join(directory, name)
         try:
-            if now - os.lstat(path).st_mtime < STALE_AFTER_S:
+            if not wanted(name, now - os.lstat(path).st_mtime):
                 continue
             fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
         except OSError:

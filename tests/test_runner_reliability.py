@@ -1,0 +1,202 @@
+"""The focal-plane runner under stress: a stop mid-run, and the manifest's lock. Small
+cut-outs keep it quick."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+
+from inject import make_plan, parse_focal_scene
+from inject.camera import layout as fp
+from inject.exposure import runner
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+
+SAT = {"height": 550, "shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0}
+RAW = {"seed": 11, "band": "g", "zenith": 70, "exptime": 30,
+       "pointing": {"ra": 50.0, "dec": -30.0, "rotation": 10.0},
+       "stars": {"galactic_b": 30, "mag_limit": 21}, "cosmic_rays": 0.2,
+       "cutout": {"nx": 64, "ny": 64},
+       "detectors": ["R22_S11", "R22_S12", "R01_S00", "R43_S22"],
+       "satellites": [dict(SAT, track={"x0_mm": -21.0, "y0_mm": -19.7, "angle": 0.4})]}
+X = parse_focal_scene(RAW)
+
+
+def _sha(path):
+    return runner.sha256_file(path)
+
+
+def _files(outdir):
+    return sorted(n for n in os.listdir(outdir) if n.endswith(".fits") and not n.startswith("."))
+
+
+def _leftovers(outdir):
+    """Temporary files and the lock file: none may outlive a run."""
+    return sorted(n for n in os.listdir(outdir) if n.startswith((".inject-", ".manifest")))
+
+
+def _consistent(outdir, digest):
+    """Every CCD file has a done row of the scene with the file's SHA-256, and every done row
+    its file: the manifest says what the directory holds."""
+    rows = runner.read_manifest(outdir)
+    for name in _files(outdir):
+        row = rows.get(name[:-5])
+        assert row is not None, f"{name}: no row"
+        assert (row["status"], row["scene_sha256"]) == ("done", digest), (name, row)
+        assert _sha(os.path.join(outdir, name)) == row["sha256"], name
+    for name, row in rows.items():
+        if row["status"] == "done":
+            assert os.path.exists(os.path.join(outdir, f"{name}.fits")), name
+    assert _leftovers(outdir) == []
+    return rows
+
+
+def _scene_file(tmp_path, raw, name="scene.yaml"):
+    path = tmp_path / name
+    path.write_text(json.dumps(raw))
+    return path
+
+
+def _main(*args):
+    from inject.cli.main import main
+
+    return main(["focalplane", *map(str, args)])
+
+
+# -------------------------------------------------------------------------------------------
+# A stop mid-run
+
+STOP_NAMES = ["R01_S00", "R01_S01", "R22_S11", "R22_S12", "R43_S21", "R43_S22"]  # id order
+QUICK, BLOCKED, QUEUED = STOP_NAMES[:2], STOP_NAMES[2:4], STOP_NAMES[4:]
+
+
+def _blocking_render(task):
+    """The first two CCDs render as usual; the next two start (a marker file says so), open
+    their output as any writer does, and wait there; the rest say when they start."""
+    marks = os.path.join(os.path.dirname(task.outdir), "started")
+    with open(os.path.join(marks, task.detector), "w"):
+        pass
+    if task.detector in BLOCKED:
+        from inject.io.atomic import atomic_path
+
+        with atomic_path(os.path.join(task.outdir, f"{task.detector}.fits"), True) as tmp:
+            with open(tmp, "wb") as stream:
+                stream.write(b"half a CCD")
+            for _ in range(300):  # stopped here; at worst (no stop) 15 s, then it goes on
+                time.sleep(0.05)
+    return _REAL_RENDER(task)
+
+
+_REAL_RENDER = runner.render_ccd
+
+#: The command in a process of its own, with _blocking_render in its workers.
+_STOPPED_COMMAND = """
+import sys
+sys.path.insert(0, {here!r})
+import test_runner_reliability as t
+from inject.exposure import runner
+from inject.cli.main import main
+runner.render_ccd = t._blocking_render
+sys.exit(main(["focalplane", {scene!r}, "-o", {out!r}, "--workers", "2", "--no-mosaic"]))
+"""
+
+
+def _running(pgid):
+    """Pids of the live (not zombie) processes of a process group."""
+    pids = []
+    for name in os.listdir("/proc"):
+        if name.isdigit():
+            try:
+                with open(f"/proc/{name}/stat") as stream:
+                    fields = stream.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[2]) == pgid and fields[0] != "Z":
+                pids.append(int(name))
+    return pids
+
+
+def _wait_for(predicate, what, limit=120.0):
+    deadline = time.monotonic() + limit
+    while not predicate():
+        if time.monotonic() > deadline:
+            pytest.fail(f"gave up waiting for {what}")
+        time.sleep(0.02)
+
+
+def test_a_stop_ends_the_ccds_under_way_and_leaves_the_manifest_true(tmp_path):
+    """SIGTERM to the command while two CCDs are done, two under way (a temporary file open)
+    and two queued. Before: the command waited for the two under way, which were written
+    (and the queued ones after them) while their rows stayed pending, and .manifest.lock
+    stayed. Now the workers stop: the two done are done, the rest pending with no file, no
+    temporary or lock file is left, and a rerun renders only the four not done."""
+    raw = dict(RAW, detectors=STOP_NAMES)
+    scene = _scene_file(tmp_path, raw)
+    out = tmp_path / "out"
+    marks = tmp_path / "started"
+    marks.mkdir()
+    code = _STOPPED_COMMAND.format(here=HERE, scene=str(scene), out=str(out))
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        def ready():
+            rows = runner.read_manifest(str(out)) if out.is_dir() else {}
+            done = sorted(n for n, r in rows.items() if r["status"] == "done")
+            return (done == QUICK and all((marks / n).exists() for n in BLOCKED)) \
+                or proc.poll() is not None
+
+        _wait_for(ready, "two CCDs done and two under way")
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGTERM)
+        err = proc.communicate(timeout=120)[1].decode()
+        if os.path.isdir("/proc"):
+            _wait_for(lambda: not _running(proc.pid), "the workers to end", limit=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 128 + signal.SIGTERM
+    assert err.strip().splitlines()[-1] == ("inject focalplane: stopped by SIGTERM; no output "
+                                            "left half-written")
+    assert "Traceback" not in err
+    rows = _consistent(str(out), parse_focal_scene(raw).digest)
+    assert {n: r["status"] for n, r in rows.items()} == {
+        **dict.fromkeys(QUICK, "done"), **dict.fromkeys(BLOCKED + QUEUED, "pending")}
+    assert _files(str(out)) == [f"{n}.fits" for n in QUICK]
+    assert sorted(os.listdir(marks)) == QUICK + BLOCKED  # the queued ones never started
+    expected = {n: r["sha256"] for n, r in rows.items() if r["status"] == "done"}
+    assert _main(scene, "-o", out, "--workers", 1, "--no-mosaic") == 0
+    rows = _consistent(str(out), parse_focal_scene(raw).digest)
+    assert all(r["status"] == "done" for r in rows.values())
+    assert {n: rows[n]["sha256"] for n in QUICK} == expected
+
+
+def test_no_lock_file_is_left_and_the_lock_still_excludes(tmp_path):
+    """Before: .manifest.lock stayed in every output directory."""
+    out = str(tmp_path)
+    with ThreadPoolExecutor(2) as pool:
+        runner.run(make_plan(X), out, pool, ccds=[fp.ccd("R22_S12")])
+    assert _leftovers(out) == []
+    # The lock file is removed by its holder; one process still excludes the other.
+    import threading
+
+    order = []
+
+    def second():
+        with runner._manifest_lock(out):
+            order.append("second")
+
+    with runner._manifest_lock(out):
+        assert os.path.exists(os.path.join(out, ".manifest.lock"))
+        waiter = threading.Thread(target=second)
+        waiter.start()
+        waiter.join(0.2)
+        order.append("first")
+    waiter.join(30)
+    assert order == ["first", "second"]
+    assert _leftovers(out) == []
