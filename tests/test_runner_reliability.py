@@ -1,5 +1,5 @@
-"""The focal-plane runner under stress: a stop mid-run, and the manifest's lock. Small
-cut-outs keep it quick."""
+"""The focal-plane runner under stress: two scenes into one directory, a stop mid-run, and
+the manifest's lock. Small cut-outs keep it quick."""
 import json
 import os
 import signal
@@ -10,7 +10,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
-from inject import make_plan, parse_focal_scene
+from inject import OutputError, make_plan, parse_focal_scene
 from inject.camera import layout as fp
 from inject.exposure import runner
 
@@ -25,6 +25,7 @@ RAW = {"seed": 11, "band": "g", "zenith": 70, "exptime": 30,
        "detectors": ["R22_S11", "R22_S12", "R01_S00", "R43_S22"],
        "satellites": [dict(SAT, track={"x0_mm": -21.0, "y0_mm": -19.7, "angle": 0.4})]}
 X = parse_focal_scene(RAW)
+Y = parse_focal_scene(dict(RAW, seed=12))
 
 
 def _sha(path):
@@ -56,6 +57,75 @@ def _consistent(outdir, digest):
     return rows
 
 
+def _alone(fscene, outdir, ccds=None):
+    """The scene's CCDs rendered alone in a directory of their own: the reference bytes."""
+    with ThreadPoolExecutor(2) as pool:
+        runner.run(make_plan(fscene), str(outdir), pool, ccds=ccds)
+    return {name: row["sha256"] for name, row in runner.read_manifest(str(outdir)).items()}
+
+
+class _Between(ThreadPoolExecutor):
+    """A thread pool that runs ``between()`` once, at its first submission: after the run
+    has checked the directory and claimed its CCDs, before any CCD is rendered or written."""
+
+    def __init__(self, between):
+        super().__init__(2)
+        self.between = between
+
+    def submit(self, *args, **kwargs):
+        if self.between is not None:
+            between, self.between = self.between, None
+            between()
+        return super().submit(*args, **kwargs)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    base = tmp_path_factory.mktemp("reference")
+    return {"X": _alone(X, base / "x"), "Y": _alone(Y, base / "y")}
+
+
+# -------------------------------------------------------------------------------------------
+# Two scenes into one directory at the same time
+
+def test_a_second_scene_started_meanwhile_is_refused_and_the_first_finishes(tmp_path,
+                                                                            reference):
+    """Before: both runs went on (the second saw no file yet), each exited 0, and the
+    directory ended with a mix of the two scenes' files under one manifest."""
+    out = str(tmp_path / "out")
+    caught = []
+
+    def second():
+        with ThreadPoolExecutor(2) as pool, pytest.raises(OutputError) as err:
+            runner.run(make_plan(Y), out, pool)
+        caught.append(str(err.value))
+
+    with _Between(second) as pool:
+        result = runner.run(make_plan(X), out, pool)
+    assert len(caught) == 1 and f"the run of scene {X.digest[:12]}" in caught[0]
+    assert "\n" not in caught[0]
+    assert sorted(r["detector"] for r in result.rendered) == sorted(reference["X"])
+    rows = _consistent(out, X.digest)
+    assert {n: r["sha256"] for n, r in rows.items()} == reference["X"]
+
+
+def test_a_run_overtaken_by_another_scene_stops_and_leaves_its_files(tmp_path, reference):
+    """The check at each commit: a run of another scene with --overwrite took the directory
+    after this run's start. Before: this run wrote its CCDs over the other's and exited 0."""
+    out = str(tmp_path / "out")
+
+    def other():
+        with ThreadPoolExecutor(2) as pool:
+            runner.run(make_plan(Y), out, pool, overwrite=True)
+
+    with _Between(other) as pool, pytest.raises(OutputError) as err:
+        runner.run(make_plan(X), out, pool)
+    assert f"the run of scene {Y.digest[:12]}" in str(err.value)
+    assert "has taken this directory since this run began" in str(err.value)
+    rows = _consistent(out, Y.digest)
+    assert {n: r["sha256"] for n, r in rows.items()} == reference["Y"]
+
+
 def _scene_file(tmp_path, raw, name="scene.yaml"):
     path = tmp_path / name
     path.write_text(json.dumps(raw))
@@ -66,6 +136,29 @@ def _main(*args):
     from inject.cli.main import main
 
     return main(["focalplane", *map(str, args)])
+
+
+def test_the_command_that_loses_exits_2_with_one_line(tmp_path, monkeypatch, capsys,
+                                                      reference):
+    out = tmp_path / "out"
+    first = _scene_file(tmp_path, RAW, "x.yaml")
+    second = _scene_file(tmp_path, dict(RAW, seed=12), "y.yaml")
+    statuses = []
+
+    def second_command():
+        statuses.append(_main(second, "-o", out, "--no-mosaic"))
+        statuses.append(capsys.readouterr().err)
+
+    pools = iter([_Between(second_command), ThreadPoolExecutor(2)])
+    monkeypatch.setattr(runner, "process_pool", lambda workers=None: next(pools))
+    assert _main(first, "-o", out, "--no-mosaic") == 0
+    status, err = statuses
+    assert status == 2
+    assert err.splitlines() == [f"inject focalplane: error: {out}: holds the run of scene "
+                                f"{X.digest[:12]} (4 pending); pass --overwrite to replace "
+                                "that run"]
+    rows = _consistent(str(out), X.digest)
+    assert {n: r["sha256"] for n, r in rows.items()} == reference["X"]
 
 
 # -------------------------------------------------------------------------------------------

@@ -13,9 +13,12 @@ atomically under a lock after every CCD; each CCD's file is moved into place tog
 row (:func:`commit`), so a run stopped or killed partway (or several ``--job`` slices sharing
 the directory) leaves a manifest that says what is done. A stop signal cancels the CCDs not
 started and stops a process pool's workers at once (:func:`stop_workers`). A rerun skips the
-CCDs whose file matches its row, redoes missing or corrupt ones, removes the temporary files a
-killed worker left (:func:`inject.io.atomic.remove_stale_temporaries`), and refuses to replace
-files of another scene (or of no recorded run) without ``overwrite``.
+CCDs whose file matches its row, redoes missing or corrupt ones, and removes the temporary
+files a killed worker left (:func:`inject.io.atomic.remove_stale_temporaries`). A directory
+holds one scene's run: another scene's is replaced only with ``overwrite``, and that is
+checked at the start and again under the lock before each CCD is committed
+(:func:`check_claim`), so that of two runs of different scenes started together the second
+stops.
 
 A CCD that fails does not stop the others; its row says ``failed`` with the error in one line.
 Failures on the input (an :class:`~inject.errors.InjectError` that is not a condition of the
@@ -109,8 +112,10 @@ def render_ccd(task):
 
     In a worker process threads are limited first (a thread pool in the caller's process is
     left alone). The file is written beside its name, then moved into place and its row
-    recorded together, under the manifest's lock (:func:`commit`; a file present is replaced:
-    the runner decided beforehand that it may be).
+    recorded together, under the manifest's lock, once :func:`check_claim` finds no other
+    scene's run in the directory (a file present is replaced: the runner decided beforehand
+    that it may be). If another scene's run has taken the directory meanwhile, nothing is
+    moved and the row says ``claimed`` (the runner stops the run).
     """
     if multiprocessing.parent_process() is not None:
         limit_threads()
@@ -140,10 +145,12 @@ def render_ccd(task):
                "file": os.path.basename(path), "sha256": digest, "streaks": len(streaks),
                "seconds": round(end - start, 3), "status": "done",
                "scene_sha256": task.fscene.digest, "inject_version": __version__, "error": ""}
-        commit(task.outdir, row, part if task.keep else None)
+        claimed = commit(task.outdir, row, part if task.keep else None)
     finally:
         with contextlib.suppress(FileNotFoundError):
-            os.remove(part)  # not moved: a failure, a stop, or keep=False
+            os.remove(part)  # not moved: a failure, a stop, another scene's run, or keep=False
+    if claimed is not None:
+        return {"detector": ccd.name, "status": "claimed", "error": claimed}
     return dict(row, **{  # Not in the manifest: for benchmarks.
         "simulate_s": simulated - start, "write_s": end - simulated,
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -152,19 +159,29 @@ def render_ccd(task):
 
 def commit(outdir, row, part=None):
     """Move a CCD's finished file ``part`` into place (if given) and record its row, both under
-    the manifest's lock.
+    the manifest's lock, unless another scene's run holds the directory (:func:`check_claim`).
 
     A stop signal arriving meanwhile waits until both are done: the manifest never says less
     than the files.
+
+    Returns
+    -------
+    str or None
+        None once committed; else why not (another scene's run), and nothing was changed.
     """
     from inject.signals import deferred
 
     with deferred(), _manifest_lock(outdir):
         rows = read_manifest(outdir)
+        try:
+            check_claim(outdir, rows, row["scene_sha256"])
+        except OutputError as err:
+            return str(err)
         if part is not None:
             os.replace(part, os.path.join(outdir, row["file"]))
         rows[row["detector"]] = {k: str(row.get(k, "")) for k in FIELDS}
         _write_manifest(outdir, rows)
+    return None
 
 
 def deterministic(err):
@@ -289,22 +306,59 @@ def _write_manifest(outdir, rows):
             stream.write(text.getvalue())
 
 
-def update_manifest(outdir, new_rows):
-    """Merge rows into the manifest, under the lock, atomically."""
+def update_manifest(outdir, new_rows, digest=None):
+    """Merge rows into the manifest, under the lock, atomically. With the scene's ``digest``,
+    first check that no other scene's run has taken the directory (:func:`check_claim`)."""
     with _manifest_lock(outdir):
         rows = read_manifest(outdir)
+        if digest is not None:
+            check_claim(outdir, rows, digest)
         for row in new_rows:
             rows[row["detector"]] = {k: str(row.get(k, "")) for k in FIELDS}
         _write_manifest(outdir, rows)
 
 
-def triage(fscene, ccds, outdir, overwrite=False):
-    """Split CCDs into those to render and those already done.
+def _other_scenes(rows, digest):
+    """``{digest: [row, ...]}`` of the manifest rows of scenes other than ``digest``."""
+    out = {}
+    for row in rows.values():
+        if row.get("scene_sha256") != digest:
+            out.setdefault(row.get("scene_sha256") or "?", []).append(row)
+    return out
 
-    A file matching its manifest row (same scene, same SHA-256) is done. A missing file, or
-    one of this scene whose bytes do not match (corrupt, or written by a run killed before it
-    reached the manifest), is redone. A file of another scene, or with no manifest at all, is
-    replaced only with ``overwrite``.
+
+def _describe(other, rows):
+    counts = {}
+    for row in rows:
+        counts[row.get("status") or "?"] = counts.get(row.get("status") or "?", 0) + 1
+    states = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
+    return f"the run of scene {other[:12]} ({states})"
+
+
+def check_claim(outdir, rows, digest):
+    """Raise :class:`~inject.errors.OutputError` if the manifest ``rows`` hold another scene's
+    rows: another scene's run took the directory after this one began (the runner removed
+    or refused any other scene's rows at its start). Call it under the manifest's lock."""
+    others = _other_scenes(rows, digest)
+    if others:
+        other, theirs = next(iter(others.items()))
+        raise OutputError(f"{outdir}: {_describe(other, theirs)} has taken this directory "
+                          f"since this run began; this run stopped and left that run's files "
+                          f"as they are")
+
+
+def triage(fscene, ccds, outdir, overwrite=False):
+    """Split CCDs into those to render and those already done; with ``overwrite``, clear the
+    directory of another scene's run.
+
+    A directory holds one scene's run. Rows of another scene (done, failed or pending: a run
+    that is going, or was stopped) are refused without ``overwrite``; with it, they are
+    removed (this run replaces that one). Then, for each CCD: a file matching its manifest row (this
+    scene, ``done``, same SHA-256) is done; a missing file, or one whose row is this scene's
+    but not done or whose bytes do not match (corrupt, or a run killed before the row said
+    done), is redone; a file in no manifest row is redone if the directory holds rows of
+    this scene (written by its run, killed before its manifest row), else replaced only with
+    ``overwrite``. Call it under the manifest's lock.
 
     Returns
     -------
@@ -313,9 +367,25 @@ def triage(fscene, ccds, outdir, overwrite=False):
     Raises
     ------
     OutputError
-        A file would be replaced without ``overwrite``.
+        Another scene's run, or a file in no manifest, would be replaced without
+        ``overwrite``.
     """
     rows = read_manifest(outdir)
+    others = _other_scenes(rows, fscene.digest)
+    if others and not overwrite:
+        other, theirs = next(iter(others.items()))
+        names = {r["detector"] for r in theirs}
+        hit = [c.name for c in ccds if c.name in names
+               and os.path.exists(os.path.join(outdir, f"{c.name}.fits"))]
+        where = f"{os.path.join(outdir, hit[0] + '.fits')}: exists, of" if hit else \
+            f"{outdir}: holds"
+        raise OutputError(f"{where} {_describe(other, theirs)}; pass --overwrite to replace "
+                          "that run")
+    if others:
+        for theirs in others.values():
+            for row in theirs:
+                rows.pop(row["detector"], None)
+        _write_manifest(outdir, rows)
     ours = any(r.get("scene_sha256") == fscene.digest for r in rows.values())
     todo, done = [], []
     for ccd in ccds:
@@ -323,20 +393,18 @@ def triage(fscene, ccds, outdir, overwrite=False):
         row = rows.get(ccd.name)
         if not os.path.exists(path):
             todo.append(ccd)
-            continue
-        if row is not None and row.get("scene_sha256") == fscene.digest:
+        elif row is not None:  # this scene's
             if row.get("status") == "done" and row.get("sha256") == sha256_file(path):
                 done.append(ccd)
             else:
-                todo.append(ccd)  # this scene's file, broken: redo it
-            continue
-        if row is None and ours:
+                todo.append(ccd)  # this scene's file, broken or not recorded done: redo it
+        elif ours:
             todo.append(ccd)  # written by this scene's run, killed before its manifest row
-            continue
-        if not overwrite:
-            why = "another scene's output" if row is not None else "not in any manifest"
-            raise OutputError(f"{path}: exists ({why}); pass --overwrite to replace it")
-        todo.append(ccd)
+        elif overwrite:
+            todo.append(ccd)
+        else:
+            raise OutputError(f"{path}: exists (not in any manifest); pass --overwrite to "
+                              "replace it")
     return todo, done
 
 
@@ -509,7 +577,8 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
     Raises
     ------
     OutputError
-        As :func:`triage` says.
+        At the start, as :func:`triage` says; later, another scene's run took the directory
+        (:func:`check_claim`, checked under the lock at each CCD's commit).
     Stopped, KeyboardInterrupt
         A stop signal: the queued CCDs are cancelled and a process pool's workers stopped
         (:func:`stop_workers`) before it is raised; the CCDs committed before are ``done``
@@ -527,8 +596,8 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
                   f"that was killed", file=sys.stderr)
         todo, done = triage(fscene, ccds, outdir, overwrite)
         rows = read_manifest(outdir)
-        # Pending rows first: a run killed before a CCD's row says done still marks its file
-        # as this scene's, to be checked and redone.
+        # Pending rows first: they claim the directory for this scene, and a run killed
+        # before a CCD's row says done still marks its file as this scene's, to be redone.
         for c in todo:
             rows[c.name] = {"detector": c.name, "id": c.id, "vendor": c.vendor,
                             "file": f"{c.name}.fits", "status": "pending",
@@ -546,7 +615,7 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
                "status": "failed", "scene_sha256": fscene.digest,
                "inject_version": __version__, "error": text}
         failed.append(row)
-        update_manifest(outdir, [row])
+        update_manifest(outdir, [row], fscene.digest)
         progress.update(row)
 
     def submit(ccd):
@@ -575,13 +644,15 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
                     else:
                         fail(ccd, error_text(err))
                     continue
+                if row["status"] == "claimed":  # by another scene's run: stop this one
+                    raise OutputError(row["error"])
                 if row["status"] == "failed":  # on its input (see _attempt): not retried
                     fail(ccd, row["error"])
                     continue
                 rendered.append(row)  # committed with its row by the task (see commit)
                 progress.update(row)
     except BaseException:
-        # A stop signal or a bug: nothing more is to start or finish.
+        # A stop signal, another scene's run, or a bug: nothing more is to start or finish.
         cancel(executor, pending)
         stop_workers(executor, outdir)
         raise
