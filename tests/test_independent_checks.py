@@ -70,27 +70,29 @@ def _focal(**keys):
 # --- Random streams: different tiles, different detectors draw different numbers ----------
 
 def test_two_star_tiles_draw_different_stars():
-    """Each 10 mm tile has its own stream: the stars of neighbouring tiles, in positions
+    """Each sky tile has its own stream: the stars of neighbouring tiles, in positions
     relative to their tile, share nothing (one stream for every tile would repeat the same
-    pattern, star for star, across the focal plane)."""
-    fscene = _focal(stars={"density_per_deg2": 20000, "mag_limit": 22})
-    scene = fscene.scene
-    # 10 mm = 200" a side: ~60 stars a tile at this density.
-    tiles = [(40, 40), (41, 40), (40, 41), (12, 70)]
+    pattern, star for star, across the sky)."""
+    from inject import skytiles
+    from inject.stars import sample_stars
+
+    spec = _focal(stars={"density_per_deg2": 20000, "mag_limit": 22}).scene.stars
+    tiles = [(1200, 40), (1200, 41), (1201, 40), (300, 7)]
     drawn = {}
-    for i, j in tiles:
-        x, y, mag = ccd_module.tile_stars(scene, scene.stars, (i, j))
-        assert 20 < x.size < 120
-        # Every star inside its own tile (the grid: 10 mm squares from -400 mm).
-        lo_x, lo_y = -400.0 + 10.0 * i, -400.0 + 10.0 * j
-        assert np.all((x >= lo_x) & (x < lo_x + 10.0) & (y >= lo_y) & (y < lo_y + 10.0))
-        drawn[(i, j)] = (x - lo_x, y - lo_y, mag)
+    for tile in tiles:
+        gen = skytiles.tile_generator(11, tile)
+        mag = sample_stars(spec, skytiles.tile_area_deg2(tile), "g", gen)
+        ra, dec = skytiles.tile_positions(gen, tile, mag.size)
+        assert 100 < mag.size < 400  # 0.01 deg^2 at 20 000 per deg^2
+        ra_lo, ra_hi, dec_lo, dec_hi = skytiles.tile_bounds(tile)
+        assert np.all((ra >= ra_lo) & (ra < ra_hi) & (dec >= dec_lo) & (dec < dec_hi))
+        drawn[tile] = ((ra - ra_lo) / (ra_hi - ra_lo), (dec - dec_lo) / (dec_hi - dec_lo), mag)
     for a in tiles:
         for b in tiles:
             if a >= b:
                 continue
             (xa, ya, ma), (xb, yb, mb) = drawn[a], drawn[b]
-            close = np.hypot(xa[:, None] - xb[None, :], ya[:, None] - yb[None, :]) < 1e-6
+            close = np.hypot(xa[:, None] - xb[None, :], ya[:, None] - yb[None, :]) < 1e-9
             assert not close.any(), f"tiles {a} and {b} share star positions"
             assert not np.isin(ma, mb).any(), f"tiles {a} and {b} share magnitudes"
 
@@ -302,28 +304,37 @@ def test_ccd_scene_orbit_vertices_are_where_the_wcs_puts_the_pass():
 # --- A bright star's halo from a neighbouring tile ---------------------------------------
 
 def test_bright_halo_from_a_tile_only_the_bright_stamp_reaches(monkeypatch):
-    """R24_S00's pixel area starts at x = 211.75 - 20.48 = 191.27 mm, 1.27 mm (127 px) right
-    of the tile edge at 190 mm. A 12th-magnitude star at x = 189.9 mm (in the tile
-    [180, 190) mm) is 137.5 px from the first column: its core stamp (~0.5 mm) does not
-    reach the CCD, its bright stamp (~1.9 mm) does. Its halo on a 40-column cut-out (137-177
-    px from it) is the star's flux times GalSim's pixel-integrated Kolmogorov PSF there."""
+    """R24_S00's pixel area starts at x = 211.75 - 20.48 = 191.27 mm. A 12th-magnitude star
+    at x = 189.9 mm, in a sky tile outside the CCD, is 137.5 px from the first column: its
+    core stamp (~0.5 mm) does not reach the CCD, its bright stamp (~1.9 mm) does. Its halo
+    on a 40-column cut-out (137-177 px from it) is the star's flux times GalSim's
+    pixel-integrated Kolmogorov PSF there."""
     import galsim
+
+    from inject import skytiles
+    from inject.camera.wcs import ccd_wcs
 
     ccd = fp.ccd("R24_S00")
     star_x, star_y, mag = 189.9, -61.95, 12.5
-    placed = []
-
-    def one_star(scene, spec, tile):
-        i, j = tile
-        lo_x, lo_y = -400.0 + 10.0 * i, -400.0 + 10.0 * j
-        if lo_x <= star_x < lo_x + 10 and lo_y <= star_y < lo_y + 10:
-            placed.append(tile)
-            return np.array([star_x]), np.array([star_y]), np.array([mag])
-        return np.zeros(0), np.zeros(0), np.zeros(0)
-
-    monkeypatch.setattr(ccd_module, "tile_stars", one_star)
     fscene = _focal(stars={"density_per_deg2": 1000, "mag_limit": 20, "mag_bright": 10},
                     detectors=["R24_S00"], cutout={"nx": 40, "ny": 64})
+    # The star's sky position; every sky tile the CCD draws gets one star of this magnitude,
+    # put at that position by the tile that holds it and on the far side of the sky by the
+    # others.
+    target = ccd_wcs(ccd, fscene.pointing).pixel_to_world_values(*ccd.focal_to_pixel(star_x,
+                                                                                     star_y))
+    target = tuple(float(v) for v in target)
+    placed = []
+
+    def positions(gen, tile, n):
+        ra_lo, ra_hi, dec_lo, dec_hi = skytiles.tile_bounds(tile)
+        if ra_lo <= target[0] < ra_hi and dec_lo <= target[1] < dec_hi:
+            placed.append(tile)
+            return np.full(n, target[0]), np.full(n, target[1])
+        return np.full(n, (target[0] + 180.0) % 360.0), np.full(n, -target[1])
+
+    monkeypatch.setattr(skytiles, "tile_positions", positions)
+    monkeypatch.setattr(ccd_module, "sample_stars", lambda *args: np.array([mag]))
     image = simulate_ccd(fscene, ccd, [])[1].image
     assert placed, "the star's tile was not drawn"
 

@@ -26,7 +26,7 @@ PAGES = [
       "inject.baselines"]),
     ("scenes", "CCD scenes and add-streak",
      "Scene files, star fields, one simulated CCD, and injection into an existing image.",
-     ["inject.config", "inject.stars",
+     ["inject.config", "inject.stars", "inject.skytiles",
       "inject.scene", "inject.addstreak"]),
     ("camera", "Camera",
      "LSSTCam: the focal-plane layout and distortion, the two sensor types, and every WCS "

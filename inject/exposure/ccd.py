@@ -1,15 +1,12 @@
 """One CCD of a focal-plane exposure: its scene, its stars and its simulation.
 
 Random streams are keyed on (scene seed, detector id, purpose) (:func:`inject.scene.rng`);
-stars on (scene seed, star tile, ``"stars"``): stars are drawn per fixed 10 mm tile of the
-focal plane, and each CCD draws the tiles its pixels and stamps reach, so a star is where the
-scene puts it whichever CCDs are rendered.
+stars on (scene seed, sky tile) (:mod:`inject.skytiles`): each CCD draws the sky tiles its
+pixels and stamps reach, so a star is where the sky puts it whichever CCDs are rendered, and
+at any pointing or rotation.
 """
 from dataclasses import replace
 
-import numpy as np
-
-from inject.camera import layout as fp
 from inject.camera.wcs import ccd_wcs
 from inject.config import with_detector
 from inject.errors import SceneError
@@ -18,15 +15,9 @@ from inject.instrument import LSST
 from inject.photometry import electron_rate
 from inject.profile import Seeing
 from inject.render import Budget
-from inject.scene import pixel_noise, render_tracks, rng, simulate
+from inject.scene import pixel_noise, render_tracks, simulate
+from inject.skytiles import sky_stars
 from inject.stars import add_star_field, draw_stars, psf_stamps, sample_stars
-
-#: Star tiles: squares of this side (mm) on a fixed grid over the focal plane.
-STAR_TILE_MM = 10.0
-_TILE_GRID = 80  # tiles per side, centred on the boresight (covers +-400 mm)
-#: Star tiles' random streams start here (detector ids are 0-188).
-STAR_TILE_KEY = 1000
-
 
 
 def ccd_scene(fscene, ccd, streaks=()):
@@ -38,31 +29,11 @@ def ccd_scene(fscene, ccd, streaks=()):
     return with_detector(fscene.scene, det, sats)
 
 
-def _star_tiles(box):
-    """Indices of the star tiles overlapping a box (mm)."""
-    lo = -_TILE_GRID / 2 * STAR_TILE_MM
-    ix = range(max(0, int(np.floor((box[0] - lo) / STAR_TILE_MM))),
-               min(_TILE_GRID, int(np.floor((box[1] - lo) / STAR_TILE_MM)) + 1))
-    iy = range(max(0, int(np.floor((box[2] - lo) / STAR_TILE_MM))),
-               min(_TILE_GRID, int(np.floor((box[3] - lo) / STAR_TILE_MM)) + 1))
-    return [(i, j) for j in iy for i in ix]
-
-
-def tile_stars(scene, spec, tile):
-    """The stars of one focal-plane tile: ``x_mm, y_mm, mag`` (its own random stream)."""
-    i, j = tile
-    lo = -_TILE_GRID / 2 * STAR_TILE_MM
-    gen = rng(scene.seed, "stars", STAR_TILE_KEY + j * _TILE_GRID + i)
-    side_deg = STAR_TILE_MM * fp.PLATE_SCALE_ARCSEC_PER_MM / 3600.0
-    mag = sample_stars(spec, side_deg ** 2, scene.band, gen)
-    x = lo + STAR_TILE_MM * (i + gen.uniform(0.0, 1.0, mag.size))
-    y = lo + STAR_TILE_MM * (j + gen.uniform(0.0, 1.0, mag.size))
-    return x, y, mag
-
-
 def add_focal_stars(image, fscene, ccd, wcs=None, noise=None, variance=None):
-    """Add the scene's stars that light a CCD (in place): those of every tile its pixels, grown
-    by the bright-star stamp, overlap. A catalog in ra, dec goes through the CCD's WCS.
+    """Add the scene's stars that light a CCD (in place): the sky's stars
+    (:mod:`inject.skytiles`) within the bright-star stamp of its pixels, placed through the
+    CCD's WCS, so every CCD, pointing and rotation sees the same sky. A catalog in ra, dec goes
+    through the CCD's WCS too.
     ``noise`` and ``variance``: see :func:`inject.stars.draw_stars`."""
     scene = fscene.scene
     spec = scene.stars
@@ -72,14 +43,14 @@ def add_focal_stars(image, fscene, ccd, wcs=None, noise=None, variance=None):
         raise SceneError("stars: need seeing > 0 (stars share the atmospheric PSF)")
     pixel_scale = LSST.pixel_scale_arcsec
     stamps = psf_stamps(Seeing(scene.seeing).profile(), pixel_scale)
-    box = ccd.bounds_mm(stamps.bright_half + 1, image.shape)
-    parts = [tile_stars(scene, spec, tile) for tile in _star_tiles(box)]
-    if not parts:
+    wcs = ccd_wcs(ccd, fscene.pointing) if wcs is None else wcs
+    field = sky_stars(spec, wcs, image.shape, stamps.bright_half + 1, scene.band, scene.seed,
+                      sample_stars)
+    if not field["mag"].size:
         return None
-    x_mm, y_mm, mag = (np.concatenate(v) for v in zip(*parts))
-    x, y = ccd.focal_to_pixel(x_mm, y_mm)
-    flux = electron_rate(mag, scene.band) * scene.exptime
-    return draw_stars(image, x, y, flux, stamps, pixel_scale, noise=noise, variance=variance)
+    flux = electron_rate(field["mag"], scene.band) * scene.exptime
+    return draw_stars(image, field["x"], field["y"], flux, stamps, pixel_scale, noise=noise,
+                      variance=variance)
 
 
 def simulate_ccd(fscene, ccd, streaks, budget=Budget()):
