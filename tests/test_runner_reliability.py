@@ -1,5 +1,6 @@
-"""The focal-plane runner under stress: two scenes into one directory, a stop mid-run, and
-the manifest's lock. Small cut-outs keep it quick."""
+"""The focal-plane runner under stress: two scenes into one directory, a stop mid-run, the
+manifest's lock, --overwrite. Small cut-outs keep it quick."""
+import csv
 import json
 import os
 import signal
@@ -293,3 +294,45 @@ def test_no_lock_file_is_left_and_the_lock_still_excludes(tmp_path):
     waiter.join(30)
     assert order == ["first", "second"]
     assert _leftovers(out) == []
+
+
+# -------------------------------------------------------------------------------------------
+# Refusals of the command line
+
+def _satellites(outdir):
+    with open(os.path.join(outdir, "satellites.csv"), newline="") as stream:
+        return list(csv.DictReader(stream))
+
+
+def test_overwrite_replaces_the_whole_run(tmp_path, capsys, reference):
+    """Before: --overwrite on one CCD left the other scene's other CCD file and rows, and the
+    mosaic drew both scenes."""
+    from inject.exposure.mosaic import binned_ccds
+
+    out = tmp_path / "out"
+    assert _main(_scene_file(tmp_path, RAW, "x.yaml"), "-o", out, "--detectors",
+                 "R22_S11,R43_S22", "--no-mosaic") == 0
+    assert _main(_scene_file(tmp_path, dict(RAW, seed=12), "y.yaml"), "-o", out,
+                 "--detectors", "R22_S11") == 2  # another scene's run: refused
+    assert _main(_scene_file(tmp_path, dict(RAW, seed=12), "y.yaml"), "-o", out,
+                 "--detectors", "R22_S11", "--overwrite") == 0
+    rows = _consistent(str(out), Y.digest)
+    assert {n: r["sha256"] for n, r in rows.items()} == {"R22_S11": reference["Y"]["R22_S11"]}
+    assert _files(str(out)) == ["R22_S11.fits"]
+    assert [c.name for c in binned_ccds(Y, str(out), 8)] == ["R22_S11"]
+    assert {r["scene_sha256"] for r in _satellites(str(out))} == {Y.digest}
+
+
+def test_the_mosaic_draws_only_this_scenes_files(tmp_path):
+    """A file of another scene (here with no manifest left) is not drawn."""
+    from inject.exposure.mosaic import binned_ccds, write_mosaic
+
+    out = str(tmp_path)
+    with ThreadPoolExecutor(2) as pool:
+        runner.run(make_plan(X), out, pool, ccds=[fp.ccd("R22_S11"), fp.ccd("R43_S22")])
+    os.remove(os.path.join(out, "manifest.csv"))
+    with open(os.path.join(out, "R01_S00.fits"), "wb") as stream:
+        stream.write(b"not FITS")
+    assert sorted(c.name for c in binned_ccds(X, out, 8)) == ["R22_S11", "R43_S22"]
+    assert binned_ccds(Y, out, 8) == {}
+    assert write_mosaic(os.path.join(out, "m.png"), Y, out, factor=64) == 0

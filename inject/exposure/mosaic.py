@@ -4,7 +4,7 @@ Each CCD's IMAGE is block-averaged and drawn at its place in focal-plane millime
 block at its true size (a partial last block cut at the CCD's edge), so the gaps between CCDs
 and rafts are to scale; one z-scale stretch for all CCDs; detector names on
 each; the true track of every satellite drawn over it (dashed, in focal-plane mm). CCDs of the
-exposure that have no file yet are filled grey; the gaps are dark blue.
+exposure that have no file of this scene yet are filled grey; the gaps are dark blue.
 """
 import os
 
@@ -18,7 +18,9 @@ DEFAULT_BIN = 40
 
 
 def binned_ccds(fscene, outdir, factor):
-    """``{CCD: binned IMAGE}`` for every CCD of the scene with a file in ``outdir``."""
+    """``{CCD: binned IMAGE}`` for every CCD of the scene with a file of this scene in
+    ``outdir`` (its ``FPSCENE`` card: a file of another scene's run, or of none, is not
+    shown)."""
     from astropy.io import fits
 
     out = {}
@@ -26,8 +28,13 @@ def binned_ccds(fscene, outdir, factor):
         path = os.path.join(outdir, f"{ccd.name}.fits")
         if not os.path.exists(path):
             continue
-        with fits.open(path, memmap=True) as hdus:
-            image = np.asarray(hdus["IMAGE"].data, dtype=np.float32)  # native byte order
+        try:
+            with fits.open(path, memmap=True) as hdus:
+                if hdus[0].header.get("FPSCENE") != fscene.digest[:16]:
+                    continue
+                image = np.asarray(hdus["IMAGE"].data, dtype=np.float32)  # native order
+        except (OSError, ValueError, KeyError):
+            continue  # not a CCD file of this scene's run (a stray file, half a file)
         out[ccd] = block_mean(image, factor)
     return out
 

@@ -352,8 +352,8 @@ def triage(fscene, ccds, outdir, overwrite=False):
     directory of another scene's run.
 
     A directory holds one scene's run. Rows of another scene (done, failed or pending: a run
-    that is going, or was stopped) are refused without ``overwrite``; with it, they are
-    removed (this run replaces that one). Then, for each CCD: a file matching its manifest row (this
+    that is going, or was stopped) are refused without ``overwrite``; with it, they and
+    their CCD files are removed. Then, for each CCD: a file matching its manifest row (this
     scene, ``done``, same SHA-256) is done; a missing file, or one whose row is this scene's
     but not done or whose bytes do not match (corrupt, or a run killed before the row said
     done), is redone; a file in no manifest row is redone if the directory holds rows of
@@ -382,10 +382,7 @@ def triage(fscene, ccds, outdir, overwrite=False):
         raise OutputError(f"{where} {_describe(other, theirs)}; pass --overwrite to replace "
                           "that run")
     if others:
-        for theirs in others.values():
-            for row in theirs:
-                rows.pop(row["detector"], None)
-        _write_manifest(outdir, rows)
+        _remove_rows_and_files(outdir, rows, [r for theirs in others.values() for r in theirs])
     ours = any(r.get("scene_sha256") == fscene.digest for r in rows.values())
     todo, done = [], []
     for ccd in ccds:
@@ -406,6 +403,19 @@ def triage(fscene, ccds, outdir, overwrite=False):
             raise OutputError(f"{path}: exists (not in any manifest); pass --overwrite to "
                               "replace it")
     return todo, done
+
+
+def _remove_rows_and_files(outdir, rows, removed):
+    """Remove rows (in place and in the manifest) and the CCD files they name."""
+    from inject.camera.layout import BY_NAME
+
+    for row in removed:
+        name = row["detector"]
+        if name in BY_NAME:  # never a path a manifest could smuggle in
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(os.path.join(outdir, f"{name}.fits"))
+        rows.pop(name, None)
+    _write_manifest(outdir, rows)
 
 
 # -------------------------------------------------------------------------------------------
