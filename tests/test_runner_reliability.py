@@ -1,5 +1,6 @@
 """The focal-plane runner under stress: two scenes into one directory, a stop mid-run, the
-manifest's lock, --overwrite. Small cut-outs keep it quick."""
+manifest's lock, --overwrite, and the manifest's digest, pending and stray-file paths. Small
+cut-outs keep it quick."""
 import csv
 import json
 import os
@@ -10,6 +11,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
+import yaml
 
 from inject import OutputError, make_plan, parse_focal_scene
 from inject.camera import layout as fp
@@ -336,3 +338,94 @@ def test_the_mosaic_draws_only_this_scenes_files(tmp_path):
     assert sorted(c.name for c in binned_ccds(X, out, 8)) == ["R22_S11", "R43_S22"]
     assert binned_ccds(Y, out, 8) == {}
     assert write_mosaic(os.path.join(out, "m.png"), Y, out, factor=64) == 0
+
+
+# -------------------------------------------------------------------------------------------
+# The manifest's digest, pending rows and stray files
+
+def _checksum(line):
+    """A TLE line's checksum: the digits, each minus sign counting 1, modulo 10."""
+    return sum(int(c) if c.isdigit() else c == "-" for c in line[:68]) % 10
+
+
+def _tle(raan):
+    """The example TLE (sample_fields/pass_example.yaml) with another right ascension of the
+    ascending node."""
+    line1 = "1 90001U          26166.97916667  .00000000  00000-0  00000+0 0    04"
+    line2 = f"2 90001  53.0000 {raan:8.4f} 0000000   0.0000 321.2313 15.05593056    0"
+    return f"EXAMPLE\n{line1}\n{line2}{_checksum(line2)}\n"
+
+
+def test_a_tle_file_changed_under_its_name_is_rendered_again(tmp_path):
+    """The digest covers the resolved tracks, not only the scene's text: the same scene
+    with another orbit in the same TLE file is another scene (the streak moves off
+    R22_S12's corner)."""
+    with open(os.path.join(ROOT, "sample_fields", "pass_example.yaml")) as stream:
+        raw = yaml.safe_load(stream)
+    tle = tmp_path / "sat.tle"
+    raw["satellites"][0]["orbit"] = {"tle": str(tle)}
+    raw.update(cutout={"nx": 64, "ny": 64}, detectors=["R22_S12"], stars={"mag_limit": 18})
+    scene = tmp_path / "pass.yaml"
+    scene.write_text(yaml.safe_dump(raw))
+    out = tmp_path / "out"
+    tle.write_text(_tle(208.851))
+    assert _main(scene, "-o", out, "--no-mosaic") == 0
+    first = _sha(out / "R22_S12.fits")
+    tle.write_text(_tle(208.901))
+    assert _main(scene, "-o", out, "--no-mosaic") == 2  # not taken as done: another scene
+    assert _sha(out / "R22_S12.fits") == first
+    assert _main(scene, "-o", out, "--no-mosaic", "--overwrite") == 0
+    assert _main(scene, "-o", tmp_path / "alone", "--no-mosaic") == 0
+    assert _sha(out / "R22_S12.fits") == _sha(tmp_path / "alone" / "R22_S12.fits") != first
+
+
+class _Killed(BaseException):
+    """The process dying where it is raised."""
+
+
+def test_a_run_killed_between_a_file_and_its_row_is_redone_by_a_rerun(tmp_path, reference,
+                                                                      monkeypatch):
+    """Killed after its first CCD file is in place, before the row says so: the pending rows
+    written at the start mark the file as this scene's, so a rerun redoes it (a file in no
+    row would be refused)."""
+    out = str(tmp_path)
+    write = runner._write_manifest
+
+    def dies_at_first_done(outdir, rows):
+        if any(r.get("status") == "done" for r in rows.values()):
+            raise _Killed
+        write(outdir, rows)
+
+    monkeypatch.setattr(runner, "_write_manifest", dies_at_first_done)
+    with ThreadPoolExecutor(1) as pool, pytest.raises(_Killed):
+        runner.run(make_plan(X), out, pool, ccds=[fp.ccd("R22_S12")])
+    monkeypatch.setattr(runner, "_write_manifest", write)
+    assert _files(out) == ["R22_S12.fits"]
+    assert runner.read_manifest(out)["R22_S12"]["status"] == "pending"
+    with ThreadPoolExecutor(1) as pool:
+        result = runner.run(make_plan(X), out, pool, ccds=[fp.ccd("R22_S12")])
+    assert [r["detector"] for r in result.rendered] == ["R22_S12"]
+    assert _consistent(out, X.digest)["R22_S12"]["sha256"] == reference["X"]["R22_S12"]
+
+
+@pytest.mark.parametrize("manifest", [False, True])
+def test_a_stray_file_is_not_replaced_without_overwrite(tmp_path, reference, manifest):
+    """A file in no manifest row is someone's: refused, left as it was; replaced with
+    --overwrite. Before, it was replaced silently once the directory held any row of this
+    scene (manifest=True)."""
+    out = str(tmp_path)
+    if manifest:
+        with ThreadPoolExecutor(1) as pool:
+            runner.run(make_plan(X), out, pool, ccds=[fp.ccd("R43_S22")])
+    stray = os.path.join(out, "R22_S12.fits")
+    with open(stray, "wb") as stream:
+        stream.write(b"someone's file")
+    with ThreadPoolExecutor(1) as pool:
+        with pytest.raises(OutputError, match="R22_S12.fits: exists \\(not in any manifest\\); "
+                                              "pass --overwrite"):
+            runner.run(make_plan(X), out, pool)
+        with open(stray, "rb") as stream:
+            assert stream.read() == b"someone's file"
+        runner.run(make_plan(X), out, pool, overwrite=True)
+    rows = _consistent(out, X.digest)
+    assert {n: r["sha256"] for n, r in rows.items()} == reference["X"]

@@ -15,10 +15,10 @@ the directory) leaves a manifest that says what is done. A stop signal cancels t
 started and stops a process pool's workers at once (:func:`stop_workers`). A rerun skips the
 CCDs whose file matches its row, redoes missing or corrupt ones, and removes the temporary
 files a killed worker left (:func:`inject.io.atomic.remove_stale_temporaries`). A directory
-holds one scene's run: another scene's is replaced only with ``overwrite``, and that is
-checked at the start and again under the lock before each CCD is committed
-(:func:`check_claim`), so that of two runs of different scenes started together the second
-stops.
+holds one scene's run: another scene's run, and a file in no manifest row, are replaced
+only with ``overwrite``; the other scene is checked at the start and again under the lock
+before each CCD is committed (:func:`check_claim`), so that of two runs of different scenes
+started together the second stops.
 
 A CCD that fails does not stop the others; its row says ``failed`` with the error in one line.
 Failures on the input (an :class:`~inject.errors.InjectError` that is not a condition of the
@@ -356,9 +356,8 @@ def triage(fscene, ccds, outdir, overwrite=False):
     their CCD files are removed. Then, for each CCD: a file matching its manifest row (this
     scene, ``done``, same SHA-256) is done; a missing file, or one whose row is this scene's
     but not done or whose bytes do not match (corrupt, or a run killed before the row said
-    done), is redone; a file in no manifest row is redone if the directory holds rows of
-    this scene (written by its run, killed before its manifest row), else replaced only with
-    ``overwrite``. Call it under the manifest's lock.
+    done), is redone; a file in no manifest row is replaced only with ``overwrite``. Call it
+    under the manifest's lock.
 
     Returns
     -------
@@ -383,7 +382,6 @@ def triage(fscene, ccds, outdir, overwrite=False):
                           "that run")
     if others:
         _remove_rows_and_files(outdir, rows, [r for theirs in others.values() for r in theirs])
-    ours = any(r.get("scene_sha256") == fscene.digest for r in rows.values())
     todo, done = [], []
     for ccd in ccds:
         path = os.path.join(outdir, f"{ccd.name}.fits")
@@ -395,8 +393,6 @@ def triage(fscene, ccds, outdir, overwrite=False):
                 done.append(ccd)
             else:
                 todo.append(ccd)  # this scene's file, broken or not recorded done: redo it
-        elif ours:
-            todo.append(ccd)  # written by this scene's run, killed before its manifest row
         elif overwrite:
             todo.append(ccd)
         else:
