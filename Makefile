@@ -44,6 +44,7 @@ demo: $(STAMP)
 	@echo "to run inject yourself: .venv/bin/inject --help, or: source .venv/bin/activate; inject --help"
 
 focalplane: $(STAMP)
+	@mkdir -p out
 	$(BIN)/inject focalplane sample_fields/focal_paper_550km.yaml -o out/focalplane \
 		--streak-ccds-only
 	@echo "outputs: out/focalplane/R*_S*.fits (the CCDs the streak reaches), manifest.csv,"

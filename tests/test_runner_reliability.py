@@ -1,6 +1,6 @@
 """The focal-plane runner under stress: two scenes into one directory, a stop mid-run, the
-manifest's lock, --overwrite, and the manifest's digest, pending and stray-file paths. Small
-cut-outs keep it quick."""
+manifest's lock, the output folder, --overwrite, and the manifest's digest, pending and
+stray-file paths. Small cut-outs keep it quick."""
 import csv
 import json
 import os
@@ -300,6 +300,19 @@ def test_no_lock_file_is_left_and_the_lock_still_excludes(tmp_path):
 
 # -------------------------------------------------------------------------------------------
 # Refusals of the command line
+
+def test_the_output_folder_needs_its_parent(tmp_path, capsys):
+    """Before: -o a/b/c made the whole chain, where every other command refuses a missing
+    folder."""
+    scene = _scene_file(tmp_path, RAW)
+    deep = tmp_path / "a" / "b" / "c"
+    assert _main(scene, "-o", deep, "--detectors", "R22_S12") == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"inject focalplane: error: {deep}: directory {tmp_path / 'a' / 'b'} does not exist"]
+    assert not (tmp_path / "a").exists()
+    assert _main(scene, "-o", tmp_path / "a", "--detectors", "R22_S12", "--no-mosaic") == 0
+    assert _files(str(tmp_path / "a")) == ["R22_S12.fits"]
+
 
 def _satellites(outdir):
     with open(os.path.join(outdir, "satellites.csv"), newline="") as stream:

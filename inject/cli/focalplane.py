@@ -89,10 +89,11 @@ def run_focalplane(args):
             print(f"{len(result['detectors'])} of {len(ccds)} CCDs reached by a streak",
                   file=sys.stderr)
         return
+    from inject.exposure.runner import check_outdir
+
     if not args.output:
         raise InputError("-o", None, "give an output directory (or --plan)")
-    if os.path.exists(args.output) and not os.path.isdir(args.output):
-        raise OutputError(f"{args.output}: exists and is not a directory")
+    check_outdir(args.output)
     if not ccds:
         raise InputError("--detectors/--job", (args.detectors, args.job), "no CCD to render")
     records = _check_satellites_file(plan, args)

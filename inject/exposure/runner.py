@@ -491,6 +491,40 @@ class RunResult:
                         [(row["detector"], row["error"]) for row in rows])
 
 
+def check_outdir(outdir):
+    """Raise :class:`~inject.errors.OutputError` unless ``outdir`` is a directory, or can be
+    made as one: its parent must exist (as every command's output file needs its folder:
+    :func:`inject.io.atomic.check_writable`)."""
+    if os.path.isdir(outdir):
+        return
+    if os.path.lexists(outdir):
+        raise OutputError(f"{outdir}: exists and is not a directory")
+    parent = os.path.dirname(os.path.abspath(outdir))
+    if not os.path.isdir(parent):
+        raise OutputError(f"{outdir}: directory {parent} does not exist")
+
+
+def make_outdir(outdir):
+    """Create the output directory if it is missing; its parent must exist (as every
+    command's output file needs its folder: :func:`inject.io.atomic.check_writable`).
+
+    Raises
+    ------
+    OutputError
+        ``outdir`` is not a directory, or its parent is missing or not writable.
+    """
+    check_outdir(outdir)
+    if os.path.isdir(outdir):
+        return
+    try:
+        os.mkdir(outdir)
+    except FileExistsError:
+        if not os.path.isdir(outdir):  # made meanwhile by a --job slice: fine
+            raise OutputError(f"{outdir}: exists and is not a directory") from None
+    except OSError as err:
+        raise OutputError(f"{outdir}: cannot create it ({err.strerror or err})") from None
+
+
 def cancel(executor, futures):
     """Cancel the futures not yet started. A process pool cancels its own (in its manager
     thread, which may otherwise set a cancelled future's result and fail) and takes no more
@@ -560,7 +594,7 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
     plan : inject.exposure.plan.Plan
         The exposure's plan (:func:`inject.exposure.plan.make_plan`).
     outdir : str
-        Created if missing.
+        Created if missing (its parent must exist).
     executor : concurrent.futures.Executor
         Any: a process pool, Dask's ``client.get_executor()``, a thread pool.
     ccds : sequence of CCD, optional
@@ -592,7 +626,7 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
     """
     fscene = plan.fscene
     ccds = fscene.ccds if ccds is None else tuple(ccds)
-    os.makedirs(outdir, exist_ok=True)
+    make_outdir(outdir)
     with _manifest_lock(outdir):
         from inject.io.atomic import remove_stale_temporaries
 
