@@ -1,5 +1,5 @@
 """The focal-plane runner under stress: two scenes into one directory, a stop mid-run, the
-manifest's lock, the output folder, --overwrite, and the manifest's digest, pending and
+memory guard, the output folder, --overwrite, and the manifest's digest, pending and
 stray-file paths. Small cut-outs keep it quick."""
 import csv
 import json
@@ -300,6 +300,49 @@ def test_no_lock_file_is_left_and_the_lock_still_excludes(tmp_path):
 
 # -------------------------------------------------------------------------------------------
 # Refusals of the command line
+
+def test_workers_beyond_the_memory_are_refused_and_the_default_fits(tmp_path, monkeypatch,
+                                                                    capsys):
+    """Before: --workers 100 forked a worker per CCD whatever the memory. A full CCD's worker
+    peaks near 0.8 GiB (scripts/bench_focalplane.py), so 2 GiB hold two of them and 1.5 GiB
+    one."""
+    from inject import validate
+
+    raw = {k: v for k, v in RAW.items() if k != "cutout"}
+    raw["detectors"] = ["R22_S10", "R22_S11", "R22_S12", "R22_S20", "R22_S21", "R22_S22"]
+    scene = _scene_file(tmp_path, raw)
+    out = tmp_path / "out"
+    monkeypatch.setattr(validate, "available_memory", lambda: 2 * 2**30)
+    assert _main(scene, "-o", out, "--workers", 100) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("inject focalplane: error: --workers 100: 6 "
+                                               "workers need about")
+    assert err[0].endswith("(about 0.81 GiB a worker for 4096 x 4004 px CCDs), 2 GiB "
+                           "available; use --workers 2 or fewer")
+    assert not out.exists()  # refused before any work
+
+    asked = []
+
+    class Stop(Exception):
+        pass
+
+    def pool(workers=None):
+        asked.append(workers)
+        raise Stop
+
+    monkeypatch.setattr(runner, "process_pool", pool)
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    for free, workers in ((2.0, 2), (1.5, 1), (64.0, 6)):
+        monkeypatch.setattr(validate, "available_memory", lambda free=free: free * 2**30)
+        with pytest.raises(Stop):
+            _main(scene, "-o", out)
+        assert asked[-1] == workers
+    monkeypatch.setattr(validate, "available_memory", lambda: 0.5 * 2**30)
+    assert _main(scene, "-o", out) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["inject focalplane: error: not enough memory for one worker (about 0.81 GiB "
+                   "a worker for 4096 x 4004 px CCDs, 0.5 GiB available)"]
+
 
 def test_the_output_folder_needs_its_parent(tmp_path, capsys):
     """Before: -o a/b/c made the whole chain, where every other command refuses a missing

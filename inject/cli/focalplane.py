@@ -4,7 +4,7 @@ import json
 import os
 import sys
 
-from inject.errors import InputError, OutputError
+from inject.errors import InputError, OutputError, ResourceError
 from inject.io.atomic import atomic_path
 
 # ``inject --help`` imports this module: the scene parser, the plan, the runner (multiprocessing,
@@ -97,6 +97,7 @@ def run_focalplane(args):
     if not ccds:
         raise InputError("--detectors/--job", (args.detectors, args.job), "no CCD to render")
     records = _check_satellites_file(plan, args)
+    workers = _workers(plan.fscene, ccds, args)
     mosaic = os.path.join(args.output, "mosaic.png")
     if not args.no_mosaic and os.path.exists(mosaic) and not args.overwrite:
         from inject.exposure.runner import read_manifest
@@ -105,7 +106,38 @@ def run_focalplane(args):
         if not any(r.get("scene_sha256") == fscene.digest for r in rows):
             raise OutputError(f"{mosaic}: exists (not this scene's); pass --overwrite to "
                               "replace it")
-    _render(plan, ccds, args, records)
+    _render(plan, ccds, args, records, workers)
+
+
+def _workers(fscene, ccds, args):
+    """The worker processes of the run: ``--workers`` (default the machine's cores), never
+    more than the CCDs, and only as many as the memory available holds, each about
+    :func:`inject.exposure.runner.worker_bytes`: without ``--workers`` the count is capped at
+    what fits, with it a count that does not fit is refused (as ``inject simulate`` refuses
+    a CCD too large). A remote Dask cluster's memory is its own."""
+    from inject import validate
+    from inject.exposure.runner import worker_bytes
+
+    if args.scheduler not in (None, "local"):
+        return args.workers
+    wanted = args.workers if args.workers is not None else os.cpu_count() or 1
+    count = min(wanted, len(ccds))
+    free = validate.available_memory()
+    if free is None:
+        return count
+    need, (ny, nx) = worker_bytes(fscene, ccds)
+    fit = int(free // need)
+    each = f"about {need / 2**30:.2g} GiB a worker for {nx} x {ny} px CCDs"
+    if fit < 1:
+        raise ResourceError(f"not enough memory for one worker ({each}, "
+                            f"{free / 2**30:.3g} GiB available)")
+    if args.workers is None:
+        return min(count, fit)
+    if count > fit:
+        raise ResourceError(f"--workers {args.workers}: {count} workers need about "
+                            f"{count * need / 2**30:.3g} GiB of memory ({each}), "
+                            f"{free / 2**30:.3g} GiB available; use --workers {fit} or fewer")
+    return count
 
 
 #: The exposure-level record of every satellite, next to manifest.csv.
@@ -152,14 +184,14 @@ def write_satellites(outdir, records):
     return path
 
 
-def _run_on_pool(plan, ccds, args):
+def _run_on_pool(plan, ccds, args, workers):
     """The run on a process pool. A stop (or an error) does not wait for the CCDs under way:
     the runner has stopped the workers, and the fork server is ended too."""
     from inject.exposure.runner import process_pool, run, stop_fork_server
 
     pool = None
     try:
-        pool = process_pool(args.workers)
+        pool = process_pool(workers)
         result = run(plan, args.output, pool, ccds, overwrite=args.overwrite,
                      retries=args.retries)
     except BaseException as err:
@@ -175,18 +207,18 @@ def _run_on_pool(plan, ccds, args):
     return result
 
 
-def _render(plan, ccds, args, records):
+def _render(plan, ccds, args, records, workers):
     from inject.exposure.runner import DASK_MEMORY_LIMIT, dask_executor, run
 
     if args.scheduler:
-        with dask_executor(args.scheduler, args.workers,
-                           args.memory_limit or DASK_MEMORY_LIMIT, args.retries) as executor:
+        with dask_executor(args.scheduler, workers, args.memory_limit or DASK_MEMORY_LIMIT,
+                           args.retries) as executor:
             result = run(plan, args.output, executor, ccds, overwrite=args.overwrite,
                          retries=args.retries)
     else:
         if args.memory_limit:
             raise InputError("--memory-limit", args.memory_limit, "only with --scheduler")
-        result = _run_on_pool(plan, ccds, args)
+        result = _run_on_pool(plan, ccds, args, workers)
     print(f"{args.output}: {len(result.rendered)} CCDs rendered, {len(result.skipped)} "
           f"already done, {len(result.failed)} failed", file=sys.stderr)
     write_satellites(args.output, records)

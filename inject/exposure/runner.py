@@ -755,6 +755,23 @@ def process_pool(workers=None):
                                mp_context=start_fork_server(), initializer=_init_worker)
 
 
+#: A worker's memory besides its CCD's planes (its own share of the libraries, the stars' PSF
+#: stamps, the caches), bytes; and the peak bytes per pixel of a CCD, all planes and the
+#: write included (``units: adu`` with its raw layout the most): a full CCD's worker peaks
+#: near 0.8 GiB (scripts/bench_focalplane.py measures it).
+WORKER_BASE_BYTES = 0.2 * 2**30
+WORKER_BYTES_PER_PIXEL = 40
+
+
+def worker_bytes(fscene, ccds):
+    """Estimated peak memory of a worker rendering the largest of ``ccds``, and that CCD's
+    ``(ny, nx)``."""
+    from inject.exposure.plan import ccd_shape
+
+    shape = max((ccd_shape(fscene, c) for c in ccds), key=lambda s: s[0] * s[1])
+    return WORKER_BASE_BYTES + WORKER_BYTES_PER_PIXEL * shape[0] * shape[1], shape
+
+
 #: Memory limit per Dask LocalCluster worker. A full-size CCD (IMAGE, MASK, VARIANCE,
 #: STREAK_MODEL and the planes they come from) peaks near 0.9 GiB in a worker
 #: (scripts/bench_focalplane.py measures it: 0.6-0.7 GiB for CCDs without the streak, 0.86
