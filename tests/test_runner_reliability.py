@@ -1,6 +1,6 @@
 """The focal-plane runner under stress: two scenes into one directory, a stop mid-run, the
-memory guard, the output folder, --overwrite, and the manifest's digest, pending and
-stray-file paths. Small cut-outs keep it quick."""
+memory guard, the refusals of the command line, --overwrite, and the manifest's digest,
+pending and stray-file paths. Small cut-outs keep it quick."""
 import csv
 import json
 import os
@@ -342,6 +342,21 @@ def test_workers_beyond_the_memory_are_refused_and_the_default_fits(tmp_path, mo
     err = capsys.readouterr().err.splitlines()
     assert err == ["inject focalplane: error: not enough memory for one worker (about 0.81 GiB "
                    "a worker for 4096 x 4004 px CCDs, 0.5 GiB available)"]
+
+
+@pytest.mark.parametrize("limit, why", [
+    ("banana", "must be a size such as 3GiB, 2500MB or 4e9"),
+    ("1MB", "less than one worker needs (about 0.2 GiB for a 64 x 64 px CCD)"),
+])
+def test_a_bad_memory_limit_is_one_line_exit_2(tmp_path, capsys, limit, why):
+    """Before: a ValueError traceback from Dask (banana), a CommClosedError traceback after
+    the cluster's workers died (1MB); exit 1."""
+    pytest.importorskip("dask.distributed")
+    scene = _scene_file(tmp_path, RAW)
+    assert _main(scene, "-o", tmp_path / "out", "--scheduler", "local", "--workers", 1,
+                 "--memory-limit", limit) == 2
+    err = capsys.readouterr().err
+    assert err.splitlines() == [f"inject focalplane: error: --memory-limit={limit!r}: {why}"]
 
 
 def test_the_output_folder_needs_its_parent(tmp_path, capsys):

@@ -94,6 +94,7 @@ def run_focalplane(args):
     if not args.output:
         raise InputError("-o", None, "give an output directory (or --plan)")
     check_outdir(args.output)
+    limit = _memory_limit(plan.fscene, ccds, args)
     if not ccds:
         raise InputError("--detectors/--job", (args.detectors, args.job), "no CCD to render")
     records = _check_satellites_file(plan, args)
@@ -106,7 +107,7 @@ def run_focalplane(args):
         if not any(r.get("scene_sha256") == fscene.digest for r in rows):
             raise OutputError(f"{mosaic}: exists (not this scene's); pass --overwrite to "
                               "replace it")
-    _render(plan, ccds, args, records, workers)
+    _render(plan, ccds, args, records, workers, limit)
 
 
 def _workers(fscene, ccds, args):
@@ -207,17 +208,43 @@ def _run_on_pool(plan, ccds, args, workers):
     return result
 
 
-def _render(plan, ccds, args, records, workers):
-    from inject.exposure.runner import DASK_MEMORY_LIMIT, dask_executor, run
+def _memory_limit(fscene, ccds, args):
+    """``--memory-limit`` checked: only with ``--scheduler local``, in Dask's size syntax, and
+    enough for one CCD (Dask would restart a worker over its limit again and again); the
+    default :data:`~inject.exposure.runner.DASK_MEMORY_LIMIT` without it."""
+    from inject.exposure.runner import DASK_MEMORY_LIMIT, worker_bytes
+
+    if args.memory_limit is None:
+        return DASK_MEMORY_LIMIT
+    if args.scheduler != "local":
+        raise InputError("--memory-limit", args.memory_limit,
+                         "only with --scheduler local (a cluster's workers have their own)")
+    try:
+        from dask.utils import parse_bytes
+    except ImportError:
+        return args.memory_limit  # dask_executor says that Dask is needed
+    try:
+        limit = parse_bytes(args.memory_limit)
+    except (ValueError, TypeError):
+        raise InputError("--memory-limit", args.memory_limit,
+                         "must be a size such as 3GiB, 2500MB or 4e9") from None
+    if ccds:
+        need, (ny, nx) = worker_bytes(fscene, ccds)
+        if limit < need:
+            raise InputError("--memory-limit", args.memory_limit,
+                             f"less than one worker needs (about {need / 2**30:.2g} GiB for a "
+                             f"{nx} x {ny} px CCD)")
+    return args.memory_limit
+
+
+def _render(plan, ccds, args, records, workers, memory_limit):
+    from inject.exposure.runner import dask_executor, run
 
     if args.scheduler:
-        with dask_executor(args.scheduler, workers, args.memory_limit or DASK_MEMORY_LIMIT,
-                           args.retries) as executor:
+        with dask_executor(args.scheduler, workers, memory_limit, args.retries) as executor:
             result = run(plan, args.output, executor, ccds, overwrite=args.overwrite,
                          retries=args.retries)
     else:
-        if args.memory_limit:
-            raise InputError("--memory-limit", args.memory_limit, "only with --scheduler")
         result = _run_on_pool(plan, ccds, args, workers)
     print(f"{args.output}: {len(result.rendered)} CCDs rendered, {len(result.skipped)} "
           f"already done, {len(result.failed)} failed", file=sys.stderr)
