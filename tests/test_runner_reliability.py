@@ -1,6 +1,6 @@
 """The focal-plane runner under stress: two scenes into one directory, a stop mid-run, the
-memory guard, the refusals of the command line, --overwrite, and the manifest's digest,
-pending and stray-file paths. Small cut-outs keep it quick."""
+memory guard, the refusals of the command line, nothing to render, --overwrite, and the
+manifest's digest, pending and stray-file paths. Small cut-outs keep it quick."""
 import csv
 import json
 import os
@@ -375,6 +375,27 @@ def test_the_output_folder_needs_its_parent(tmp_path, capsys):
 def _satellites(outdir):
     with open(os.path.join(outdir, "satellites.csv"), newline="") as stream:
         return list(csv.DictReader(stream))
+
+
+@pytest.mark.parametrize("args, why", [
+    (("--job", 5, "--njobs", 6), "--job 5 of --njobs 6 takes none of the 4 CCDs"),
+    (("--detectors", "R01_S00,R43_S22", "--streak-ccds-only"),
+     "--streak-ccds-only: no streak reaches the 2 CCDs selected"),
+])
+def test_nothing_to_render_is_not_a_failure(tmp_path, capsys, args, why):
+    """Before: exit 2 and no satellites.csv, so a batch array with more slices than CCDs
+    reported failures. (The line reaches R22_S11 and R22_S12 of these four.)"""
+    scene = _scene_file(tmp_path, RAW)
+    out = tmp_path / "out"
+    assert _main(scene, "-o", out, *args) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1] == (f"inject focalplane: no CCD to render ({why}); wrote "
+                       f"{out / 'satellites.csv'}")
+    records = _satellites(str(out))
+    assert [(r["satellite"], r["ccds"], r["scene_sha256"]) for r in records] == [
+        ("0", "R22_S11 R22_S12", X.digest)]
+    assert runner.read_manifest(str(out)) == {} and (out / "manifest.csv").exists()
+    assert _files(str(out)) == [] and _leftovers(str(out)) == []
 
 
 def test_overwrite_replaces_the_whole_run(tmp_path, capsys, reference):

@@ -58,9 +58,14 @@ def _selected(plan, args):
             raise InputError("--detectors", args.detectors,
                              f"{outside[0].name} is not among the scene's detectors")
         ccds = tuple(c for c in ccds if c in wanted)
+    why = f"the {len(ccds)} CCDs selected"
     if args.streak_ccds_only:
-        ccds = plan.streak_ccds(ccds)
-    return slice_ccds(ccds, args.job, args.njobs)
+        ccds, before = plan.streak_ccds(ccds), len(ccds)
+        why = f"--streak-ccds-only: no streak reaches the {before} CCDs selected"
+    sliced = slice_ccds(ccds, args.job, args.njobs)
+    if ccds and not sliced:
+        why = f"--job {args.job} of --njobs {args.njobs} takes none of the {len(ccds)} CCDs"
+    return sliced, why
 
 
 def run_focalplane(args):
@@ -75,7 +80,7 @@ def run_focalplane(args):
         raise InputError("--json", True, "only with --plan")
     fscene = parse_focal_scene(apply_overrides(load_scene_file(args.scene), args.overrides))
     plan = make_plan(fscene)
-    ccds = _selected(plan, args)
+    ccds, why = _selected(plan, args)
     if args.plan:
         result = plan.summary(ccds)
         if args.json:
@@ -95,9 +100,10 @@ def run_focalplane(args):
         raise InputError("-o", None, "give an output directory (or --plan)")
     check_outdir(args.output)
     limit = _memory_limit(plan.fscene, ccds, args)
-    if not ccds:
-        raise InputError("--detectors/--job", (args.detectors, args.job), "no CCD to render")
     records = _check_satellites_file(plan, args)
+    if not ccds:
+        _nothing_to_render(plan, args, records, why)
+        return
     workers = _workers(plan.fscene, ccds, args)
     mosaic = os.path.join(args.output, "mosaic.png")
     if not args.no_mosaic and os.path.exists(mosaic) and not args.overwrite:
@@ -108,6 +114,18 @@ def run_focalplane(args):
             raise OutputError(f"{mosaic}: exists (not this scene's); pass --overwrite to "
                               "replace it")
     _render(plan, ccds, args, records, workers, limit)
+
+
+def _nothing_to_render(plan, args, records, why):
+    """No CCD in this run (an empty --job slice, --streak-ccds-only on a pass in shadow): not
+    a failure (a batch array may have more slices than CCDs). The directory is checked and
+    its manifest made as for a run (another scene's run is refused without --overwrite,
+    replaced with it), and satellites.csv says where each satellite went."""
+    from inject.exposure.runner import run
+
+    run(plan, args.output, None, ccds=(), overwrite=args.overwrite)
+    path = write_satellites(args.output, records)
+    print(f"inject focalplane: no CCD to render ({why}); wrote {path}", file=sys.stderr)
 
 
 def _workers(fscene, ccds, args):
