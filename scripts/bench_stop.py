@@ -2,12 +2,12 @@
 
 Runs ``inject focalplane`` on 4 full-size CCDs with 2 workers (a process pool) in its own
 process group, sends SIGTERM to the command's process alone (as ``kill PID`` or a batch
-system's first signal does) once ``--after`` CCDs are done (or ``--at`` seconds after the
-start), and measures:
+system's first signal does; ``--signal INT --group``: Ctrl-C at a terminal, to every process of
+the group) once ``--after`` CCDs are done (or ``--at`` seconds after the start), and measures:
 
 * the stop latency: from the signal to the command's exit, and to the last process of its
   group (the workers) gone;
-* the exit status (143 for SIGTERM);
+* the exit status (128 + the signal: 143 for SIGTERM, 130 for SIGINT, 129 for SIGHUP);
 * the manifest against the files: every ``done`` row's SHA-256 equals its file's; no CCD file
   without a ``done`` row; no ``pending`` row with a file; no temporary file (``.inject-*``) and
   no ``.manifest.lock`` left.
@@ -15,7 +15,8 @@ start), and measures:
 Usage::
 
     python scripts/bench_stop.py [--tries 5] [--after 1 | --at 3.0] [--workers 2]
-        [--out out/bench_stop] [--python PYTHON] [--pythonpath DIR]
+        [--signal TERM|INT|HUP] [--group] [--out out/bench_stop] [--python PYTHON]
+        [--pythonpath DIR]
 
 ``--pythonpath`` runs another checkout of the package (e.g. the code before a change).
 """
@@ -126,8 +127,12 @@ def one(args, k):
         time.sleep(0.01)
     if proc.poll() is not None:
         raise SystemExit(f"try {k}: the run ended before the signal; use a smaller --at")
+    signum = getattr(signal, f"SIG{args.signal}")
     sent = time.perf_counter()
-    proc.send_signal(signal.SIGTERM)
+    if args.group:
+        os.killpg(proc.pid, signum)
+    else:
+        proc.send_signal(signum)
     proc.wait()
     exited = time.perf_counter() - sent
     while group_alive(proc.pid) and time.perf_counter() - sent < 60:
@@ -157,6 +162,9 @@ def main():
     parser.add_argument("--after", type=int, default=1, help="signal once N CCDs are done")
     parser.add_argument("--at", type=float, help="signal N s after the start instead")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--signal", default="TERM", choices=("TERM", "INT", "HUP"))
+    parser.add_argument("--group", action="store_true",
+                        help="to every process of the group, as Ctrl-C at a terminal")
     parser.add_argument("--out", default="out/bench_stop")
     parser.add_argument("--python", default=sys.executable)
     parser.add_argument("--pythonpath", help="PYTHONPATH of the command (another checkout)")
@@ -166,13 +174,16 @@ def main():
         json.dump(SCENE, stream)
     results = [one(args, k) for k in range(args.tries)]
     summary = {"tries": args.tries, "workers": args.workers, "ccds": 4,
+               "signal": f"SIG{args.signal}", "group": args.group,
                "exit_s_median": statistics.median(r["exit_s"] for r in results),
                "exit_s_max": max(r["exit_s"] for r in results),
                "group_gone_s_median": statistics.median(r["group_gone_s"] for r in results),
                "consistent": all(not r["problems"] for r in results), "results": results}
-    print(f"stop latency after SIGTERM: median {summary['exit_s_median']:.3f} s (max "
-          f"{summary['exit_s_max']:.3f} s) to exit, {summary['group_gone_s_median']:.3f} s to "
-          f"the last process; manifest consistent with the files: {summary['consistent']}")
+    sent_to = " (to the group)" if args.group else ""
+    print(f"stop latency after SIG{args.signal}{sent_to}: median "
+          f"{summary['exit_s_median']:.3f} s (max {summary['exit_s_max']:.3f} s) to exit, "
+          f"{summary['group_gone_s_median']:.3f} s to the last process; manifest consistent "
+          f"with the files: {summary['consistent']}")
     with open(os.path.join(args.out, "bench_stop.json"), "w") as stream:
         json.dump(summary, stream, indent=1)
 
