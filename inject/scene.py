@@ -13,7 +13,7 @@ import numpy as np
 
 from inject.camera.detector import add_cosmic_rays, bleed_saturation, raw_layout
 from inject.config import Scene, sky_level
-from inject.errors import SceneError
+from inject.errors import InputError, SceneError
 from inject.instrument import LSST
 from inject.maskplanes import (
     FLAG_CLIPPED,
@@ -38,13 +38,20 @@ from inject.stars import add_star_field
 from inject.streak import StreakModel
 from inject.trajectory import Polyline, Segment, clip_path
 
-#: Random streams, one per purpose, spawned from the scene seed (numpy SeedSequence).
-STREAMS = {"stars": 0, "noise": 1, "cosmic_rays": 2, "raw": 3, "star_noise": 4}
+#: Random streams, one per purpose, spawned from the scene seed (numpy SeedSequence). The
+#: pixel noise (``noise``: the sky's and dark current's Poisson draws, ``signal_noise``: the
+#: streaks' and stars', ``read_noise``) has a stream per fixed block of the whole sensor
+#: (:class:`AmplifierNoise`), ``raw`` one per amplifier; ``stars`` and ``cosmic_rays`` are
+#: drawn over the whole sensor: so a cut-out draws, pixel for pixel, what the whole CCD does.
+STREAMS = {"stars": 0, "noise": 1, "cosmic_rays": 2, "raw": 3, "signal_noise": 4,
+           "read_noise": 5}
 
-def rng(seed, purpose, detector_index=0):
-    """Independent generator for one purpose of one detector of a scene seed."""
+
+def rng(seed, purpose, detector_index=0, *block):
+    """Independent generator for one purpose of one detector of a scene seed (and of one
+    block of it, such as an amplifier's number, when given)."""
     return np.random.default_rng(
-        np.random.SeedSequence(seed, spawn_key=(detector_index, STREAMS[purpose])))
+        np.random.SeedSequence(seed, spawn_key=(detector_index, STREAMS[purpose], *block)))
 
 
 @dataclass
@@ -345,7 +352,7 @@ class PoissonTable:
     def __init__(self, mean):
         from scipy import stats
 
-        kmax = int(mean + 40 * np.sqrt(mean) + 40)
+        kmax = _kmax(mean)
         self.cdf = stats.poisson.cdf(np.arange(kmax + 1), mean)
         self.cdf[-1] = 1.0  # every u < 1 maps inside the table
         self.guide = np.searchsorted(self.cdf, np.arange(self.GUIDE) / self.GUIDE, side="right")
@@ -364,6 +371,11 @@ class PoissonTable:
         return k
 
 
+def _kmax(mean):
+    """Largest count drawn for ``mean``: the CDF is 1 to float64 precision beyond it."""
+    return np.floor(mean + 40 * np.sqrt(mean) + 40).astype(np.int64)
+
+
 @lru_cache(maxsize=8)
 def _poisson_table(mean):
     return PoissonTable(mean)
@@ -377,54 +389,179 @@ def draw_poisson(gen, mean, shape):
     return gen.poisson(mean, size=shape)
 
 
+#: :func:`poisson_inverse` sums the CDF up from 0 below this mean; from it on, it starts at a
+#: normal approximation (on the default CCD's streak and stars, any threshold from 3 to 30
+#: takes the same time).
+SEARCH_MEAN = 10.0
+
+
+def poisson_inverse(u, mean):
+    """Poisson draws by inversion, one uniform each: the smallest ``k`` with ``CDF(k) > u``
+    for Poisson(``mean``), element by element (each its own mean; int64, the shape of ``u``).
+
+    A draw depends only on its own ``u`` and mean, so a pixel's count does not depend on
+    which other pixels are drawn (a cut-out's pixels get the whole CCD's counts). Like
+    :class:`PoissonTable`, it is Poisson to the precision of the float64 CDF, and stops at
+    ``mean + 40 sqrt(mean) + 40``. ``CDF(0) = exp(-mean) >= 1 - mean``, so ``u < 1 - mean``
+    is ``k = 0`` at once (most pixels of a wing); below :data:`SEARCH_MEAN` the CDF is summed
+    up from 0 (pmf by recurrence), above it the search starts at the Cornish-Fisher normal
+    approximation (``scipy.special.pdtr`` there) and steps by the pmf (a step or two).
+
+    Parameters
+    ----------
+    u : array_like
+        Uniforms in [0, 1).
+    mean : array_like
+        Means >= 0, the shape of ``u``.
+    """
+    u = np.asarray(u, dtype=np.float64)
+    mean = np.asarray(mean, dtype=np.float64)
+    k = np.zeros(u.size, np.int64)
+    flat_u, flat_m = u.ravel(), mean.ravel()
+    todo = np.flatnonzero(flat_u >= 1.0 - flat_m)
+    if todo.size:
+        m, uu = flat_m[todo], flat_u[todo]
+        low = m < SEARCH_MEAN
+        k[todo[low]] = _search_up(uu[low], m[low])
+        k[todo[~low]] = _search_near(uu[~low], m[~low])
+    return k.reshape(u.shape)
+
+
+def _search_up(u, m):
+    """:func:`poisson_inverse` for small means: the CDF summed from 0 until it exceeds ``u``."""
+    k = np.zeros(u.size, np.int64)
+    p = np.exp(-m)
+    cdf = p.copy()
+    active = np.flatnonzero(u >= cdf)
+    u, m, p, cdf, kmax = u[active], m[active], p[active], cdf[active], _kmax(m[active])
+    j = 0
+    while active.size:
+        j += 1
+        p *= m / j
+        cdf += p
+        going = (u >= cdf) & (j < kmax)
+        k[active[~going]] = j
+        if not going.all():
+            active, u, m, p, cdf, kmax = (a[going] for a in (active, u, m, p, cdf, kmax))
+    return k
+
+
+def _search_near(u, m):
+    """:func:`poisson_inverse` for larger means: from the normal approximation with the
+    skewness term (``CDF(k)`` by ``scipy.special.pdtr``), up while ``CDF(k) <= u``, down while
+    ``CDF(k - 1) > u``, the neighbouring CDF values by adding or taking the pmf (to the
+    absolute precision of the float64 CDF, that of ``u``)."""
+    from scipy.special import gammaln, ndtri, pdtr, xlogy
+
+    kmax = _kmax(m)
+    z = ndtri(np.maximum(u, 1e-300))
+    k = np.clip(np.floor(m + np.sqrt(m) * z + (z * z - 1) / 6), 0, kmax).astype(np.int64)
+    cdf = pdtr(k, m)
+    pmf = np.exp(xlogy(k, m) - m - gammaln(k + 1.0))
+    up = (cdf <= u) & (k < kmax)
+    # Stepping up ends at the first k with CDF(k) > u; the others may have to step down.
+    step = np.flatnonzero(up)
+    while step.size:
+        k[step] += 1
+        pmf[step] *= m[step] / k[step]
+        cdf[step] += pmf[step]
+        step = step[(cdf[step] <= u[step]) & (k[step] < kmax[step])]
+    step = np.flatnonzero(~up & (k > 0))
+    step = step[cdf[step] - pmf[step] > u[step]]
+    while step.size:
+        cdf[step] -= pmf[step]
+        pmf[step] *= k[step] / m[step]
+        k[step] -= 1
+        step = step[k[step] > 0]
+        step = step[cdf[step] - pmf[step] > u[step]]
+    return k
+
+
+#: Rows of an amplifier per noise block (its last block holds what is left).
+BLOCK_ROWS = 256
+
+
+@dataclass(frozen=True)
+class _Block:
+    """Pixels of one noise block inside the image: ``region`` (row and column slices) and
+    its place on the sensor, ``key = (amplifier row, amplifier column, strip)``."""
+
+    key: tuple
+    region: tuple
+    read_noise: float
+
+
 class AmplifierNoise:
-    """Poisson and read noise drawn amplifier by amplifier, on a thread pool.
+    """Poisson and read noise drawn in fixed blocks of the whole sensor, on a thread pool.
 
-    Each amplifier has its own random stream (spawned from the scene seed, the detector and
-    the amplifier), so the result is the same whatever the number of threads; numpy's
-    generators release the GIL, so two cores draw twice as fast.
+    The blocks: each amplifier of the whole sensor (:attr:`Detector.full_shape
+    <inject.camera.detector.Detector.full_shape>`), cut into strips of :data:`BLOCK_ROWS`
+    rows from its first row. Each block has one random stream per purpose (``noise``: the
+    level's Poisson draws; ``signal_noise``: those of the varying charge; ``read_noise``),
+    keyed on the seed, the detector, the purpose, the amplifier and the strip, and takes its
+    numbers pixel by pixel in rows of the amplifier's whole width. A cut-out (pixels ``[0,
+    ny) x [0, nx)`` of the sensor) holds the first rows of its blocks, and the first columns
+    of those rows: it draws the same numbers, leaving out those beyond its last column, so
+    each pixel gets the numbers the whole CCD gives it. The draws do not depend on the
+    threads either (numpy's generators release the GIL: two cores draw twice as fast).
 
-    The expected charge comes in parts: a level uniform over the CCD (sky and dark current)
-    and what varies per pixel (``varying``: the streaks; the stars add their own draws stamp
-    by stamp, see :func:`~inject.stars.draw_stars`). As the sum of independent Poisson
-    variables is Poisson with the summed mean, each amplifier draws Poisson(level) for all its
-    pixels (one mean: :func:`draw_poisson`) and Poisson(varying) only where ``varying > 0``:
-    the collected charge is distributed exactly as Poisson of the total per pixel
-    (tests/test_noise_split.py and tests/test_stars.py check it).
+    The expected charge comes in two parts: a level uniform over the CCD (sky and dark
+    current) and what varies per pixel (``varying``: streaks and stars). As the sum of
+    independent Poisson variables is Poisson with the summed mean, each block draws
+    Poisson(level) for all its pixels (one mean: :func:`draw_poisson`) and, from its other
+    stream, Poisson(varying) where ``varying > 0``, by inversion of one uniform per pixel at
+    the pixel's own mean (:func:`poisson_inverse`; the block's rows up to its last lit one
+    each take a uniform per pixel, lit or not, so the numbers stay on their pixels): the
+    collected charge is distributed exactly as Poisson of the total per pixel
+    (tests/test_noise_split.py checks it).
     """
 
     def __init__(self, detector, seed, detector_index=0, threads=None):
         self.shape = ny, nx = detector.shape
-        self.blocks = [(slice(y, y + detector.amp_ny), slice(x, x + detector.amp_nx))
-                       for y in range(0, ny, detector.amp_ny)
-                       for x in range(0, nx, detector.amp_nx)]
-        # Each block lies in one amplifier: its read noise is one number.
-        self.read_noise = [detector.amp_value("read_noise", b[0].start, b[1].start)
-                           for b in self.blocks]
-        root = np.random.SeedSequence(seed, spawn_key=(detector_index, STREAMS["noise"]))
-        # SFC64: numpy's fastest bit generator here (float32 normals ~15% faster than PCG64's).
-        self.generators = [np.random.Generator(np.random.SFC64(s))
-                           for s in root.spawn(len(self.blocks))]
+        self.seed, self.detector_index = seed, detector_index
+        self.width = detector.amp_nx
+        amp_ny, amp_nx = detector.amp_ny, detector.amp_nx
+        self.blocks = []
+        for r in range(-(-ny // amp_ny)):
+            for c in range(-(-nx // amp_nx)):
+                cols = slice(c * amp_nx, min((c + 1) * amp_nx, nx))
+                # Each block lies in one amplifier: its read noise is one number.
+                sigma = detector.amp_value("read_noise", r * amp_ny, c * amp_nx)
+                top = min((r + 1) * amp_ny, ny)
+                for s, y in enumerate(range(r * amp_ny, top, BLOCK_ROWS)):
+                    rows = slice(y, min(y + BLOCK_ROWS, top))
+                    self.blocks.append(_Block((r, c, s), (rows, cols), sigma))
         self.threads = threads or NOISE_THREADS or min(len(self.blocks), os.cpu_count() or 1)
+
+    def generator(self, purpose, block):
+        """The random stream of one purpose of one block."""
+        # SFC64: numpy's fastest bit generator here (float32 normals ~15% faster than PCG64's).
+        return np.random.Generator(np.random.SFC64(np.random.SeedSequence(
+            self.seed, spawn_key=(self.detector_index, STREAMS[purpose], *block.key))))
 
     def _each(self, work):
         if self.threads == 1:  # no pool to start and join in a single-threaded worker
-            for args in zip(self.generators, self.blocks, self.read_noise):
-                work(*args)
+            for block in self.blocks:
+                work(block)
             return
         with ThreadPoolExecutor(self.threads) as pool:
-            list(pool.map(work, self.generators, self.blocks, self.read_noise))
+            list(pool.map(work, self.blocks))
 
-    #: Pixels of an amplifier drawn at a time: the uniforms, guide indices and counts of a
-    #: chunk (8 bytes a pixel each) stay in the core's cache instead of streaming through
-    #: memory (the table's draw alone: 8 instead of 13 ms per Mpx here); the uniforms come in
-    #: the same order, so the image is the one a whole-amplifier draw gives.
+    #: Pixels drawn at a time: the uniforms, guide indices and counts of a chunk (8 bytes a
+    #: pixel each) stay in the core's cache instead of streaming through memory (the table's
+    #: draw alone: 8 instead of 13 ms per Mpx here); the numbers come in the same order, so
+    #: the image is the one a whole-block draw gives.
     CHUNK_PX = 1 << 16
+
+    def _chunks(self, n_rows):
+        """``(first row, rows)`` of the chunks of a block's ``n_rows`` rows."""
+        rows = max(1, self.CHUNK_PX // max(1, self.width))
+        return [(r, min(rows, n_rows - r)) for r in range(0, n_rows, rows)]
 
     def draw(self, level, varying=None, dtype=np.float32):
         """Collected charge for the expected charge ``level + varying``, and its variance.
 
-        One pass per amplifier: Poisson(level) for every pixel, Poisson(varying) added where
+        One pass per block: Poisson(level) for every pixel, Poisson(varying) added where
         ``varying > 0``, and the variance ``level + max(varying, 0) + read_noise**2`` (the
         Poisson mean drawn plus the amplifier's read noise squared) from the same pixels.
 
@@ -433,8 +570,9 @@ class AmplifierNoise:
         level : float
             Expected charge of every pixel, e- (>= 0).
         varying : ndarray, optional
-            Expected charge on top of it, per pixel; values <= 0 add nothing (the streak
-            model can dip a few 1e-6 of its peak below zero by interpolation).
+            Expected charge on top of it, per pixel, of the image's shape; values <= 0 add
+            nothing (the streak model can dip a few 1e-6 of its peak below zero by
+            interpolation).
         dtype : numpy dtype
             Of the image: float32 holds every count exactly up to 2**24 e- (100 full wells).
 
@@ -443,37 +581,56 @@ class AmplifierNoise:
         image : ndarray of ``dtype``
         variance : ndarray of float32
         """
-        shape = self.shape if varying is None else varying.shape
-        image = np.empty(shape, dtype)
-        variance = np.empty(shape, np.float32)
+        if varying is not None and varying.shape != self.shape:
+            raise InputError("varying", varying.shape, f"must have the image's shape {self.shape}")
+        image = np.empty(self.shape, dtype)
+        variance = np.empty(self.shape, np.float32)
 
-        def draw(gen, block, sigma):
-            out, var = image[block], variance[block]
-            rows = max(1, self.CHUNK_PX // max(1, out.shape[1]))
-            for r in range(0, out.shape[0], rows):
-                out[r:r + rows] = draw_poisson(gen, level, out[r:r + rows].shape)
-            var[...] = np.float32(level + sigma ** 2)
+        def draw(block):
+            out, var = image[block.region], variance[block.region]
+            width = out.shape[1]
+            if level > 0:
+                gen = self.generator("noise", block)
+                for r, n in self._chunks(out.shape[0]):
+                    out[r:r + n] = draw_poisson(gen, level, (n, self.width))[:, :width]
+            else:
+                out[...] = 0
+            var[...] = np.float32(level + block.read_noise ** 2)
             if varying is None:
                 return
-            part = varying[block]
-            for r in range(0, out.shape[0], rows):
-                chunk = np.s_[r:r + rows]
-                where = np.nonzero(part[chunk] > 0)
+            part = varying[block.region]
+            rows = np.flatnonzero(part.max(axis=1) > 0)
+            if not rows.size:
+                return
+            gen = self.generator("signal_noise", block)
+            chunks = self._chunks(rows[-1] + 1)
+            scratch = np.empty((chunks[0][1], width))
+            for r, n in chunks:
+                u = gen.random((n, self.width))[:, :width]
+                mean = part[r:r + n]
+                # CDF(0) = exp(-mean) >= 1 - mean: elsewhere the count is 0 (and where
+                # mean <= 0, always).
+                bound = np.subtract(1.0, mean, out=scratch[:n])
+                where = np.nonzero(u >= bound)
                 if where[0].size:
-                    mean = part[chunk][where]
                     # Summed in float64 and rounded once: the counts stay exact.
-                    out[chunk][where] += gen.poisson(mean)
-                    var[chunk][where] += mean.astype(np.float32)
+                    out[r:r + n][where] += poisson_inverse(u[where], mean[where])
+                np.add(var[r:r + n], np.maximum(mean, 0.0, out=scratch[:n]), out=var[r:r + n],
+                       casting="unsafe")
         self._each(draw)
         return image, variance
 
     def add_read_noise(self, image):
         """Add Gaussian read noise to ``image`` in place (float32 normals: far finer than
         the noise itself) and return it."""
-        def draw(gen, block, sigma):
-            noise = gen.standard_normal(size=image[block].shape, dtype=np.float32)
-            noise *= np.float32(sigma)
-            image[block] += noise
+        def draw(block):
+            gen = self.generator("read_noise", block)
+            out = image[block.region]
+            sigma = np.float32(block.read_noise)
+            for r, n in self._chunks(out.shape[0]):
+                noise = gen.standard_normal(size=(n, self.width), dtype=np.float32)
+                noise *= sigma
+                out[r:r + n] += noise[:, :out.shape[1]]
         self._each(draw)
         return image
 
@@ -483,13 +640,21 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
     """Simulate one CCD of a scene.
 
     ``rendered`` (the ``(image, truth)`` of :func:`render_tracks`) and ``add_stars`` (a
-    function ``add_stars(image, noise=None, variance=None)`` adding the stars' charge to an
-    image in place, as :func:`~inject.stars.draw_stars` does) let a caller that places
-    streaks and stars itself, such as the focal plane, reuse the rest.
+    function ``add_stars(image)`` adding the stars' expected charge to a float64 image in
+    place, as :func:`~inject.stars.draw_stars` does) let a caller that places streaks and
+    stars itself, such as the focal plane, reuse the rest.
 
     The order follows the charge: streaks, sky, stars and dark current are expected charge;
     Poisson noise draws the collected charge; saturation bleeds it along columns; cosmic rays
     add to it; read noise and (for ``units: adu``) the amplifiers' gains come last.
+
+    A cut-out (a detector of ``nx x ny`` pixels: pixels ``[0, ny) x [0, nx)`` of the sensor)
+    gets the whole CCD's pixels byte for byte, noise included: every random number is drawn
+    for a fixed block of the whole sensor (:class:`AmplifierNoise`, :data:`STREAMS`), the
+    random stars and cosmic rays over the whole sensor. Only saturation can differ: charge
+    bleeds along a column and stops at the image's edges, the cut-out's top edge (row ``ny
+    - 1``) included, so a bleed trail that crosses that row in the whole CCD differs there
+    (tests/test_cutout_noise.py).
 
     Returns
     -------
@@ -513,19 +678,24 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
         # No streak: no model to add, keep or write (a read-only zero view costs nothing).
         streaks = np.broadcast_to(np.float32(0), det.shape)
     if scene.stars and add_stars is None:
-        def add_stars(image, **noise):
+        def add_stars(image):
+            # Random stars over the whole sensor: a cut-out has the whole CCD's stars.
             return add_star_field(image, scene, rng(scene.seed, "stars", detector_index),
-                                  wcs=wcs, **noise)
+                                  wcs=wcs, field_shape=det.full_shape)
     mask = np.zeros(det.shape, dtype=np.int32)
     noise = AmplifierNoise(det, scene.seed, detector_index) if scene.noise else None
     if noise is not None:
-        # float32, as written: the counts are integers, exact in float32 to 2**24 e-.
-        image, variance = noise.draw(level, streaks if truth else None, np.float32)
+        varying = streaks if truth else None
         if scene.stars:
-            # The stars' charge stamp by stamp, from a stream of its own: Poisson draws only
-            # where a star reaches, no image of expected charge (see draw_stars).
-            add_stars(image, noise=rng(scene.seed, "star_noise", detector_index),
-                      variance=variance)
+            # The stars' expected charge joins the streaks' (a sum of its own: the model is
+            # written as it is), so that each pixel's charge is drawn from its block's stream.
+            varying = np.zeros(det.shape)
+            add_stars(varying)
+            if truth:
+                varying += streaks
+        # float32, as written: the counts are integers, exact in float32 to 2**24 e-.
+        image, variance = noise.draw(level, varying, np.float32)
+        del varying
     else:
         image = np.full(det.shape, level) if not truth else streaks + level
         if scene.stars:
@@ -533,11 +703,14 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
     saturated = bleed_saturation(image, det.full_well, det.midline)
     if scene.cosmic_rays > 0:
         cr_rng = rng(scene.seed, "cosmic_rays", detector_index)
-        cosmic = add_cosmic_rays(image, scene.cosmic_rays * scene.exptime, cr_rng)
+        cosmic = add_cosmic_rays(image, scene.cosmic_rays * scene.exptime, cr_rng,
+                                 full_shape=det.full_shape)
         mask[cosmic] |= 1 << MASK_PLANES["CR"]
     raw = sections = None
     if det.layout == "raw":  # the amplifiers read the collected charge, adding their own noise
-        raw, sections = raw_layout(image, det, rng(scene.seed, "raw", detector_index), det.bias)
+        raw, sections = raw_layout(image, det,
+                                   lambda amp: rng(scene.seed, "raw", detector_index, amp),
+                                   det.bias)
     if noise is not None:
         noise.add_read_noise(image)
         noise_sigma = pixel_noise(scene)

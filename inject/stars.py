@@ -566,7 +566,10 @@ def draw_stars(image, x, y, fluxes_e, psf, pixel_scale, oversample=16, *,
         overlapping stars, and a level drawn beforehand, give each pixel exactly Poisson of
         its total; a faint stamp is drawn photon by photon, see :func:`_collect`), and its
         expected charge to ``variance``. Only the stamps are touched: no image-sized buffer
-        of expected charge.
+        of expected charge. The draws follow the stars, so they depend on which stars and
+        stamp pixels an image holds: a CCD's simulation instead adds the stars' expected
+        charge to the streaks' and draws each pixel from its own block's stream
+        (:class:`inject.scene.AmplifierNoise`), so that a cut-out gets the full CCD's counts.
     variance : ndarray, optional
         With ``noise``: the variance plane (same shape), modified in place.
 
@@ -757,7 +760,7 @@ def _galactic(ra_deg, dec_deg):
     return float(gal.l.deg), float(gal.b.deg)
 
 
-def add_star_field(image, scene, rng, wcs=None, noise=None, variance=None):
+def add_star_field(image, scene, rng, wcs=None, noise=None, variance=None, field_shape=None):
     """Add a scene's stars to ``image`` (expected charge, e-, in place; with ``noise``, the
     collected charge, and the expected charge to ``variance``: see :func:`draw_stars`).
 
@@ -779,6 +782,9 @@ def add_star_field(image, scene, rng, wcs=None, noise=None, variance=None):
     noise : numpy.random.Generator, optional
     variance : ndarray, optional
         See :func:`draw_stars`.
+    field_shape : tuple of int, optional
+        ``(ny, nx)`` the random stars are drawn over, from pixel ``(0, 0)`` (default the
+        image's): a cut-out passes its whole sensor's, and gets the whole CCD's stars.
 
     Returns
     -------
@@ -790,8 +796,8 @@ def add_star_field(image, scene, rng, wcs=None, noise=None, variance=None):
     spec = scene.stars
     pixel_scale = LSST.pixel_scale_arcsec
     stamps = psf_stamps(Seeing(scene.seeing).profile(), pixel_scale)
-    field = star_field(spec, image.shape, pixel_scale, scene.band, rng,
-                       margin_px=stamps.core_half, wcs=wcs)
+    field = star_field(spec, image.shape if field_shape is None else field_shape, pixel_scale,
+                       scene.band, rng, margin_px=stamps.core_half, wcs=wcs)
     flux = electron_rate(field["mag"], scene.band) * scene.exptime
     drawn = draw_stars(image, field["x"], field["y"], flux, stamps, pixel_scale, noise=noise,
                        variance=variance)

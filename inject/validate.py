@@ -193,7 +193,8 @@ RANGES = {r.name: r for r in (
     Range("zenith", "deg", 0, 90, "90 deg is the horizon", hi_open=True, options="--zenith"),
     Range("dark_current", "e-/s/px", 0, 1e4, "1e4 e-/s fills a 170 ke- full well in 17 s",
           warn_hi=1, warn_why="LSSTCam's cooled CCDs have well under 1 e-/s/px"),
-    Range("cosmic_rays", "per s per image", 0, 100, "each ray is drawn one at a time",
+    Range("cosmic_rays", "per s per CCD", 0, 100, "drawn over the whole CCD, also for a "
+          "cut-out: 100 per s for an hour is 360 000 rays",
           warn_hi=10, warn_why="imSim uses ~0.2 per s per CCD"),
     Range("detector.nx", "px", 1, 4096, "a cut-out of one sensor, as a focal-plane scene's "
           "cutout.nx (clipped to each CCD): at most ITL 4072 x 4000 or e2v 4096 x 4004",

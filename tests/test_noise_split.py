@@ -105,12 +105,13 @@ def test_chunked_draw_takes_the_same_uniforms(monkeypatch, chunk):
     chunked, chunked_var = AmplifierNoise(DET, 8, threads=1).draw(30.0, varying)
     np.testing.assert_array_equal(chunked, whole)
     np.testing.assert_array_equal(chunked_var, whole_var)
-    # The reference: every amplifier's Poisson(level) by one table draw of its whole block.
+    # The reference: every block's Poisson(level) by one table draw of its whole block.
     noise = AmplifierNoise(DET, 8, threads=1)
-    for gen, block in zip(noise.generators, noise.blocks):
-        expected = draw_poisson(gen, 30.0, whole[block].shape)
-        part = varying[block]
-        np.testing.assert_array_equal(whole[block][part <= 0], expected[part <= 0])
+    for block in noise.blocks:
+        expected = draw_poisson(noise.generator("noise", block), 30.0,
+                                whole[block.region].shape)
+        part = varying[block.region]
+        np.testing.assert_array_equal(whole[block.region][part <= 0], expected[part <= 0])
 
 
 def test_variance_and_read_noise_per_amplifier():
@@ -143,10 +144,13 @@ def test_scene_without_streaks_matches_its_variance(small_scene):
 
 
 def test_variance_holds_the_stars_expected_charge(small_scene):
-    """The stars' charge is drawn stamp by stamp, yet VARIANCE is the whole expected charge:
-    the noise-free image of the same scene (same star field) plus the read noise squared."""
-    noisy = simulate(small_scene("cosmic_rays=0", "satellites=[]", nx=300, ny=260))
-    clean = simulate(small_scene("cosmic_rays=0", "satellites=[]", "noise=false", nx=300, ny=260))
+    """The stars' charge is drawn with the streaks', pixel by pixel; VARIANCE is the whole
+    expected charge: the noise-free image of the same scene (same star field) plus the read
+    noise squared."""
+    # Dense enough that this corner of the CCD's star field holds stars.
+    keys = ("cosmic_rays=0", "satellites=[]", "stars.density_per_deg2=1e5")
+    noisy = simulate(small_scene(*keys, nx=300, ny=260))
+    clean = simulate(small_scene(*keys, "noise=false", nx=300, ny=260))
     assert clean.image.max() - clean.image.min() > 1e3  # stars are there
     np.testing.assert_allclose(noisy.variance, clean.image + ITL.read_noise ** 2, rtol=2e-6)
 

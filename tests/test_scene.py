@@ -87,8 +87,9 @@ def test_sky_options(small_scene):
 
 
 def test_cosmic_rays_and_dark_current(small_scene):
-    res = simulate(small_scene(*BASE, "cosmic_rays=2.0", "dark_current=0.5", "satellites=[]",
-                               "sky=false"))
+    # The rate is per CCD: this 1000 x 1000 cut-out gets ~1/16 of its 300 rays.
+    res = simulate(small_scene(*BASE, "cosmic_rays=10", "dark_current=0.5", "satellites=[]",
+                               "sky=false", "detector.nx=1000", "detector.ny=1000"))
     cr = (res.mask & (1 << MASK_PLANES["CR"])) != 0
     assert cr.any()
     assert np.median(res.image[~cr]) == pytest.approx(15.0, abs=1.0)

@@ -105,6 +105,14 @@ class Detector:
         return float(getattr(self, name) if values is None else np.median(values))
 
     @property
+    def full_shape(self):
+        """``(ny, nx)`` of the whole sensor a cut-out is taken from: its 2 x 8 amplifier grid
+        (never smaller than the image itself). The random draws are keyed on blocks of this
+        grid, so a cut-out draws its pixels' numbers as the whole CCD does."""
+        return (max(self.ny, self.N_AMP_ROWS * self.amp_ny),
+                max(self.nx, self.N_AMP_COLS * self.amp_nx))
+
+    @property
     def midline(self):
         """First row of the upper amplifier half: e2v channel stops block bleeding across it."""
         return self.amp_ny if self.kind == "e2v" else None
@@ -211,26 +219,46 @@ def bleed_saturation(image, full_well, midline=None):
     return rows, columns[where]
 
 
-def add_cosmic_rays(image, n_expected, rng, charge_per_px=1500.0, mean_length_px=6.0):
+#: Cosmic-ray tracks deposited at a time (bounds the temporary arrays at any rate).
+_CR_BATCH = 20_000
+
+
+def add_cosmic_rays(image, n_expected, rng, charge_per_px=1500.0, mean_length_px=6.0,
+                    full_shape=None):
     """Add cosmic-ray tracks (in place) and return their pixels (row and column indices).
 
     A simple model for mask and detection tests, not a physical one: ``Poisson(n_expected)``
     straight tracks at uniform positions and angles, exponential lengths, a log-normal
     charge per pixel of track around ``charge_per_px``, deposited at quarter-pixel steps.
     imSim uses ~0.2 per s per CCD.
+
+    The tracks are drawn over the whole sensor, ``full_shape`` (default the image's), and
+    each deposits the part that falls on the image: a cut-out (pixels ``[0, ny) x [0, nx)``
+    of the sensor) draws the same numbers as the whole CCD and gets exactly its rays there,
+    those that start outside it and cross in included.
     """
     ny, nx = image.shape
+    fy, fx = image.shape if full_shape is None else full_shape
+    n = rng.poisson(n_expected)
+    x0, y0 = rng.uniform(0, fx, n), rng.uniform(0, fy, n)
+    angle = rng.uniform(0, np.pi, n)
+    length = rng.exponential(mean_length_px, n) + 1.0
+    charge = charge_per_px * rng.lognormal(0.0, 0.5, n)
+    # Only tracks whose box reaches the image (the rest cannot deposit on it).
+    reach = length + 1.0
+    near = np.flatnonzero((x0 - reach < nx) & (y0 - reach < ny))
     rows, cols = [], []
-    for _ in range(rng.poisson(n_expected)):
-        x0, y0 = rng.uniform(0, nx), rng.uniform(0, ny)
-        angle = rng.uniform(0, np.pi)
-        length = rng.exponential(mean_length_px) + 1.0
-        charge = charge_per_px * rng.lognormal(0.0, 0.5)
-        s = np.arange(0.0, length, 0.25)
-        x = np.rint(x0 + s * np.cos(angle)).astype(int)
-        y = np.rint(y0 + s * np.sin(angle)).astype(int)
+    for start in range(0, near.size, _CR_BATCH):
+        k = near[start:start + _CR_BATCH]
+        # Steps s = 0, 0.25, ... < length per track, as np.arange(0, length, 0.25) gives them.
+        steps = np.ceil(length[k] / 0.25).astype(np.intp)
+        track = np.repeat(np.arange(k.size), steps)
+        s = (np.arange(track.size) - np.repeat(np.cumsum(steps) - steps, steps)) * 0.25
+        x = np.rint(x0[k][track] + s * np.cos(angle[k])[track]).astype(int)
+        y = np.rint(y0[k][track] + s * np.sin(angle[k])[track]).astype(int)
         inside = (x >= 0) & (x < nx) & (y >= 0) & (y < ny)
-        np.add.at(image, (y[inside], x[inside]), charge * 0.25)
+        # In track order, step by step: each pixel sums its deposits in the whole CCD's order.
+        np.add.at(image, (y[inside], x[inside]), (charge[k] * 0.25)[track[inside]])
         rows.append(y[inside])
         cols.append(x[inside])
     if not rows:
@@ -249,6 +277,11 @@ def raw_layout(image_e, detector, rng, bias=1000.0):
     edge and the upper ones through the top edge, so every segment's parallel overscan rows
     lie towards the midline, after its last data row in readout order. Cut-outs keep the
     amplifiers they overlap, clipped.
+
+    ``rng`` is a generator, or a function giving each amplifier's own, ``rng(amp)``: each
+    segment's noise is then that of the same segment of the whole CCD, whatever the cut-out
+    (a clipped upper amplifier puts its rows at its readout edge, where the whole CCD has
+    others: those pixels' noise differs).
 
     Returns
     -------
@@ -278,7 +311,8 @@ def raw_layout(image_e, detector, rng, bias=1000.0):
             first_row = seg_h - h if upper else 0
             segment = np.zeros((seg_h, seg_w))
             segment[first_row:first_row + h, detector.prescan:detector.prescan + w] = block / gain
-            segment += bias + rng.standard_normal(segment.shape) * sigma / gain
+            gen = rng(amp) if callable(rng) else rng
+            segment += bias + gen.standard_normal(segment.shape) * sigma / gain
             raw[r * seg_h:(r + 1) * seg_h, c * seg_w:(c + 1) * seg_w] = segment
             data_y0 = r * seg_h + first_row
             data_x0 = c * seg_w + detector.prescan
