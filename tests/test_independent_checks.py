@@ -446,3 +446,30 @@ def test_job_slices_are_interleaved():
     names = [[c.name for c in slice_ccds(ccds, job, 3)] for job in range(3)]
     assert names == [["R01_S00", "R01_S10", "R01_S20"], ["R01_S01", "R01_S11"],
                      ["R01_S02", "R01_S12"]]
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_reader_add_keeps_blank_pixels_undefined(tmp_path, compressed):
+    """``read_exposure(...).add`` (the public reader's own guard, not add-streak's model
+    cut to the usable pixels): a delta everywhere changes the defined integers by exactly
+    it and leaves every BLANK pixel BLANK, plain or tile-compressed."""
+    from astropy.io import fits
+
+    from inject import read_exposure
+
+    stored = np.arange(40 * 30, dtype=np.int16).reshape(30, 40) % 1000 + 100
+    stored[5:9, 10:30] = -32768
+    hdu = fits.CompImageHDU(stored, compression_type="RICE_1") if compressed \
+        else fits.ImageHDU(stored)
+    path = tmp_path / "blank.fits"
+    fits.HDUList([fits.PrimaryHDU(), hdu]).writeto(path)
+    with fits.open(path, mode="update", do_not_scale_image_data=True) as hdus:
+        hdus[1].header["BLANK"] = -32768
+    exposure = read_exposure(str(path))
+    exposure.add(exposure.image_index, np.full(stored.shape, 7.0))
+    exposure.write(str(tmp_path / "out.fits"))
+    with fits.open(tmp_path / "out.fits", do_not_scale_image_data=True) as hdus:
+        new = np.asarray(hdus[1].data)
+    undefined = stored == -32768
+    assert np.all(new[undefined] == -32768)
+    assert np.all(new[~undefined] == stored[~undefined] + 7)
