@@ -1,15 +1,17 @@
-"""CCD scenes: a scene mapping validated into a :class:`Scene`.
+"""Scene files: a scene mapping validated into a :class:`Scene`.
 
-The parsing is made of parts that the focal-plane scene (:mod:`inject.exposure.scene`) composes
-with its own tracks: :func:`parse_common` (seed, band, exposure, seeing, sky, stars, noise,
-pointing, time), :func:`parse_satellite` (a satellite's shape and brightness), and the pixel
-track parsers. Every problem is reported as a :class:`~inject.errors.SceneError` naming the key
-path (``satellites[0].height``) and the bad value.
+A CCD scene (:func:`parse_scene`) and a focal-plane scene (:func:`parse_focal_parts`, which
+:func:`inject.exposure.parse_focal_scene` completes) share :func:`parse_common` (seed, band,
+exposure, seeing, sky, stars, noise, pointing, time, site) and :func:`parse_satellite` (a
+satellite's shape and brightness); each has its own tracks: in a CCD's pixels or in
+focal-plane mm. Every problem is reported as a :class:`~inject.errors.SceneError` naming the
+key path (``satellites[0].height``) and the bad value.
 """
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from inject.camera import layout as fp
 from inject.camera.detector import DETECTORS, Detector, detector_from_spec
 from inject.camera.wcs import Pointing
 from inject.errors import InjectError, InputError, SceneError
@@ -19,7 +21,7 @@ from inject.satellite import Shape, shape_from_dict
 from inject.schema import check_keys, number, ranged
 from inject.stars import StarFieldSpec, star_field_spec
 from inject.streak import StreakModel
-from inject.trajectory import Track
+from inject.trajectory import FocalTrack, Track
 from inject.validate import RANGES, check_memory, check_pointing, parse_time, positive
 
 #: The embedded default scene: the paper's 550 km satellite on one full ITL CCD.
@@ -42,6 +44,8 @@ COMMON_KEYS = frozenset({"seed", "band", "exptime", "seeing", "zenith", "sky", "
                          "satellites", "pointing", "dark_current", "cosmic_rays", "units", "time",
                          "site", "shadow_atmosphere_km"})
 SCENE_KEYS = COMMON_KEYS | {"detector"}
+#: Keys of a focal-plane scene.
+FOCAL_KEYS = COMMON_KEYS | {"detectors", "cutout"}
 #: A satellite's model keys, whatever its track is given as.
 SATELLITE_MODEL_KEYS = frozenset({"height", "phi", "shape", "mag", "ref_range"})
 #: Keys of a straight pixel track.
@@ -51,8 +55,14 @@ VERTEX_MODEL_KEYS = ("height", "zenith", "phi", "mag")
 #: Vertex keys of an orbit's track only: the pass's exact range (km) and angular speed across
 #: the star field (rad/s), in place of the spherical-Earth ones of (height, zenith, phi).
 PASS_KEYS = ("range", "angular_speed")
+#: Keys of a straight track in focal-plane mm.
+TRACK_KEYS_MM = frozenset({"x0_mm", "y0_mm", "angle", "length_mm"})
 #: ``sky:`` mapping keys.
 SKY_KEYS = ("level", "mag", "airmass_scaling")
+
+
+#: Keys of a satellite given by its orbit (its height and phi come from the pass).
+ORBIT_SATELLITE_KEYS = (SATELLITE_MODEL_KEYS - {"height", "phi"}) | {"orbit", "lumos"}
 
 
 @dataclass(frozen=True)
@@ -108,6 +118,11 @@ class Scene:
     raw: dict = field(default_factory=dict, compare=False, repr=False)
     #: Exposure start, UTC (ISO 8601), when the scene gives ``time:``.
     time: str | None = None
+    #: The observatory, as the scene's ``site:`` gives it (None: Rubin); read by the orbits.
+    site: object = None
+    #: Height (km) of the atmosphere that grazing sunlight must clear (None: the orbits'
+    #: default).
+    shadow_atmosphere_km: float | None = None
 
 
 def _check_detector(spec):
@@ -208,8 +223,9 @@ def parse_common(raw):
     pointing = parse_pointing(merged.get("pointing"))
     sky = parse_sky(merged["sky"])
     stars = parse_stars(merged["stars"], pointing)
-    if "shadow_atmosphere_km" in merged:  # used by orbits (inject.orbits.tracks)
-        ranged("shadow_atmosphere_km", "shadow_atmosphere_km", merged["shadow_atmosphere_km"])
+    atmosphere = merged.get("shadow_atmosphere_km")
+    if atmosphere is not None:
+        atmosphere = ranged("shadow_atmosphere_km", "shadow_atmosphere_km", atmosphere)
     units = merged.get("units", "electron")
     if units not in ("electron", "adu"):
         raise SceneError(f"units={units!r}: choose electron or adu")
@@ -218,7 +234,8 @@ def parse_common(raw):
         **{k: ranged(k, k, merged[k]) for k in ("exptime", "seeing", "zenith")},
         sky=sky, stars=stars, noise=merged["noise"], pointing=pointing, units=units,
         **{k: ranged(k, k, merged.get(k, 0.0)) for k in ("dark_current", "cosmic_rays")},
-        time=None if merged.get("time") is None else exposure_start(merged["time"]), raw=raw)
+        time=None if merged.get("time") is None else exposure_start(merged["time"]),
+        site=merged.get("site"), shadow_atmosphere_km=atmosphere, raw=raw)
 
 
 def satellite_list(raw):
@@ -409,3 +426,121 @@ def check_charge(scene, vertex_values=None):
 def with_detector(scene, detector, satellites=()):
     """A CCD scene from a scene's common part: its sensor and satellites with pixel tracks."""
     return replace(scene, detector=detector, satellites=tuple(satellites))
+
+
+def parse_focal_parts(raw, orbit_track):
+    """Validate a focal-plane scene mapping in one pass.
+
+    Parameters
+    ----------
+    raw : dict
+        The scene mapping.
+    orbit_track : callable
+        ``orbit_track(where, orbit, satellite, scene, lumos)`` -> FocalTrack: a satellite's
+        pass as a track (the orbits wing's, handed in so that this module imports no wing).
+
+    Returns
+    -------
+    scene : Scene
+        The common part (no detector) and the satellites' models (no pixel tracks).
+    tracks : tuple of FocalTrack
+        One per satellite, in focal-plane mm.
+    ccds : tuple of inject.camera.layout.CCD
+        The ``detectors:`` (default the 189 science CCDs).
+    cutout : tuple or None
+        ``(ny, nx)`` of ``cutout:``.
+
+    Raises
+    ------
+    SceneError
+        A key every scene shares is wrong (as :func:`parse_scene` reports it), ``detector``
+        is given, ``pointing`` is missing, or a track, detector list or cut-out is bad.
+    """
+    if isinstance(raw, dict) and "detector" in raw:
+        raise SceneError("detector: a focal-plane scene has no 'detector' key (use "
+                         "'detectors: [R22_S11, ...]' to choose CCDs, 'cutout: {nx, ny}' "
+                         "to shrink them)")
+    check_keys("scene", raw, FOCAL_KEYS)
+    if raw.get("pointing") is None:
+        raise SceneError("pointing: required for a focal-plane scene ({ra, dec, rotation})")
+    satellites = satellite_list(raw)
+    for i, sat in enumerate(satellites):  # before the common keys: as a CCD scene reports it
+        where = f"satellites[{i}]"
+        if isinstance(sat, dict) and "orbit" in sat:
+            if "track" in sat:
+                raise SceneError(f"{where}: give 'track' or 'orbit', not both")
+            for key in ("height", "phi"):
+                if key in sat:
+                    raise SceneError(f"{where}.{key}: comes from the orbit (remove it)")
+            check_keys(where, sat, ORBIT_SATELLITE_KEYS, {"shape", "mag", "orbit"})
+        elif isinstance(sat, dict) and "lumos" in sat:
+            raise SceneError(f"{where}.lumos: only with an orbit (its pass's geometry)")
+        else:
+            check_keys(where, sat, SATELLITE_MODEL_KEYS | {"track"},
+                       {"height", "shape", "mag", "track"})
+    common = Scene(detector=None, **parse_common(raw))
+    try:
+        ccds = fp.select(raw.get("detectors"))
+    except InjectError as err:
+        raise SceneError(str(err)) from None
+    specs, tracks = [], []
+    for i, sat in enumerate(satellites):
+        where = f"satellites[{i}]"
+        spec = parse_satellite(where, sat, height_from_orbit="orbit" in sat)
+        specs.append(spec)
+        tracks.append(orbit_track(f"{where}.orbit", sat["orbit"], spec, common, sat.get("lumos"))
+                      if "orbit" in sat else
+                      parse_focal_track(f"{where}.track", sat["track"], spec, common))
+    scene = replace(common, satellites=tuple(specs))
+    # The charge of every satellite's own vertex values (an orbit's pass, a polyline's
+    # overrides; the satellite's for a line or segment), at the nominal plate scale; a pass
+    # with no streak has no charge.
+    check_charge(scene, [tuple(v for v in t.values if v is not None) if t.kind == "polyline"
+                         else ({},) for t in tracks])
+    return scene, tuple(tracks), ccds, parse_cutout(raw.get("cutout"))
+
+
+def parse_cutout(spec):
+    """``(ny, nx)`` of a ``cutout:`` mapping, in the bounds of a CCD scene's ``detector.nx``
+    and ``ny``; a side not given is the largest sensor's, so that every CCD keeps its full
+    size there (:func:`inject.exposure.plan.ccd_shape` clips each side to the CCD's own)."""
+    if spec is None:
+        return None
+    check_keys("cutout", spec, {"nx", "ny"})
+    if not spec:
+        raise SceneError("cutout: give nx, ny or both (pixels)")
+    largest = {"nx": max(d.nx for d in fp.SENSORS.values()),
+               "ny": max(d.ny for d in fp.SENSORS.values())}
+    nx, ny = (ranged(f"detector.{k}", f"cutout.{k}", spec.get(k, largest[k]), int)
+              for k in ("nx", "ny"))
+    return (ny, nx)
+
+
+def parse_focal_track(where, track, spec, scene):
+    """A track in focal-plane mm: a line ``{x0_mm, y0_mm, angle}``, a segment (with
+    ``length_mm``) or a polyline ``{vertices: [{x_mm, y_mm, ...}, ...]}`` whose vertices may
+    override the satellite's height, zenith, phi and mag."""
+    base = {"height": spec.height, "zenith": scene.zenith, "phi": spec.phi, "mag": spec.mag}
+    if isinstance(track, dict) and "vertices" in track:
+        check_keys(where, track, {"vertices"}, {"vertices"})
+        checked = parse_vertices(where, track["vertices"], position=("x_mm", "y_mm"), extra=())
+        xs = tuple(v["x_mm"] for v in checked)
+        ys = tuple(v["y_mm"] for v in checked)
+        if all(np.hypot(x1 - x0, y1 - y0) == 0
+               for x0, y0, x1, y1 in zip(xs[:-1], ys[:-1], xs[1:], ys[1:])):
+            raise SceneError(f"{where}.vertices: all vertices at one point")
+        values = tuple({k: v.get(k, base[k]) for k in VERTEX_MODEL_KEYS} for v in checked)
+        angle = float(np.degrees(np.arctan2(ys[1] - ys[0], xs[1] - xs[0])))
+        return FocalTrack("polyline", xs, ys, values, angle)
+    check_keys(where, track, TRACK_KEYS_MM, {"x0_mm", "y0_mm", "angle"})
+    x0, y0, angle = (number(f"{where}.{k}", track[k]) for k in ("x0_mm", "y0_mm", "angle"))
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    if track.get("length_mm") is None:
+        reach = 1000.0 + np.hypot(x0, y0)  # far beyond the focal plane on both sides
+        return FocalTrack("line", (x0 - reach * c, x0 + reach * c),
+                          (y0 - reach * s, y0 + reach * s), (base, base), angle)
+    length = number(f"{where}.length_mm", track["length_mm"])
+    if not length > 0:
+        raise SceneError(f"{where}.length_mm={length}: must be > 0 (mm)")
+    return FocalTrack("segment", (x0, x0 + length * c), (y0, y0 + length * s), (base, base),
+                      angle)

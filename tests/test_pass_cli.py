@@ -535,8 +535,8 @@ def test_every_sunlit_part_is_rendered(monkeypatch):
     track = fscene.tracks[0]
     parts = track.parts()
     assert len(parts) == 2 and "2 sunlit parts" in track.message
-    dense = darkened("x", _scene()["satellites"][0]["orbit"],
-                     {"time": "2026-06-15T23:29:58"}, 4.0, fscene.pointing)
+    dense = darkened("x", _scene()["satellites"][0]["orbit"], time="2026-06-15T23:29:58",
+                     exptime=4.0, pointing=fscene.pointing)
     x, y = dense.focal_mm()
     t_of = [dense.t_s[[int(np.nanargmin(np.hypot(x - a, y - b))) for a, b in zip(p.xs, p.ys)]]
             for p in parts]

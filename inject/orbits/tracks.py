@@ -24,7 +24,7 @@ from inject.trajectory import FocalTrack
 from inject.validate import check_pointing, parse_time
 
 
-def orbit_focal_track(where, spec, sat, scene, raw, lumos=None):
+def orbit_focal_track(where, spec, sat, scene, lumos=None):
     """A satellite's track from its orbit during the exposure: the apparent, sunlit parts of
     the pass inside the field (all of them, in time order) as a polyline in mm
     (:func:`inject.orbits.passes.track_runs` on a pass sampled every 0.1 s: a vertex at least
@@ -34,8 +34,15 @@ def orbit_focal_track(where, spec, sat, scene, raw, lumos=None):
     :meth:`inject.orbits.passes.Pass.magnitude` does), and the pass's exact ``range`` and
     ``angular_speed`` (so t_eff, the charge per pixel and the defocus are the pass's, not those
     of the paper's spherical Earth at that height and zenith). A pass that never enters the
-    field or is in shadow there has no vertices, and says why (OrbitWarning)."""
-    dense = orbit_pass(where, spec, raw, scene.exptime, scene.pointing)
+    field or is in shadow there has no vertices, and says why (OrbitWarning).
+
+    ``scene`` is the parsed common part of the scene (:class:`inject.config.Scene`): its
+    exposure start, exposure time, pointing, site and grazing atmosphere are used as parsed."""
+    if scene.time is None:
+        raise SceneError(f"time: required with {where} (exposure start, ISO 8601 UTC)")
+    dense = orbit_pass(where, spec, time=scene.time, exptime=scene.exptime,
+                       pointing=scene.pointing, site=scene.site,
+                       atmosphere_km=scene.shadow_atmosphere_km)
     runs, message = sunlit_runs(where, dense, sat.mag, lumos, sat.ref_range)
     about = {"name": dense.orbit.name or "", "in_field": bool(dense.in_field),
              "sunlit": bool(dense.visible)}
@@ -53,18 +60,17 @@ def orbit_focal_track(where, spec, sat, scene, raw, lumos=None):
     return FocalTrack("polyline", tuple(xs), tuple(ys), tuple(values), angle, message, **about)
 
 
-def orbit_pass(where, spec, raw, exptime, pointing):
-    """The pass (every 0.1 s) of a satellite's ``orbit:`` in a scene, errors as SceneError."""
-    if raw.get("time") is None:
-        raise SceneError(f"time: required with {where} (exposure start, ISO 8601 UTC)")
+def orbit_pass(where, spec, *, time, exptime, pointing, site=None, atmosphere_km=None):
+    """The pass (every 0.1 s) of a satellite's ``orbit:`` during an exposure starting at
+    ``time`` (UTC) seen from ``site`` (a scene's ``site:`` value, None for Rubin), errors as
+    SceneError. ``atmosphere_km`` None: :data:`inject.orbits.passes.SHADOW_ATMOSPHERE_KM`."""
     try:
-        time = parse_time(raw["time"], "time")
+        time = parse_time(time, "time")
         orbit = orbit_from_spec(spec, time, where)
-        site = site_from_spec(raw.get("site"))
-        atmosphere = ranged("shadow_atmosphere_km", "shadow_atmosphere_km",
-                            raw.get("shadow_atmosphere_km", SHADOW_ATMOSPHERE_KM))
+        site = site_from_spec(site)
         return compute_pass(orbit, Exposure(time, exptime), pointing, site, step_s=TRACK_STEP_S,
-                            atmosphere_km=atmosphere)
+                            atmosphere_km=SHADOW_ATMOSPHERE_KM if atmosphere_km is None
+                            else atmosphere_km)
     except SceneError:
         raise
     except InjectError as err:
@@ -153,6 +159,10 @@ def resolve_ccd_orbits(raw):
     except InjectError as err:
         raise SceneError(str(err)) from None
     exptime = number("exptime", raw.get("exptime", 30.0))
+    time = raw.get("time")
+    atmosphere = raw.get("shadow_atmosphere_km")
+    if atmosphere is not None:
+        atmosphere = ranged("shadow_atmosphere_km", "shadow_atmosphere_km", atmosphere)
     ny, nx = shape
     scale_deg = LSST.pixel_scale_arcsec / 3600.0
     out = []
@@ -164,7 +174,10 @@ def resolve_ccd_orbits(raw):
         for key in ("track", "height", "phi"):
             if key in sat:
                 raise SceneError(f"satellites[{i}].{key}: comes from the orbit (remove it)")
-        dense = orbit_pass(where, sat["orbit"], raw, exptime, pointing)
+        if time is None:
+            raise SceneError(f"time: required with {where} (exposure start, ISO 8601 UTC)")
+        dense = orbit_pass(where, sat["orbit"], time=time, exptime=exptime, pointing=pointing,
+                           site=raw.get("site"), atmosphere_km=atmosphere)
         runs, _ = sunlit_runs(where, dense, number(f"satellites[{i}].mag", sat.get("mag")),
                                   sat.get("lumos"), number(f"satellites[{i}].ref_range",
                                                             sat.get("ref_range", 550.0)))
