@@ -247,14 +247,16 @@ FOCAL = {"seed": 5, "band": "g", "zenith": 70, "cosmic_rays": 10,
          "sky": True, "stars": {"galactic_b": 30, "mag_limit": 23}, "noise": True}
 
 
-def _focal_pair(y0_mm, name="R22_S11", cutout=(700, 900)):
-    """The full CCD and its cut-out in a focal-plane scene with a streak at ``y0_mm``."""
+def _focal_pair(y0_mm=None, name="R22_S11", cutout=(700, 900), track=None):
+    """The full CCD and its cut-out in a focal-plane scene with a streak at ``y0_mm`` (or
+    along ``track``)."""
     from inject import make_plan, parse_focal_scene, simulate_ccd
     from inject.camera import layout as fp
 
+    track = track or {"x0_mm": -19.0, "y0_mm": y0_mm, "angle": 3.0}
     raw = dict(FOCAL, satellites=[{"height": 550, "mag": 5.0,
                                    "shape": {"type": "box", "length": 7.25, "width": 2.65},
-                                   "track": {"x0_mm": -19.0, "y0_mm": y0_mm, "angle": 3.0}}])
+                                   "track": track}])
     ccd = fp.ccd(name)
     results = []
     for keys in ({}, {"cutout": {"nx": cutout[0], "ny": cutout[1]}}):
@@ -274,19 +276,40 @@ def test_focal_plane_cutout_is_the_ccds_corner():
     assert np.count_nonzero(cut.variance > cut.variance.min() + 100) > 100  # stars
 
 
-def test_focal_plane_streak_on_a_cutout_takes_its_own_plate_scale():
-    """The rule for a streak crossing a focal-plane cut-out: the plan takes the plate scale
-    (hence the streak's profile and charge per pixel) at the middle of the track's part on
-    the image, and a cut-out's part is shorter: its streak model differs from the full
-    CCD's by the scale's change along the track (here ~1e-5 of the peak), and the counts
-    drawn from it only where it differs. Everything else is byte for byte."""
-    full, cut = _focal_pair(y0_mm=-17.0)
-    model_full, model_cut = full.streak_model[:900, :700], cut.streak_model
-    assert model_cut.max() > 1e3
-    changed = model_full != model_cut
-    assert np.abs(model_full - model_cut).max() <= 2e-5 * model_full.max()
-    assert not np.any((full.image[:900, :700] != cut.image) & ~changed)
-    assert not np.any((full.variance[:900, :700] != cut.variance) & ~changed)
-    assert full.mask[:900, :700].tobytes() == cut.mask.tobytes()
-    # The counts move by one now and then, where the mean crosses a step of the CDF.
-    assert np.abs(full.image[:900, :700] - cut.image).max() <= 1
+#: A polyline across R22_S11 (pixel x = 100 (x_mm + 20.475), y ~ 300): B inside the
+#: 700 x 900 cut-out, C (whose profile draws the second half of B-C, inside it) and D beyond.
+POLYLINE = {"vertices": [{"x_mm": -40.0, "y_mm": -17.1, "height": 500},
+                         {"x_mm": -18.5, "y_mm": -17.05, "height": 520},
+                         {"x_mm": -10.5, "y_mm": -16.98, "height": 560, "mag": 5.0},
+                         {"x_mm": -5.5, "y_mm": -16.95, "height": 580, "mag": 6.0},
+                         {"x_mm": 30.0, "y_mm": -16.8, "height": 700}]}
+#: The same with C and D sharing a profile (same height, other magnitudes): the whole CCD
+#: builds C's on its orientation grid, as it recurs, so the cut-out keeps D too.
+SHARED = {"vertices": [*POLYLINE["vertices"][:3], {**POLYLINE["vertices"][3], "height": 560},
+                       POLYLINE["vertices"][4]]}
+
+
+@pytest.mark.parametrize("track, vertices", [
+    ({"x0_mm": -19.0, "y0_mm": -17.0, "angle": 3.0}, (2, 2)),
+    (POLYLINE, (5, 3)),  # the cut-out keeps the pieces that reach it: entry-B, B-C
+    (SHARED, (5, 5)),
+], ids=["line", "polyline", "shared-profile"])
+def test_focal_plane_streak_on_a_cutout_is_the_ccds_corner(track, vertices):
+    """A streak crossing a focal-plane cut-out is the full CCD's, byte for byte with noise
+    on: its plate scale, model and vertices come from the track's part on the whole CCD (a
+    cut-out's own part is shorter, and its middle, where the scale was taken, ~1e-5 of the
+    peak away). The TRUTH row still describes the part the cut-out receives: it starts where
+    the whole CCD's does (both enter by the left edge) and ends at the cut-out's right edge
+    grown by the profile's reach, on the same track."""
+    full, cut = _focal_pair(track=track)
+    assert cut.streak_model.max() > 1e3
+    _assert_corner(full, cut)
+    (a,), (b,) = full.truth, cut.truth
+    assert b["pixel_scale_arcsec"] == a["pixel_scale_arcsec"] != 0.2
+    assert (b["x0"], b["y0"]) == (a["x0"], a["y0"])
+    reach = -0.5 - a["x0"]  # the whole CCD's part begins that far left of its edge
+    assert b["x1"] == pytest.approx(700 - 0.5 + reach, abs=1e-6) and b["x1"] < a["x1"] - 3000
+    assert b["length_px"] == pytest.approx(np.hypot(b["x1"] - b["x0"], b["y1"] - b["y0"]),
+                                           rel=1e-3)
+    assert b["flags"] & 2 and b["charge_in_image_e"] < a["charge_in_image_e"] / 3
+    assert (a["n_vertices"], b["n_vertices"]) == vertices

@@ -82,7 +82,9 @@ def test_charge_per_pixel_uses_the_local_plate_scale():
     (streak,) = ccd_streaks(fscene, ccd, margins_px(fscene))
     _, result, _, _ = simulate_ccd(fscene, ccd, [streak])
     nominal = vertex_model(fscene, 0, fscene.tracks[0].values[0])  # 0.2"/px
-    ym = float(np.mean(ccd.pixel_to_focal(0, [streak.ends[1], streak.ends[3]])[1]))
+    # The scale is taken at the middle of the track's part on the whole CCD (grown by the
+    # same margin on both sides), not of the cut-out's: the CCD's middle row.
+    ym = float(ccd.pixel_to_focal(0, (ccd.shape[0] - 1) / 2)[1])
     # Written out: the step along +y has components along and across the radius.
     r2 = x_mm ** 2 + ym ** 2
     s = 20.005867576692737

@@ -6,6 +6,11 @@ clipped to that grown area and put in the CCD's pixels (the layout has no yaw, s
 lines), the polyline's vertex values are interpolated where the clipped track enters and
 leaves, and the charge per pixel of track uses the local plate scale along the track. Light
 that falls between CCDs is lost, as in the camera.
+
+A cut-out (``cutout:``) renders what the whole CCD renders on its pixels: the plate scale,
+the model's values and a polyline's vertices come from the track's part on the whole sensor
+(grown by the same margin), and the cut-out keeps the pieces of it that reach its own grown
+area, so its streak model is the whole CCD's corner byte for byte.
 """
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
@@ -96,8 +101,11 @@ class CCDStreak:
     """One satellite's part of the track on one CCD (pixels of that CCD).
 
     ``track`` is a :class:`~inject.config.Track` (a line, a segment or a polyline with the
-    interpolated vertex values); ``ends`` the clipped track's first and last points;
-    ``pixel_scale`` the plate scale along the track where it crosses the CCD.
+    interpolated vertex values); ``ends`` the clipped track's first and last points (on a
+    cut-out, clipped to the cut-out grown by the margin); ``values`` the vertex values of the
+    track's part on the whole CCD (the first sets the streak's model and its render budget);
+    ``pixel_scale`` the plate scale along the track where it crosses the whole CCD (the
+    middle of that part), so that a cut-out's streak is the whole CCD's.
     """
 
     satellite: int
@@ -130,12 +138,28 @@ def ccd_streaks(fscene, ccd, margins):
         reach_mm = margin * fp.PIXEL_MM
         for track in whole.parts():
             pieces = clip_path(track.xs, track.ys, ccd.bounds_mm(margin, shape))
+            sensor_runs = None
+            if shape != ccd.shape:  # a cut-out: the streak is the whole CCD's
+                sensor_runs = _runs(clip_path(track.xs, track.ys,
+                                              ccd.bounds_mm(margin, ccd.shape)))
             for run in _runs(pieces):
                 # The grown rectangle's corners are farther than the margin from the CCD:
                 # a run that only cuts a corner leaves it no light.
                 if _run_distance(track, run, area) <= reach_mm:
-                    out.append(_ccd_streak(i, track, run, ccd))
+                    sensor_run = run if sensor_runs is None else _holding(sensor_runs, run)
+                    out.append(_ccd_streak(fscene, i, track, run, sensor_run, ccd))
     return out
+
+
+def _holding(runs, part):
+    """The run of ``runs`` (the track clipped to the whole sensor's grown area) that holds
+    ``part`` (its clip to a cut-out's grown area, a subset): the one its first piece overlaps."""
+    k, t0, t1 = part[0]
+    for run in runs:
+        if any(j == k and a <= t1 and t0 <= b for j, a, b in run):
+            return run
+    raise AssertionError(f"a cut-out's part of the track (piece {k} at {t0}) is outside "
+                         "the whole sensor's")
 
 
 def _run_distance(track, run, box):
@@ -181,11 +205,17 @@ def _interpolate(track, k, t):
     return x, y, {key: a[key] + t * (b[key] - a[key]) for key in a}
 
 
-def _ccd_streak(i, track, run, ccd):
+def _run_points(track, run):
+    """Positions (mm) and vertex values of a run's ends and inner vertices."""
     points = [_interpolate(track, run[0][0], run[0][1])]
     for k, _, t1 in run:
         points.append(_interpolate(track, k, t1))
-    # Path midpoint of the clipped part: where the CCD sits on the track.
+    return points
+
+
+def _midpoint_scale(points):
+    """The plate scale along the track at the path midpoint of a run: where the CCD sits on
+    the track."""
     xs_mm = np.array([p[0] for p in points])
     ys_mm = np.array([p[1] for p in points])
     steps = np.hypot(np.diff(xs_mm), np.diff(ys_mm))
@@ -197,23 +227,56 @@ def _ccd_streak(i, track, run, ccd):
     xm = xs_mm[j] + f * (xs_mm[j + 1] - xs_mm[j])
     ym = ys_mm[j] + f * (ys_mm[j + 1] - ys_mm[j])
     angle_here = float(np.degrees(np.arctan2(ys_mm[j + 1] - ys_mm[j], xs_mm[j + 1] - xs_mm[j])))
-    scale = fp.pixel_scale_along(xm, ym, angle_here)
-    px, py = ccd.focal_to_pixel(xs_mm, ys_mm)
-    px, py = [float(v) for v in px], [float(v) for v in py]
-    ends = (px[0], py[0], px[-1], py[-1])
+    return fp.pixel_scale_along(xm, ym, angle_here)
+
+
+def _kept_pieces(fscene, i, sensor_run, run, values, scale):
+    """The pieces of the whole sensor's run a cut-out renders: those of its own run (the
+    others are farther from it than the margin, so add nothing to its pixels), as indices
+    into ``sensor_run``; all of them where dropping some would change which vertices share a
+    swept profile (:func:`inject.render.render_polyline` builds recurring profiles on its
+    orientation grid, the others at their exact angle)."""
+    wanted = {k for k, _, _ in run}
+    kept = [n for n, (k, _, _) in enumerate(sensor_run) if k in wanted]
+    keys = [vertex_model(fscene, i, v, scale).profile_key for v in values]
+    inside = keys[kept[0]:kept[-1] + 2]
+    if any((keys.count(key) > 1) != (inside.count(key) > 1) for key in inside):
+        return list(range(len(sensor_run)))
+    return kept
+
+
+def _to_pixels(ccd, points):
+    """Pixel ``x`` and ``y`` lists of points in mm."""
+    px, py = ccd.focal_to_pixel(np.array([p[0] for p in points]),
+                                np.array([p[1] for p in points]))
+    return [float(v) for v in px], [float(v) for v in py]
+
+
+def _ccd_streak(fscene, i, track, run, sensor_run, ccd):
+    """One :class:`CCDStreak`: ``run`` is the track's part on the image, ``sensor_run`` its
+    part on the whole sensor (the same run on a full CCD), from which the streak model comes."""
+    points = _run_points(track, sensor_run)
+    scale = _midpoint_scale(points)
+    values = tuple(p[2] for p in points)
+    px, py = _to_pixels(ccd, points)
+    ex, ey = (px, py) if run is sensor_run else _to_pixels(ccd, _run_points(track, run))
+    ends = (ex[0], ey[0], ex[-1], ey[-1])
     if track.kind == "line":
         ct = Track(px[0], py[0], track.angle, None)
-        values = (points[0][2],)
     elif track.kind == "segment":
         x0, y0 = ccd.focal_to_pixel(track.xs[0], track.ys[0])
         length = np.hypot(track.xs[1] - track.xs[0], track.ys[1] - track.ys[0]) / fp.PIXEL_MM
         ct = Track(float(x0), float(y0), track.angle, float(length))
-        values = (points[0][2],)
     else:
-        vertices = tuple({"x": x, "y": y, **p[2]} for x, y, p in zip(px, py, points))
-        angle0 = float(np.degrees(np.arctan2(py[1] - py[0], px[1] - px[0])))
-        ct = Track(px[0], py[0], angle0, None, vertices)
-        values = tuple(p[2] for p in points)
+        kept = (range(len(sensor_run)) if run is sensor_run
+                else _kept_pieces(fscene, i, sensor_run, run, values, scale))
+        first, last = kept[0], kept[-1] + 1  # vertex n starts piece n of the run
+        vertices = tuple({"x": x, "y": y, **p[2]}
+                         for x, y, p in zip(px[first:last + 1], py[first:last + 1],
+                                            points[first:last + 1]))
+        angle0 = float(np.degrees(np.arctan2(vertices[1]["y"] - vertices[0]["y"],
+                                             vertices[1]["x"] - vertices[0]["x"])))
+        ct = Track(vertices[0]["x"], vertices[0]["y"], angle0, None, vertices)
     return CCDStreak(i, ct, ends, values, scale)
 
 
