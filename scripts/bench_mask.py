@@ -39,10 +39,10 @@ from inject.config import DEFAULT_SCENE, parse_scene, sky_level
 from inject.masking.baseline import canny_hough, segments_match
 from inject.masking.detect import (
     BAD_PLANES,
-    BIN,
     FALSE_ALARM_Z,
     max_significance,
     prepare,
+    search_bin,
     threshold_for,
 )
 from inject.masking.evaluate import match_streaks, truth_line
@@ -247,7 +247,8 @@ def bench_small_false_positives(count, sizes=(512, 256)):
         out.append({"size": size, "images": count, "seeds": [seeds[0], seeds[-1]],
                     "detections": found, "images_with_detections": images,
                     "largest_z": float(largest[k]), "largest_z_seed": seeds[k],
-                    "threshold": threshold_for((size // BIN, size // BIN))})
+                    "threshold": threshold_for((size // search_bin((size, size)),) * 2,
+                                               bin_factor=search_bin((size, size)))})
         print(f"  {size} x {size}: {found} detection(s) on {images} of {count} images "
               f"(largest z {largest[k]:.2f}, seed {seeds[k]}; threshold "
               f"{out[-1]['threshold']:.1f})", flush=True)

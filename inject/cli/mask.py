@@ -12,6 +12,7 @@ from inject.masking.run import (
     DEFAULT_FWHM_FACTOR,
     DEFAULT_RULE,
     DEFAULT_SB_SIGMA,
+    PIXEL_SCALE_FWHM_PX,
     RULE_CHOICES,
     analyse_source,
     check_distinct,
@@ -78,8 +79,11 @@ def run_mask(args):
 
 
 def _print_table(result):
+    scale = {"wcs": "from the WCS", "option": "given",
+             "default": "assumed: no WCS, give --pixel-scale"}[result.pixel_scale_source]
     print(f"{len(result.streaks)} streak(s) in {result.source or 'image'} "
-          f"({result.shape[1]} x {result.shape[0]} px, sky sigma {result.sky_sigma:.4g})")
+          f"({result.shape[1]} x {result.shape[0]} px, sky sigma {result.sky_sigma:.4g}, "
+          f"{result.pixel_scale:.4g}\"/px {scale})")
     if result.streaks:
         names = ("angle", "x0", "y0", "x1", "y1", "FWHM\"", "+-", "width", "masked", "frac", "z")
         widths = (8, 8, 8, 8, 8, 7, 6, 7, 9, 7, 7)
@@ -93,6 +97,9 @@ def _print_table(result):
               f"{s['mask_width_px']:7.1f} {s['masked_pixels']:9d} {s['masked_fraction']:7.4f} "
               f"{s['significance']:7.1f}")
     for k, s in enumerate(result.streaks):
+        if s["fwhm_measured"] and s["fwhm_at_pixel_scale"]:
+            print(f"streak {k + 1}: FWHM {s['fwhm_px']:.2f} px is at the pixel scale "
+                  f"(under {PIXEL_SCALE_FWHM_PX:g} px): undersampled, an upper bound")
         if s["mask_fallback"]:
             print(f"streak {k + 1}: mask width {s['mask_width_px']:.1f} px by "
                   f"{s['mask_fallback']}")

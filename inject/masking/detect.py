@@ -44,8 +44,35 @@ from inject.masking import MaskingError
 from inject.masking.geometry import Line, angle_difference, band_pixels
 from inject.masking.measure import DIP_LEVEL, profile_fwhm, stack_samples, trace_streak, wing_reach
 
-#: Binning factor of the search image (4: a 7-10 px wide LSSTCam streak is ~2 binned px).
+#: Largest binning factor of the search image (4: a 7-10 px wide LSSTCam streak is ~2 binned
+#: px). A smaller image is binned less (:func:`search_bin`): binning a 1-2 px wide streak 4 x 4
+#: costs half its matched-filter S/N, and a small image's transform is cheap unbinned.
 BIN = 4
+
+#: :func:`search_bin` bins an image as little as keeps the larger side of its search image at
+#: or under this many binned pixels (a full LSSTCam CCD, 4072 px: 4).
+SEARCH_SIDE = 1024
+
+
+def search_bin(shape, largest=BIN):
+    """Binning factor of the search image of an image of ``shape``: the smallest power of 2
+    (at most ``largest``) that keeps its larger side within :data:`SEARCH_SIDE` binned pixels.
+
+    A 4072 x 4000 CCD is binned 4 (as before), a 2048 px image 2, a 1024 px or smaller one
+    not at all: the search cost stays that of a full CCD or less, and a narrow streak (FWHM
+    1-2 px, small telescopes, wide-field cameras) keeps its S/N.
+    """
+    side = max(shape)
+    b = 1
+    while b < largest and side > SEARCH_SIDE * b:
+        b *= 2
+    return b
+
+
+def search_levels(bin_factor):
+    """Pyramid levels for a base binning: :data:`LEVELS` at :data:`BIN`, one more per halving
+    of the binning, so that the widest matched filter (~26 px FWHM) is searched at any base."""
+    return LEVELS + max(0, int(round(np.log2(BIN / bin_factor))))
 
 #: Background box size, image pixels. Large compared with a streak's width so that a box's
 #: clipped median is not pulled by it; small compared with a CCD so sky gradients are followed.
@@ -81,9 +108,32 @@ STAR_AXIS_RATIO = 3.0
 #: compact: a star fills ~1 (a noisy edge ~0.7), two crossing streaks ~12 w / (pi L).
 STAR_MIN_FILL = 0.4
 
+#: A blob of at least this radius (binned px; a disc 2 x this + 1 wide), compact by the tests
+#: above, is a star or galaxy even when a streak runs into it and joins its region above
+#: :data:`STAR_LOW_SIGMA` (the region, a blob with a long tail, is not compact): the mask is
+#: opened by a disc of this radius, which a streak narrower than the disc does not survive,
+#: and the compact parts of what is left are suppressed. A wider streak survives the opening
+#: but stays long (or hollow, for crossing ones) and is kept.
+BLOB_RADIUS = 2
+
+#: A compact region is grown by at least this fraction of its radius (binned px), at most
+#: :data:`MAX_MARGIN`: see :func:`_compact_regions`.
+BLOB_MARGIN = 0.5
+MAX_MARGIN = 32
+
 #: Hough cells of lines shorter than this (image pixels; at least 16 cells) are ignored: short
 #: corner lines carry little signal and their noise is far from Gaussian.
 MIN_LINE_PX = 128
+
+#: Smallest image side searched, px.
+MIN_SIDE = 64
+
+
+def min_line_cells(shape, factor):
+    """Shortest line searched (cells) in a pyramid level of ``shape`` binned ``factor`` times
+    from the image: :data:`MIN_LINE_PX`, at least 16 cells, and at most three quarters of
+    the level's smaller side (an image under ~170 px has no 128 px line in every direction)."""
+    return max(16, min(MIN_LINE_PX // factor, int(0.75 * min(shape))))
 
 #: The outermost this many binned pixels of every side are left out of the search (set to 0):
 #: a line running along an image edge sums pixels whose matched filter sees a mirrored noise
@@ -93,6 +143,10 @@ MIN_LINE_PX = 128
 #: :data:`SMALL_SEARCH_EXTRA_Z`). A streak is missed only if it runs within ~8 image pixels of
 #: an edge over its whole length.
 EDGE_GUARD = 2
+
+#: The guard is at least this many image pixels wide whatever the binning (an image binned
+#: less than :data:`BIN` guards as many image pixels as a full CCD does).
+EDGE_GUARD_PX = 8
 
 #: False-alarm threshold on the Hough significance ``z``.
 #:
@@ -123,11 +177,22 @@ FALSE_ALARM_Z = 6.5
 SMALL_SEARCH_EXTRA_Z = ((MIN_LEVEL_SIZE, 0.0), (64, 1.1), (0, 4.5))
 
 
-def threshold_for(shape, threshold=FALSE_ALARM_Z):
-    """Detection threshold for a search image of ``shape`` (binned pixels): ``threshold``
-    plus the :data:`SMALL_SEARCH_EXTRA_Z` of its smaller side."""
+#: Added to the threshold when the image is binned less than :data:`BIN` (images of 2048 px
+#: or less, :func:`search_bin`): a search at a finer binning has more lines and more pyramid
+#: levels (more trials) and a heavier tail. Streak-free 512 x 512 LSSTCam cut-outs searched
+#: unbinned (seeds 3001-3040, plain, with vignetted corners and with a NaN half plane: 120
+#: images) reached 6.50 after refinement, and 7.04 on one of the six of the hole tests
+#: (vignetted corners, seed 5): the largest plus 0.5 is 7.5, 1.0 over :data:`FALSE_ALARM_Z`.
+FINE_SEARCH_EXTRA_Z = 1.0
+
+
+def threshold_for(shape, threshold=FALSE_ALARM_Z, bin_factor=BIN):
+    """Detection threshold for a search image of ``shape`` (binned pixels, binned
+    ``bin_factor`` times): ``threshold`` plus the :data:`SMALL_SEARCH_EXTRA_Z` of its smaller
+    side, plus :data:`FINE_SEARCH_EXTRA_Z` when binned less than :data:`BIN`."""
     side = min(shape)
-    return threshold + next(extra for least, extra in SMALL_SEARCH_EXTRA_Z if side >= least)
+    extra = next(extra for least, extra in SMALL_SEARCH_EXTRA_Z if side >= least)
+    return threshold + extra + (FINE_SEARCH_EXTRA_Z if bin_factor < BIN else 0.0)
 
 
 #: Most streaks searched for in one image.
@@ -169,6 +234,8 @@ class Prepared:
         Binned residual in units of its own noise, stars removed, clipped (the search image).
     bin : int
         Binning factor.
+    levels : int
+        Levels of the matched-filter pyramid (:func:`search_levels`).
     zbinned : ndarray or None
         The same before clipping (profiles of found streaks, to erase them).
     holes : ndarray or None
@@ -183,6 +250,7 @@ class Prepared:
     bin: int
     zbinned: np.ndarray | None = None
     holes: np.ndarray | None = None
+    levels: int = LEVELS
 
     @property
     def shape(self):
@@ -332,6 +400,29 @@ def _dead_blocks(crop, factor, binned):
     return same
 
 
+#: Side (image px) of the blocks checked for a dead region: 16 equal pixels never come from
+#: a noisy sky, while 1 or 4 do in an integer image of low noise.
+DEAD_BLOCK = 4
+
+
+def _dead_region(img, bin_factor, binned):
+    """:func:`_dead_blocks` of an image binned ``bin_factor``, checked on blocks of at least
+    :data:`DEAD_BLOCK` px (bool, the binned shape)."""
+    ny, nx = binned.shape
+    if bin_factor >= DEAD_BLOCK:
+        return _dead_blocks(img[:ny * bin_factor, :nx * bin_factor], bin_factor, binned)
+    f = DEAD_BLOCK
+    my, mx = img.shape[0] // f, img.shape[1] // f
+    crop = img[:my * f, :mx * f]
+    coarse = cv2.resize(crop, (mx, my), interpolation=cv2.INTER_AREA)
+    dead = _dead_blocks(crop, f, coarse)
+    r = f // bin_factor
+    out = np.zeros((ny, nx), dtype=bool)
+    up = np.repeat(np.repeat(dead, r, axis=0), r, axis=1)
+    out[:up.shape[0], :up.shape[1]] = up[:ny, :nx]
+    return out
+
+
 def clipped_row_medians(a, passes=2, k=3.0):
     """Median of the finite values of each row after ``passes`` rounds of ``k``-sigma
     clipping about the median (sigma from the median absolute deviation): a star or a streak
@@ -428,9 +519,25 @@ def _star_mask(z):
     """Compact sources in a significance image: regions above :data:`STAR_LOW_SIGMA` holding a
     pixel above :data:`STAR_SIGMA` (hysteresis: a streak of moderate brightness stays one long
     region instead of breaking into compact fragments), with margins growing with their
-    peak."""
+    peak; and the compact blobs (:data:`BLOB_RADIUS`) of regions a streak has joined."""
+    above = z > STAR_LOW_SIGMA
+    stars = _compact_regions(z, above)
+    # A streak crossing a star or a galaxy joins it into one long region, which stays
+    # unsuppressed: the galaxy, clipped but wide, then outweighs a faint line. Opening the
+    # mask by a disc cuts the thin streak away and leaves the blob.
+    r = BLOB_RADIUS
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    opened = cv2.morphologyEx((above & ~stars).view(np.uint8), cv2.MORPH_OPEN, disc).view(bool)
+    if opened.any():
+        np.logical_or(stars, _compact_regions(z, opened), out=stars)
+    return stars
+
+
+def _compact_regions(z, above):
+    """The compact regions of bool image ``above`` that reach :data:`STAR_SIGMA` in ``z``,
+    grown by margins that increase with their peak (see :func:`_star_mask`)."""
     zp = z
-    labels, n = ndimage.label(zp > STAR_LOW_SIGMA, structure=np.ones((3, 3)))
+    labels, n = ndimage.label(above, structure=np.ones((3, 3)))
     if n == 0:
         return np.zeros(z.shape, dtype=bool)
     yy, xx = np.nonzero(labels)
@@ -457,9 +564,14 @@ def _star_mask(z):
     fill = count / (4 * np.pi * major * minor)
     compact = bright & ((np.sqrt(12) * major <= STAR_MAX_LENGTH)
                         | ((major <= STAR_AXIS_RATIO * minor) & (fill >= STAR_MIN_FILL)))
-    # Margin grows with the peak: a bright star's wings stay above the noise further out.
-    margin = np.clip(1 + np.round(2 * np.log10(np.maximum(peak, STAR_SIGMA) / STAR_SIGMA)),
-                     1, 8).astype(int)
+    # Margin grows with the peak: a bright star's wings stay above the noise further out;
+    # and with the size: a galaxy's (or a bright star's) wings fall from the region's edge
+    # (STAR_LOW_SIGMA) to a tenth of the noise over ~half its radius (exponential and Moffat
+    # profiles alike), and a ring of faint wings adds up along a tangent line.
+    radius = np.sqrt(count / np.pi)
+    margin = np.maximum(np.clip(1 + np.round(2 * np.log10(np.maximum(peak, STAR_SIGMA)
+                                                             / STAR_SIGMA)), 1, 8),
+                        np.minimum(np.ceil(BLOB_MARGIN * radius), MAX_MARGIN)).astype(int)
     stars = np.zeros(zp.shape, dtype=bool)
     # One gather of each pixel's margin (0: not a compact source), then one dilation per
     # margin value.
@@ -471,7 +583,7 @@ def _star_mask(z):
     return stars
 
 
-def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
+def prepare(image, bad=None, bin_factor=None, box=BACKGROUND_BOX):
     """Background-subtract, bin and clean an image for the search.
 
     Parameters
@@ -504,9 +616,12 @@ def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
         raise InputError("image", f"{img.dtype} array", "must hold real numbers")
     if img.ndim != 2:
         raise MaskingError(f"image has {img.ndim} dimensions; need a 2-D image")
-    if min(img.shape) < 16 * bin_factor:
+    if bin_factor is None:
+        bin_factor = search_bin(img.shape)
+    least = max(MIN_SIDE, 16 * bin_factor)
+    if min(img.shape) < least:
         raise MaskingError(f"image {img.shape[1]} x {img.shape[0]} px is too small to search "
-                           f"(needs >= {16 * bin_factor} px a side)")
+                           f"(needs >= {least} px a side)")
     if (img.dtype not in (np.float32, np.float64) or not img.dtype.isnative
             or not img.flags.c_contiguous):
         img = np.ascontiguousarray(img, dtype=np.float32)
@@ -521,8 +636,7 @@ def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
     else:
         bad_index = np.zeros(0, dtype=np.intp)
     binned, nonfinite, count = _bin(img, bad, bad_index, bin_factor)
-    dead = _dead_blocks(img[:binned.shape[0] * bin_factor, :binned.shape[1] * bin_factor],
-                        bin_factor, binned)
+    dead = _dead_region(img, bin_factor, binned)
     if dead.any():
         binned[dead] = np.nan
         count[dead] = 0
@@ -563,7 +677,7 @@ def prepare(image, bad=None, bin_factor=BIN, box=BACKGROUND_BOX):
     holes = (count == 0) & ~stars_b
     return Prepared(residual=residual, sigma=sigma, stars_binned=stars_b, binned=work,
                     bin=bin_factor, zbinned=np.where(stars_b, 0, z).astype(np.float32),
-                    holes=holes if holes.any() else None)
+                    holes=holes if holes.any() else None, levels=search_levels(bin_factor))
 
 
 def _row_scales(h, n_usable, every=8):
@@ -600,7 +714,7 @@ def _line_norm(shape, min_length):
     which cells are usable, and how many per row."""
     key = (shape, min_length)
     if key not in _NORM:
-        if len(_NORM) >= 3 * LEVELS:  # a run needs one image shape per level
+        if len(_NORM) >= 3 * (LEVELS + 2):  # a run needs one image shape per level
             _NORM.clear()
         counts = fast_hough(np.ones(shape, dtype=np.float32))
         usable = counts >= min_length
@@ -728,9 +842,9 @@ def best_line(prep, work, scales=None, norms=None):
     """
     best = None
     used = []
-    for k, (image, f) in enumerate(pyramid(work)):
+    for k, (image, f) in enumerate(pyramid(work, prep.levels)):
         factor = prep.bin * f
-        z, row, col, sc = hough_peak(image, max(16, MIN_LINE_PX // factor),
+        z, row, col, sc = hough_peak(image, min_line_cells(image.shape, factor),
                                      None if scales is None else scales[k],
                                      None if norms is None else norms[k])
         used.append(sc)
@@ -839,8 +953,8 @@ def detect_streaks(prep, threshold=FALSE_ALARM_Z, max_streaks=MAX_STREAKS):
         # A significance <= 0 passes every line of the noise.
         raise InputError("threshold", threshold, "must be a finite number > 0")
     work, valid = search_image(prep)
-    norms = None if valid is None else hole_norms(valid, prep.bin)
-    limit = threshold_for(work.shape, threshold)
+    norms = None if valid is None else hole_norms(valid, prep.bin, prep.levels)
+    limit = threshold_for(work.shape, threshold, prep.bin)
     scales = None
     found, erased = [], []
     # Candidates that refinement rejects are erased too; a few spare rounds allow for them.
@@ -909,7 +1023,7 @@ def search_image(prep):
         float32, 1 where ``work`` holds data, 0 in holes and guards (None without holes).
     """
     work = prep.binned.copy()
-    g = min(EDGE_GUARD, min(work.shape) // 4)
+    g = min(max(EDGE_GUARD, -(-EDGE_GUARD_PX // prep.bin)), min(work.shape) // 4)
     if g > 0:
         work[:g] = 0
         work[-g:] = 0
@@ -932,7 +1046,7 @@ def hole_norms(valid, bin_factor=BIN, levels=LEVELS):
     values are block means of the search image."""
     out = []
     for image, f in pyramid(valid, levels):
-        out.append(_hole_norm(image, max(16, MIN_LINE_PX // (bin_factor * f))))
+        out.append(_hole_norm(image, min_line_cells(image.shape, bin_factor * f)))
     return out
 
 
@@ -955,4 +1069,5 @@ def _same_streak(a, b, band):
 def max_significance(prep):
     """Largest Hough significance of an image (for calibrating :data:`FALSE_ALARM_Z`)."""
     work, valid = search_image(prep)
-    return best_line(prep, work, norms=None if valid is None else hole_norms(valid, prep.bin)).z
+    norms = None if valid is None else hole_norms(valid, prep.bin, prep.levels)
+    return best_line(prep, work, norms=norms).z

@@ -23,6 +23,12 @@ DEFAULT_SB_SIGMA = 1.0
 DEFAULT_FWHM_FACTOR = 3.0
 RULE_CHOICES = ("sb", "fwhm", "lsst", "acstools")
 
+#: A streak whose measured FWHM is under this many pixels is at the pixel scale: the pixel
+#: response, not the streak, sets most of its width, and the FWHM (an upper bound, ~25% high
+#: at 0.8 px) is flagged ``fwhm_at_pixel_scale`` rather than reported as a measurement. From
+#: 2 px up it is within a few percent (docs/guides/masking.md).
+PIXEL_SCALE_FWHM_PX = 2.0
+
 
 @dataclass
 class MaskResult:
@@ -38,6 +44,9 @@ class MaskResult:
         Robust per-pixel noise (image units).
     pixel_scale : float
         Arcsec per pixel used for the arcsec values.
+    pixel_scale_source : str
+        Where it came from: ``"option"`` (given), ``"wcs"`` (the file's WCS) or ``"default"``
+        (neither: 0.2"/px assumed, and the arcsec values are only as right as that).
     masked_pixels : int
         Pixels under any streak's mask (overlaps counted once).
     lost_pixels : int
@@ -51,12 +60,14 @@ class MaskResult:
     masked_pixels: int = 0
     lost_pixels: int = 0
     source: str | None = None
+    pixel_scale_source: str = "option"
 
     def to_json(self):
         """The ``inject mask --json`` object: ``{"streaks": [...], "image": {...}}``."""
         npix = self.shape[0] * self.shape[1]
         image = {"path": self.source, "nx": self.shape[1], "ny": self.shape[0],
                  "sky_sigma": self.sky_sigma, "pixel_scale_arcsec": self.pixel_scale,
+                 "pixel_scale_source": self.pixel_scale_source,
                  "n_streaks": len(self.streaks), "masked_pixels": self.masked_pixels,
                  "masked_fraction": self.masked_pixels / npix,
                  "lost_pixels": self.lost_pixels, "lost_fraction": self.lost_pixels / npix}
@@ -103,7 +114,9 @@ def streak_record(measurement, detection, widths, rule, counts, pixel_scale, sky
 
     ``fwhm_measured`` is False (and the FWHMs NaN, null in JSON) when the profile is cut
     before a half-maximum crossing (a streak within about half a FWHM of an image edge, a
-    hole or a close neighbour's midline).
+    hole or a close neighbour's midline). ``fwhm_at_pixel_scale`` is True when the FWHM is
+    measured but under :data:`PIXEL_SCALE_FWHM_PX`: an undersampled streak, whose width is
+    an upper bound.
 
     The direction of motion cannot be seen in an image: ``angle_deg`` is the line's orientation
     in ``(-90, 90]`` and ``(x0, y0) -> (x1, y1)`` runs that way.
@@ -131,12 +144,14 @@ def streak_record(measurement, detection, widths, rule, counts, pixel_scale, sky
         "snr": measurement.snr, "significance": detection.significance,
         "mask_rule": rule, "mask_widths_px": widths,
         "fwhm_measured": measurement.fwhm_measured, "mask_fallback": fallback,
+        "fwhm_at_pixel_scale": bool(measurement.fwhm_px < PIXEL_SCALE_FWHM_PX),
     }
 
 
 def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
             rule=DEFAULT_RULE, sb_sigma=DEFAULT_SB_SIGMA, fwhm_factor=DEFAULT_FWHM_FACTOR,
-            threshold=None, max_streaks=None, n_boot=50, source=None):
+            threshold=None, max_streaks=None, n_boot=50, source=None,
+            pixel_scale_source="option"):
     """Detect, measure and size the masks of the streaks of an image array.
 
     Parameters
@@ -160,6 +175,8 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
         Bootstrap replicates of the FWHM error.
     source : str, optional
         Where the image came from (reported).
+    pixel_scale_source : str
+        Where ``pixel_scale`` came from (reported; see :class:`MaskResult`).
 
     Returns
     -------
@@ -202,7 +219,7 @@ def analyse(image, *, bad=None, flagged=None, pixel_scale=DEFAULT_PIXEL_SCALE,
     already = int(np.count_nonzero(flagged.ravel()[union])) if flagged is not None else 0
     return MaskResult(streaks=streaks, shape=prep.shape, sky_sigma=prep.sigma,
                       pixel_scale=pixel_scale, masked_pixels=masked, lost_pixels=masked - already,
-                      source=source)
+                      source=source, pixel_scale_source=pixel_scale_source)
 
 
 def _mask_bits(exposure):
@@ -270,13 +287,15 @@ def analyse_source(source, mask=None, pixel_scale=None, **options):
     if isinstance(source, (str, os.PathLike)):
         name = os.fspath(source)
         source = read_exposure(source)
+    origin = "option" if pixel_scale else None
     if isinstance(source, InputExposure):
         image, bad, wcs_scale = _exposure_arrays(source)
-        pixel_scale = pixel_scale or wcs_scale
+        if not pixel_scale and wcs_scale:
+            pixel_scale, origin = wcs_scale, "wcs"
     else:
         image, bad = source, mask
     return analyse(image, bad=bad, pixel_scale=pixel_scale or DEFAULT_PIXEL_SCALE,
-                   source=name, **options)
+                   source=name, pixel_scale_source=origin or "default", **options)
 
 
 def _set_streak_plane(exposure, streaks):
