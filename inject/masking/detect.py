@@ -108,12 +108,11 @@ STAR_AXIS_RATIO = 3.0
 #: compact: a star fills ~1 (a noisy edge ~0.7), two crossing streaks ~12 w / (pi L).
 STAR_MIN_FILL = 0.4
 
-#: A blob of at least this radius (binned px; a disc 2 x this + 1 wide), compact by the tests
-#: above, is a star or galaxy even when a streak runs into it and joins its region above
-#: :data:`STAR_LOW_SIGMA` (the region, a blob with a long tail, is not compact): the mask is
-#: opened by a disc of this radius, which a streak narrower than the disc does not survive,
-#: and the compact parts of what is left are suppressed. A wider streak survives the opening
-#: but stays long (or hollow, for crossing ones) and is kept.
+#: A part of a long region (a streak that runs into a star or a galaxy) is a blob when its
+#: pixels lie further than this many times the region's median distance to its edge (the
+#: line's typical half-thickness), and at least :data:`BLOB_RADIUS` binned px (see
+#: :func:`_star_mask`): a line of any width has none, a galaxy or a saturated star on it does.
+BLOB_THICKNESS = 3.0
 BLOB_RADIUS = 2
 
 #: A compact region is grown by at least this fraction of its radius (binned px), at most
@@ -523,13 +522,23 @@ def _star_mask(z):
     above = z > STAR_LOW_SIGMA
     stars = _compact_regions(z, above)
     # A streak crossing a star or a galaxy joins it into one long region, which stays
-    # unsuppressed: the galaxy, clipped but wide, then outweighs a faint line. Opening the
-    # mask by a disc cuts the thin streak away and leaves the blob.
-    r = BLOB_RADIUS
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    opened = cv2.morphologyEx((above & ~stars).view(np.uint8), cv2.MORPH_OPEN, disc).view(bool)
-    if opened.any():
-        np.logical_or(stars, _compact_regions(z, opened), out=stars)
+    # unsuppressed: the galaxy, clipped but wide, then outweighs a faint line. The blob is
+    # where the region is much thicker than its typical thickness (the line's): its pixels
+    # further from the region's edge than BLOB_THICKNESS times the region's median distance,
+    # grown back by that distance, are judged as a region of their own.
+    rest = (above & ~stars).view(np.uint8)
+    dist = cv2.distanceTransform(rest, cv2.DIST_L2, 3)
+    labels, n = ndimage.label(rest, structure=np.ones((3, 3)))
+    if n:
+        med = np.asarray(ndimage.median(dist, labels, np.arange(1, n + 1)))
+        thr = np.concatenate([[np.inf], np.maximum(BLOB_RADIUS + 0.5, BLOB_THICKNESS * med)])
+        core = dist > thr[labels]
+        if core.any():
+            r = int(min(np.ceil(thr[1:][np.isfinite(thr[1:])].max()), MAX_MARGIN))
+            r = int(min(r, np.ceil(dist[core].max())))
+            disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+            blob = cv2.dilate(core.view(np.uint8), disc).view(bool) & rest.view(bool)
+            np.logical_or(stars, _compact_regions(z, blob), out=stars)
     return stars
 
 
