@@ -6,7 +6,9 @@ tiles, ``n_j`` the nearest count that keeps them about :data:`TILE_DEG` wide on 
 tile's stars come from the stream keyed on (scene seed, tile); their number and magnitudes
 from the star-count model over the tile's exact solid angle, their positions uniform on the
 sphere within it. An image draws the tiles its pixels (grown by a margin) reach and places
-their stars through its WCS.
+their stars through its WCS, each on its own (:func:`world_to_pixel`), so that a star lands
+on the same pixel whichever image (a CCD, its cut-out) draws it. Focal-plane CCDs and CCD
+scenes with a pointing draw their random stars here (:func:`inject.stars.add_star_field`).
 """
 import math
 
@@ -134,7 +136,29 @@ def sky_stars(spec, wcs, shape, margin_px, band, seed, sample_stars):
                + np.cos(d) * math.cos(centre[1]) * np.cos(r - centre[0]))
     near = cos_sep > math.cos(reach)
     ra, dec, mag = ra[near], dec[near], mag[near]
-    x, y = (np.asarray(v, float) for v in wcs.world_to_pixel_values(ra, dec))
+    x, y = world_to_pixel(wcs, ra, dec)
     keep = (np.isfinite(x) & np.isfinite(y) & (x >= -0.5 - margin_px)
             & (x < nx - 0.5 + margin_px) & (y >= -0.5 - margin_px) & (y < ny - 0.5 + margin_px))
     return {"x": x[keep], "y": y[keep], "mag": mag[keep]}
+
+
+#: Largest correction (px) at which the inverse of a distorted WCS stops iterating a point.
+INVERSE_TOLERANCE_PX = 1e-6
+
+
+def world_to_pixel(wcs, ra, dec):
+    """Pixel ``x, y`` (0-based) of sky positions through a celestial WCS, each star on its own.
+
+    A distorted (SIP) WCS has no closed-form inverse: astropy iterates, and by default until
+    the worst of the points it is given has converged, so a star's position (to ~1e-10 px)
+    would depend on which others are projected with it, and a cut-out would place its stars a
+    hair off the full CCD's. Here each point iterates until its own correction is below
+    :data:`INVERSE_TOLERANCE_PX` (astropy's adaptive mode): its position depends only on its
+    sky position and the WCS. A point that does not converge keeps its best solution, as
+    astropy's ``world_to_pixel_values`` does.
+    """
+    if not np.size(ra):
+        return np.zeros(0), np.zeros(0)
+    x, y = wcs.all_world2pix(ra, dec, 0, adaptive=True, tolerance=INVERSE_TOLERANCE_PX,
+                             quiet=True)
+    return np.asarray(x, float), np.asarray(y, float)
