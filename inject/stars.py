@@ -24,6 +24,7 @@ from inject.instrument import LSST
 from inject.photometry import band as _band
 from inject.photometry import electron_rate
 from inject.profile import GSPARAMS, Seeing
+from inject.skytiles import sky_stars
 from inject.validate import finite, positive
 
 # -------------------------------------------------------------------------------------------
@@ -764,27 +765,38 @@ def add_star_field(image, scene, rng, wcs=None, noise=None, variance=None, field
     """Add a scene's stars to ``image`` (expected charge, e-, in place; with ``noise``, the
     collected charge, and the expected charge to ``variance``: see :func:`draw_stars`).
 
-    Stars are random (:func:`star_field`, with a margin of one core stamp so stars just off
-    the CCD still light its edge) or the scene's catalog; the PSF is the scene's Kolmogorov
-    seeing. Fluxes are ``electron_rate(mag, band) * exptime`` with the airmass-1 zero points
-    and no further extinction, exactly as the satellites' fluxes (and the paper) are computed,
-    so stars and streaks in a scene are on one photometric scale.
+    Stars are the scene's catalog, or random ones from the star counts:
+
+    * with a celestial ``wcs``, the sky's stars (:func:`inject.skytiles.sky_stars`): those of
+      the fixed RA/Dec tiles, each keyed on the scene's seed and the tile, that fall within
+      the bright stars' stamp of the image, placed through the WCS. So the same sky gives the
+      same stars at any rotation or pointing and on any detector: a CCD scene with a
+      ``pointing`` and a focal-plane CCD share them;
+    * without one, stars drawn per pixel area from ``rng`` over the image (:func:`star_field`,
+      with a margin of one core stamp so stars just off the CCD still light its edge).
+
+    The PSF is the scene's Kolmogorov seeing. Fluxes are ``electron_rate(mag, band) *
+    exptime`` with the airmass-1 zero points and no further extinction, exactly as the
+    satellites' fluxes (and the paper) are computed, so stars and streaks in a scene are on one
+    photometric scale.
 
     Parameters
     ----------
     image : ndarray
         ``(ny, nx)`` float array; modified in place.
     scene : inject.config.Scene
-    rng : numpy.random.Generator
-        The scene's ``"stars"`` stream.
+    rng : numpy.random.Generator or None
+        The scene's ``"stars"`` stream (unused with a celestial ``wcs`` or a catalog).
     wcs : astropy.wcs.WCS, optional
-        For catalogs in ra, dec.
+        The image's WCS: random stars from the sky when it has celestial axes; needed for
+        catalogs in ra, dec.
     noise : numpy.random.Generator, optional
     variance : ndarray, optional
         See :func:`draw_stars`.
     field_shape : tuple of int, optional
-        ``(ny, nx)`` the random stars are drawn over, from pixel ``(0, 0)`` (default the
-        image's): a cut-out passes its whole sensor's, and gets the whole CCD's stars.
+        Without a celestial ``wcs``: ``(ny, nx)`` the random stars are drawn over, from pixel
+        ``(0, 0)`` (default the image's): a cut-out passes its whole sensor's, and gets the
+        whole CCD's stars. (The sky's stars are those that reach the image.)
 
     Returns
     -------
@@ -796,9 +808,23 @@ def add_star_field(image, scene, rng, wcs=None, noise=None, variance=None, field
     spec = scene.stars
     pixel_scale = LSST.pixel_scale_arcsec
     stamps = psf_stamps(Seeing(scene.seeing).profile(), pixel_scale)
-    field = star_field(spec, image.shape if field_shape is None else field_shape, pixel_scale,
-                       scene.band, rng, margin_px=stamps.core_half, wcs=wcs)
+    sky = None if spec.catalog is not None else _celestial(wcs)
+    if sky is not None:
+        # The stars whose bright stamp reaches the image (a pixel's slack for the stamp's
+        # centre): a cut-out's are those of the sky that reach it, whatever the whole sensor.
+        field = sky_stars(spec, sky, image.shape, stamps.bright_half + 1, scene.band,
+                          scene.seed, sample_stars)
+    else:
+        field = star_field(spec, image.shape if field_shape is None else field_shape,
+                           pixel_scale, scene.band, rng, margin_px=stamps.core_half, wcs=wcs)
     flux = electron_rate(field["mag"], scene.band) * scene.exptime
     drawn = draw_stars(image, field["x"], field["y"], flux, stamps, pixel_scale, noise=noise,
                        variance=variance)
     return {**field, "flux_e": flux, "charge_in_image_e": drawn}
+
+
+def _celestial(wcs):
+    """The celestial part of a WCS (itself when it has only those two axes), or None."""
+    if wcs is None or not getattr(wcs, "has_celestial", False):
+        return None
+    return wcs if wcs.naxis == 2 and wcs.wcs.lng == 0 else wcs.celestial

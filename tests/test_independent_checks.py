@@ -30,7 +30,6 @@ from inject import (
 )
 from inject.camera import layout as fp
 from inject.camera.wcs import focal_to_radec
-from inject.exposure import ccd as ccd_module
 from inject.orbits.passes import RUBIN, TRACK_STEP_S, aimed_orbit
 from inject.photometry import band
 from inject.profile import Seeing
@@ -311,6 +310,7 @@ def test_bright_halo_from_a_tile_only_the_bright_stamp_reaches(monkeypatch):
     pixel-integrated Kolmogorov PSF there."""
     import galsim
 
+    import inject.stars as stars_module
     from inject import skytiles
     from inject.camera.wcs import ccd_wcs
 
@@ -334,7 +334,7 @@ def test_bright_halo_from_a_tile_only_the_bright_stamp_reaches(monkeypatch):
         return np.full(n, (target[0] + 180.0) % 360.0), np.full(n, -target[1])
 
     monkeypatch.setattr(skytiles, "tile_positions", positions)
-    monkeypatch.setattr(ccd_module, "sample_stars", lambda *args: np.array([mag]))
+    monkeypatch.setattr(stars_module, "sample_stars", lambda *args: np.array([mag]))
     image = simulate_ccd(fscene, ccd, [])[1].image
     assert placed, "the star's tile was not drawn"
 

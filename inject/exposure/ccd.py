@@ -9,15 +9,10 @@ from dataclasses import replace
 
 from inject.camera.wcs import ccd_wcs
 from inject.config import with_detector
-from inject.errors import SceneError
 from inject.exposure.plan import ccd_shape, vertex_model
-from inject.instrument import LSST
-from inject.photometry import electron_rate
-from inject.profile import Seeing
 from inject.render import Budget
 from inject.scene import pixel_noise, render_tracks, simulate
-from inject.skytiles import sky_stars
-from inject.stars import add_star_field, draw_stars, psf_stamps, sample_stars
+from inject.stars import add_star_field
 
 
 def ccd_scene(fscene, ccd, streaks=()):
@@ -32,25 +27,12 @@ def ccd_scene(fscene, ccd, streaks=()):
 def add_focal_stars(image, fscene, ccd, wcs=None, noise=None, variance=None):
     """Add the scene's stars that light a CCD (in place): the sky's stars
     (:mod:`inject.skytiles`) within the bright-star stamp of its pixels, placed through the
-    CCD's WCS, so every CCD, pointing and rotation sees the same sky. A catalog in ra, dec goes
-    through the CCD's WCS too.
-    ``noise`` and ``variance``: see :func:`inject.stars.draw_stars`."""
-    scene = fscene.scene
-    spec = scene.stars
-    if spec.catalog is not None:
-        return add_star_field(image, scene, None, wcs=wcs, noise=noise, variance=variance)
-    if scene.seeing <= 0:
-        raise SceneError("stars: need seeing > 0 (stars share the atmospheric PSF)")
-    pixel_scale = LSST.pixel_scale_arcsec
-    stamps = psf_stamps(Seeing(scene.seeing).profile(), pixel_scale)
+    CCD's WCS, so every CCD, pointing and rotation sees the same sky; a catalog in ra, dec goes
+    through the CCD's WCS too. The same code as a CCD scene's with a pointing
+    (:func:`inject.stars.add_star_field`). ``noise`` and ``variance``: see
+    :func:`inject.stars.draw_stars`."""
     wcs = ccd_wcs(ccd, fscene.pointing) if wcs is None else wcs
-    field = sky_stars(spec, wcs, image.shape, stamps.bright_half + 1, scene.band, scene.seed,
-                      sample_stars)
-    if not field["mag"].size:
-        return None
-    flux = electron_rate(field["mag"], scene.band) * scene.exptime
-    return draw_stars(image, field["x"], field["y"], flux, stamps, pixel_scale, noise=noise,
-                      variance=variance)
+    return add_star_field(image, fscene.scene, None, wcs=wcs, noise=noise, variance=variance)
 
 
 def simulate_ccd(fscene, ccd, streaks, budget=Budget()):
