@@ -36,7 +36,7 @@ from inject.render import (
 )
 from inject.stars import add_star_field
 from inject.streak import StreakModel
-from inject.trajectory import Polyline, Segment, clip_path
+from inject.trajectory import Polyline, Segment, clip_path, clip_segment
 
 #: Random streams, one per purpose, spawned from the scene seed (numpy SeedSequence). The
 #: pixel noise (``noise``: the sky's and dark current's Poisson draws, ``signal_noise``: the
@@ -186,7 +186,13 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0,
             charge = render_segment(model_image, swept, segment, model.flux_per_px).charge_added
         ends = (track.x0, track.y0, track.x0, track.y0, 0.0) if segment is None else (
             segment.x0, segment.y0, segment.x1, segment.y1, segment.length)
-        expected = model.flux_per_px * ends[-1]
+        expected = model.flux_per_px * ends[-1]  # the whole track's: FLAG_CLIPPED
+        if track.length is not None:  # TRUTH describes the part the image receives
+            reach = swept.plan.support_px + swept.plan.cap_px
+            part = clip_segment(*ends[:4], (-0.5 - reach, shape[1] - 0.5 + reach),
+                                (-0.5 - reach, shape[0] - 0.5 + reach))
+            if part is not None:
+                ends = (*part, float(np.hypot(part[2] - part[0], part[3] - part[1])))
         truth[i] = _truth_row(model, track, ends, charge, expected, own)
         counter.step()
     for i, row in enumerate(truth):

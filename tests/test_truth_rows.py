@@ -8,7 +8,7 @@ from astropy.io import fits
 from astropy.table import Table
 
 from inject import DEFAULT_SCENE, StreakModel, apply_overrides, parse_scene, render_streaks
-from inject.maskplanes import FLAG_OFF_IMAGE
+from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE
 from inject.orbits.tracks import resolve_ccd_orbits
 from inject.schema import load_scene_file
 from inject.truth import TRUTH_COLUMNS
@@ -96,6 +96,27 @@ def test_a_polyline_row_is_the_middle_of_its_received_part():
     at_middle = StreakModel(sat.height, scene.zenith, sat.phi, sat.shape,
                             5.0 + 3.0 * (middle + 900.0) / 2000.0, "g")
     assert row["apparent_mag"] == pytest.approx(at_middle.apparent_mag, abs=1e-9)
+
+
+def test_a_segment_row_is_its_part_on_the_image():
+    """A 5000 px horizontal segment starting 400 px off the left edge of a 300 x 100 image:
+    the row's ends are those of the image grown by the reach on both sides (the same reach a
+    line of that model gets), its length their distance, and it is flagged clipped (the image
+    holds far less than the whole track's charge)."""
+    overrides = ["detector.nx=300", "detector.ny=100", "satellites.0.track.x0=-400",
+                 "satellites.0.track.y0=50", "satellites.0.track.angle=0", *QUIET]
+    line = parse_scene(apply_overrides(DEFAULT_SCENE, overrides))
+    segment = parse_scene(apply_overrides(DEFAULT_SCENE, [*overrides,
+                                                          "satellites.0.track.length=5000"]))
+    _, (whole,) = render_streaks(line)
+    _, (row,) = render_streaks(segment)
+    reach = -0.5 - whole["x0"]
+    assert 0 < reach < 400
+    assert (row["x0"], row["x1"]) == pytest.approx((-0.5 - reach, 299.5 + reach))
+    assert row["y0"] == row["y1"] == 50.0
+    assert row["length_px"] == pytest.approx(300.0 + 2 * reach)
+    assert row["flags"] & FLAG_CLIPPED
+    assert row["charge_in_image_e"] == pytest.approx(whole["charge_in_image_e"], rel=1e-6)
 
 
 def test_a_track_that_misses_the_image_is_only_off_image():
