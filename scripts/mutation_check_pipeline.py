@@ -1,0 +1,469 @@
+"""Mutation check of the newer code: the focal plane, the passes, the noise, the runner, the
+readers. Would the default tests notice a realistic single bug?
+
+Each mutation is one textual change (a constant of the wrong vendor, a random stream keyed on
+too little, a dropped term, an inverted guard) in one function that sets something users rely
+on. For each, the repository is copied (without its venv and git data) to a temporary
+directory, the change applied to the copy, and the default tests of that part run there
+(``-x``: the first failure is enough) with the copy first on ``PYTHONPATH``; the working tree
+is never modified. A mutation is *caught* if those tests fail. The unmutated copy is run first
+on the union of the test files (they must pass, or "caught" would mean nothing).
+
+The same bugs can be made in the code before the package moved into folders (the flat
+modules: ``focalplane``, ``focalscene``, ``orbits``, ``parallel``, ``wcs``): each mutation
+carries its text for both layouts, and ``--root`` points at another checkout, e.g. a git
+worktree of an older commit, to measure what its own tests caught. Test files that a
+checkout does not have are left out (the run says which); with ``--new`` the test files
+added by issue 19 run for every mutation too (``tests/test_independent_checks.py``,
+``tests/test_reliability*.py``, ``tests/test_runner_reliability*.py``).
+
+Usage::
+
+    python scripts/mutation_check_pipeline.py [--root DIR] [--only NAME ...] [--list]
+        [--check] [--new] [--every] [--tests FILE ...] [--jobs N] [--markdown FILE]
+
+The tables of docs/explanation/testing.md come from::
+
+    git worktree add /tmp/before 1cf9c16   # the code before issue 19's session
+    python scripts/mutation_check_pipeline.py --root /tmp/before --markdown before.md
+    python scripts/mutation_check_pipeline.py --new --markdown after.md
+
+``--every`` drops ``-x`` and lists every test file that fails (several times slower).
+
+``--check`` only verifies that every patch applies (exactly once) to the checkout. Exit status
+1 if a mutation is missed or a patch no longer applies (the code moved: update the list).
+"""
+import argparse
+import glob
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+IGNORE = shutil.ignore_patterns(".venv", ".git", "out", "__pycache__", "*.egg-info",
+                                ".hypothesis", ".pytest_cache", "site")
+
+
+@dataclass(frozen=True)
+class Patch:
+    path: str  # relative to the repository
+    old: str   # must occur exactly once
+    new: str
+
+
+@dataclass(frozen=True)
+class Mutation:
+    name: str
+    area: str
+    folders: Patch        # the package in folders (camera/, orbits/, exposure/, io/)
+    flat: Patch | None    # the flat package before it, None if the code was not there
+    tests: tuple          # groups of test files (TESTS) that must catch it
+    audit: bool = False   # one of the bugs issue 19's audit found the tests missed
+
+
+TESTS = {
+    "layout": ("tests/test_focalplane.py", "tests/test_focalplane_scene.py",
+               "tests/test_mosaic_scale.py"),
+    "focal": ("tests/test_focalplane_scene.py", "tests/test_focalplane.py",
+              "tests/test_satellites_record.py", "tests/test_pass_truth.py"),
+    "stars": ("tests/test_stars.py", "tests/test_focalplane_scene.py", "tests/test_sky_stars.py"),
+    "noise": ("tests/test_noise_split.py", "tests/test_stars.py", "tests/test_scene.py",
+              "tests/test_simulate.py", "tests/test_cutout_noise.py"),
+    "passes": ("tests/test_orbits.py", "tests/test_pass_truth.py", "tests/test_pass_cli.py"),
+    "runner": ("tests/test_focalplane_run.py", "tests/test_stale_temporaries.py",
+               "tests/test_satellites_record.py"),
+    "reader": ("tests/test_add_streak.py", "tests/test_lsst_files.py"),
+}
+#: Test files issue 19 added (``--new``): run for every mutation.
+NEW_TESTS = ("tests/test_independent_checks*.py", "tests/test_reliability*.py",
+             "tests/test_runner_reliability*.py")
+
+_TILE = 'gen = rng(scene.seed, "stars", STAR_TILE_KEY + j * _TILE_GRID + i)'
+_PENDING = "        for c in todo:\n            rows[c.name] = {"
+_BLANK_FLAT = "            if blank is not None:\n                sel &= stored != blank"
+
+MUTATIONS = [
+    # --- the focal plane: layout, WCS, plan, CCDs, star tiles --------------------------
+    Mutation("ITL reference pixel replaced by e2v's", "focal plane",
+             Patch("inject/camera/layout.py", '"itl": (2036.5, 2000.5)}',
+                   '"itl": (2047.5, 2001.5)}'),
+             Patch("inject/focalplane.py", '"itl": (2036.5, 2000.5)}',
+                   '"itl": (2047.5, 2001.5)}'), ("layout",), audit=True),
+    Mutation("raft rows and columns swapped", "focal plane",
+             Patch("inject/camera/layout.py", "centre = (RAFT_PITCH_MM * (rj - 2)",
+                   "centre = (RAFT_PITCH_MM * (ri - 2)"),
+             Patch("inject/focalplane.py", "centre = (RAFT_PITCH_MM * (rj - 2)",
+                   "centre = (RAFT_PITCH_MM * (ri - 2)"), ("layout",)),
+    Mutation("distortion with the wrong sign", "focal plane",
+             Patch("inject/camera/layout.py", "factor = (1.0 - DISTORTION_R3 * r2",
+                   "factor = (1.0 + DISTORTION_R3 * r2"),
+             Patch("inject/focalplane.py", "factor = (1.0 - DISTORTION_R3 * r2",
+                   "factor = (1.0 + DISTORTION_R3 * r2"), ("layout",)),
+    Mutation("radial plate scale is the tangential one", "focal plane",
+             Patch("inject/camera/layout.py",
+                   "return (s * (1 - 3 * DISTORTION_R3 * r2 - 5 * DISTORTION_R5 * r2 * r2),",
+                   "return (s * (1 - DISTORTION_R3 * r2 - DISTORTION_R5 * r2 * r2),"),
+             Patch("inject/focalplane.py",
+                   "return (s * (1 - 3 * DISTORTION_R3 * r2 - 5 * DISTORTION_R5 * r2 * r2),",
+                   "return (s * (1 - DISTORTION_R3 * r2 - DISTORTION_R5 * r2 * r2),"),
+             ("layout", "focal")),
+    Mutation("rotator turns the sky the other way", "focal plane",
+             Patch("inject/camera/wcs.py", "return np.array([[-c, s], [s, c]])",
+                   "return np.array([[-c, -s], [-s, c]])"),
+             Patch("inject/focalplane.py", "return np.array([[-c, s], [s, c]])",
+                   "return np.array([[-c, -s], [-s, c]])"), ("layout", "passes")),
+    Mutation("SIP forward terms with the wrong sign", "focal plane",
+             Patch("inject/camera/wcs.py", "((a, (-DISTORTION_R3, -DISTORTION_R5)),",
+                   "((a, (DISTORTION_R3, DISTORTION_R5)),"),
+             Patch("inject/focalplane.py", "((a, (-DISTORTION_R3, -DISTORTION_R5)),",
+                   "((a, (DISTORTION_R3, DISTORTION_R5)),"), ("layout",)),
+    Mutation("cut-out sides swapped", "focal plane",
+             Patch("inject/exposure/plan.py",
+                   "return (min(ny, fscene.cutout[0]), min(nx, fscene.cutout[1]))",
+                   "return (min(ny, fscene.cutout[1]), min(nx, fscene.cutout[0]))"),
+             Patch("inject/focalscene.py",
+                   "return (min(ny, fscene.cutout[0]), min(nx, fscene.cutout[1]))",
+                   "return (min(ny, fscene.cutout[1]), min(nx, fscene.cutout[0]))"),
+             ("focal", "runner")),
+    Mutation("every star tile draws from one stream", "focal plane",
+             Patch("inject/skytiles.py", "spawn_key=(SKY_TILE_KEY, j, i)",
+                   "spawn_key=(SKY_TILE_KEY,)"),
+             Patch("inject/focalscene.py", _TILE,
+                   'gen = rng(scene.seed, "stars", STAR_TILE_KEY)'), ("stars",), audit=True),
+    Mutation("halo tiles chosen by the core stamp", "focal plane",
+             Patch("inject/stars.py", "sky, image.shape, stamps.bright_half + 1,",
+                   "sky, image.shape, stamps.core_half + 1,"),
+             Patch("inject/focalscene.py", "box = ccd.bounds_mm(stamps.bright_half + 1,",
+                   "box = ccd.bounds_mm(stamps.core_half + 1,"), ("stars",), audit=True),
+    Mutation("every CCD draws the noise of detector 0", "focal plane",
+             Patch("inject/exposure/ccd.py", "detector_index=ccd.id, wcs=wcs",
+                   "detector_index=0, wcs=wcs"),
+             Patch("inject/focalscene.py", "detector_index=ccd.id, wcs=wcs",
+                   "detector_index=0, wcs=wcs"), ("focal", "noise", "runner")),
+    # --- the passes -------------------------------------------------------------------------
+    Mutation("Earth's rotation over the light time left out", "passes",
+             Patch("inject/orbits/passes.py", "_rot_z(EARTH_ROTATION_RAD_S * tau) @ m, r_ret_teme",
+                   "m, r_ret_teme"),
+             Patch("inject/orbits.py", "_rot_z(EARTH_ROTATION_RAD_S * tau) @ m, r_ret_teme",
+                   "m, r_ret_teme"), ("passes",), audit=True),
+    Mutation("light time added instead of taken", "passes",
+             Patch("inject/orbits/passes.py", "jd2 - tau / 86400.0", "jd2 + tau / 86400.0"),
+             Patch("inject/orbits.py", "jd2 - tau / 86400.0", "jd2 + tau / 86400.0"),
+             ("passes",)),
+    Mutation("differential aberration left out", "passes",
+             Patch("inject/orbits/passes.py", "if self.to_icrs is not None:", "if False:"),
+             Patch("inject/orbits.py", "if self.to_icrs is not None:", "if False:"),
+             ("passes",)),
+    Mutation("tracking term left out of the angular speed", "passes",
+             Patch("inject/orbits/passes.py", "v_rel = v_in - np.cross(omega, obs)",
+                   "v_rel = v_in"),
+             Patch("inject/orbits.py", "v_rel = v_in - np.cross(omega, obs)", "v_rel = v_in"),
+             ("passes",)),
+    Mutation("focal-plane track rotated the other way", "passes",
+             Patch("inject/orbits/passes.py",
+                   "x, y = tangent_to_focal(xi, eta, self.pointing.rotation_deg)",
+                   "x, y = tangent_to_focal(xi, eta, -self.pointing.rotation_deg)"),
+             Patch("inject/orbits.py",
+                   "x, y = sky_to_focal(xi, eta, self.pointing.rotation_deg)",
+                   "x, y = sky_to_focal(xi, eta, -self.pointing.rotation_deg)"),
+             ("passes",)),
+    Mutation("penumbra brightens the streak", "passes",
+             Patch("inject/orbits/tracks.py", '"mag": float(m + d)', '"mag": float(m - d)'),
+             Patch("inject/focalscene.py", '"mag": float(m + d)', '"mag": float(m - d)'),
+             ("passes", "focal")),
+    Mutation("CCD-scene orbit vertices half a pixel off", "passes",
+             Patch("inject/orbits/tracks.py", "x = (nx - 1) / 2 + dense.field_x_deg[run]",
+                   "x = nx / 2 + dense.field_x_deg[run]"),
+             Patch("inject/focalscene.py", "x = (nx - 1) / 2 + dense.field_x_deg[run]",
+                   "x = nx / 2 + dense.field_x_deg[run]"), ("passes",), audit=True),
+    # --- the noise ----------------------------------------------------------------------------
+    Mutation("star photons not keyed on the detector", "noise",
+             Patch("inject/scene.py",
+                   "spawn_key=(self.detector_index, STREAMS[purpose], *block.key)",
+                   'spawn_key=(self.detector_index * (purpose != "signal_noise"), '
+                   "STREAMS[purpose], *block.key)"),
+             Patch("inject/scene.py", 'noise=rng(scene.seed, "star_noise", detector_index)',
+                   'noise=rng(scene.seed, "star_noise")'), ("noise",), audit=True),
+    Mutation("ADU variance over the gain, not its square", "noise",
+             Patch("inject/scene.py", "variance / gain ** 2", "variance / gain"),
+             Patch("inject/scene.py", "variance / gain ** 2", "variance / gain"),
+             ("noise",), audit=True),
+    Mutation("variance without the read noise", "noise",
+             Patch("inject/scene.py", "var[...] = np.float32(level + block.read_noise ** 2)",
+                   "var[...] = np.float32(level)"),
+             Patch("inject/scene.py", "var[...] = np.float32(level + sigma ** 2)",
+                   "var[...] = np.float32(level)"), ("noise",)),
+    Mutation("streak charge left out of the variance", "noise",
+             Patch("inject/scene.py", "np.add(var[r:r + n], np.maximum(mean, 0.0, "
+                   "out=scratch[:n]), out=var[r:r + n],",
+                   "np.add(var[r:r + n], 0.0, out=var[r:r + n],"),
+             Patch("inject/scene.py", "var[chunk][where] += mean.astype(np.float32)", "pass"),
+             ("noise",)),
+    Mutation("every amplifier (noise block) draws the same noise", "noise",
+             Patch("inject/scene.py",
+                   "spawn_key=(self.detector_index, STREAMS[purpose], *block.key)",
+                   "spawn_key=(self.detector_index, STREAMS[purpose])"),
+             Patch("inject/scene.py", "for s in root.spawn(len(self.blocks))]",
+                   "for s in [root] * len(self.blocks)]"), ("noise",)),
+    Mutation("Poisson table cut at 2 sigma", "noise",
+             Patch("inject/scene.py", "np.floor(mean + 40 * np.sqrt(mean) + 40)",
+                   "np.floor(mean + 2 * np.sqrt(mean) + 2)"),
+             Patch("inject/scene.py", "kmax = int(mean + 40 * np.sqrt(mean) + 40)",
+                   "kmax = int(mean + 2 * np.sqrt(mean) + 2)"), ("noise",)),
+    Mutation("stars' charge left out of the variance", "noise",
+             Patch("inject/stars.py", "variance[region] += expected",
+                   "variance[region] += 0.0"),
+             Patch("inject/stars.py", "variance[region] += expected",
+                   "variance[region] += 0.0"), ("noise",)),
+    # --- the runner and its manifest ---------------------------------------------------------
+    Mutation("manifest digest without the resolved tracks", "runner",
+             Patch("inject/exposure/scene.py", '"tracks": [\n', '"tracks": [] and [\n'),
+             Patch("inject/focalscene.py", '"tracks": [\n', '"tracks": [] and [\n'),
+             ("runner", "focal"), audit=True),
+    Mutation("no pending rows: a run killed before its first row", "runner",
+             Patch("inject/exposure/runner.py", _PENDING,
+                   _PENDING.replace("in todo", "in ()")),
+             Patch("inject/parallel.py", _PENDING, _PENDING.replace("in todo", "in ()")),
+             ("runner",), audit=True),
+    Mutation("stray file replaced without --overwrite", "runner",
+             Patch("inject/exposure/runner.py", "        elif overwrite:\n            todo.append",
+                   "        elif True:\n            todo.append"),
+             Patch("inject/parallel.py", "if row is None and ours:", "if row is None:"),
+             ("runner",), audit=True),
+    Mutation("done without checking the file's digest", "runner",
+             Patch("inject/exposure/runner.py",
+                   'if row.get("status") == "done" and row.get("sha256") == sha256_file(path):',
+                   'if row.get("status") == "done":'),
+             Patch("inject/parallel.py",
+                   'if row.get("status") == "done" and row.get("sha256") == sha256_file(path):',
+                   'if row.get("status") == "done":'), ("runner",)),
+    Mutation("another scene's files replaced without --overwrite", "runner",
+             Patch("inject/exposure/runner.py", "if others and not overwrite:", "if False:"),
+             Patch("inject/parallel.py",
+                   'if row is not None and row.get("scene_sha256") == fscene.digest:',
+                   "if row is not None:"), ("runner",)),
+    Mutation("stale temporaries left in place", "runner",
+             Patch("inject/exposure/runner.py", "stale = remove_stale_temporaries(outdir)",
+                   "stale = []"),
+             Patch("inject/parallel.py", "stale = remove_stale_temporaries(outdir)",
+                   "stale = []"), ("runner",)),
+    Mutation("job slices contiguous, not interleaved", "runner",
+             Patch("inject/exposure/runner.py", "return tuple(ccds)[job::njobs]",
+                   "return tuple(ccds)[job * len(ccds) // njobs:"
+                   "(job + 1) * len(ccds) // njobs]"),
+             Patch("inject/parallel.py", "return tuple(ccds)[job::njobs]",
+                   "return tuple(ccds)[job * len(ccds) // njobs:"
+                   "(job + 1) * len(ccds) // njobs]"), ("runner",)),
+    # --- the readers ----------------------------------------------------------------------------
+    Mutation("BLANK pixels overwritten by add-streak", "readers",
+             Patch("inject/io/reader.py",
+                   "sel = np.isfinite(delta) & (delta != 0) & self.defined(index)",
+                   "sel = np.isfinite(delta) & (delta != 0)"),
+             Patch("inject/io/reader.py", _BLANK_FLAT,
+                   "            if blank is not None:\n                pass"),
+             ("reader",), audit=True),
+    Mutation("integer pixels truncated, not rounded", "readers",
+             Patch("inject/io/reader.py", "values = np.clip(np.rint((physical - bzero) / bscale),",
+                   "values = np.clip(np.trunc((physical - bzero) / bscale),"),
+             Patch("inject/io/reader.py", "values = np.clip(np.rint((physical - bzero) / bscale),",
+                   "values = np.clip(np.trunc((physical - bzero) / bscale),"), ("reader",)),
+    Mutation("BZERO left out when adding", "readers",
+             Patch("inject/io/reader.py",
+                   "physical = stored[sel].astype(np.float64) * bscale + bzero + delta[sel]",
+                   "physical = stored[sel].astype(np.float64) * bscale + delta[sel]"),
+             Patch("inject/io/reader.py",
+                   "physical = stored[sel].astype(np.float64) * bscale + bzero + delta[sel]",
+                   "physical = stored[sel].astype(np.float64) * bscale + delta[sel]"),
+             ("reader",)),
+    Mutation("LTV origin with the wrong sign", "readers",
+             Patch("inject/io/reader.py",
+                   'return (-int(round(header["LTV1"])), -int(round(header["LTV2"])))',
+                   'return (int(round(header["LTV1"])), int(round(header["LTV2"])))'),
+             Patch("inject/io/reader.py",
+                   'return (-int(round(header["LTV1"])), -int(round(header["LTV2"])))',
+                   'return (int(round(header["LTV1"])), int(round(header["LTV2"])))'),
+             ("reader",)),
+    Mutation("add-streak variance over the gain, not its square", "readers",
+             Patch("inject/addstreak.py", "model_e / gain ** 2)", "model_e / gain)"),
+             Patch("inject/addstreak.py", "model_e / gain ** 2)", "model_e / gain)"),
+             ("reader",)),
+]
+
+
+def layout_of(root):
+    """``"folders"`` for the package in folders, ``"flat"`` for the one before it."""
+    return "folders" if os.path.isdir(os.path.join(root, "inject", "camera")) else "flat"
+
+
+def patch_of(mutation, layout):
+    return mutation.folders if layout == "folders" else mutation.flat
+
+
+def test_files(root, mutation, new=False, only=None):
+    """The mutation's test files present in ``root`` and those it does not have (``only``:
+    these files instead of the mutation's own)."""
+    wanted = list(dict.fromkeys(only or [f for group in mutation.tests for f in TESTS[group]]))
+    have = [f for f in wanted if os.path.exists(os.path.join(root, f))]
+    missing = [f for f in wanted if f not in have]
+    if new:
+        for pattern in NEW_TESTS:
+            have += sorted(os.path.relpath(p, root) for p in
+                           glob.glob(os.path.join(root, pattern)) if os.path.relpath(p, root)
+                           not in have)
+    return have, missing
+
+
+def applies(root, patch):
+    """How many times the patch's text occurs in its file (1 is right)."""
+    path = os.path.join(root, patch.path)
+    if not os.path.exists(path):
+        return 0
+    with open(path) as stream:
+        return stream.read().count(patch.old)
+
+
+def describe(root):
+    """The checkout's commit (short), marked when its tracked files differ from it."""
+    def git(*args):
+        return subprocess.run(["git", "-C", root, *args], capture_output=True, text=True)
+
+    head = git("rev-parse", "--short", "HEAD")
+    if head.returncode:
+        return root
+    dirty = git("status", "--porcelain", "--untracked-files=no").stdout.strip()
+    return f"commit {head.stdout.strip()}" + (" with local changes" if dirty else "")
+
+
+def run_tests(copy, tests, timeout, every=False):
+    """Run ``tests`` in ``copy``; return (status, seconds, first failing test or ''), or with
+    ``every`` (no ``-x``) the failing test files, comma-separated, in place of the test."""
+    env = dict(os.environ, PYTHONPATH=copy + os.pathsep + os.environ.get("PYTHONPATH", ""),
+               PYTHONDONTWRITEBYTECODE="1")
+    check = subprocess.run([sys.executable, "-c", "import inject; print(inject.__file__)"],
+                           cwd=copy, env=env, capture_output=True, text=True)
+    if not check.stdout.startswith(copy):
+        raise SystemExit(f"the copy's package is not the one imported: {check.stdout.strip()}")
+    start = time.perf_counter()
+    try:
+        proc = subprocess.run([sys.executable, "-m", "pytest", *([] if every else ["-x"]),
+                               "-q", "-p", "no:cacheprovider", *tests], cwd=copy, env=env,
+                              capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return "timeout", time.perf_counter() - start, ""
+    failed = [line.split()[1] for line in proc.stdout.splitlines()
+              if line.startswith(("FAILED", "ERROR")) and len(line.split()) > 1]
+    if every:
+        text = ", ".join(dict.fromkeys(os.path.basename(f.split("::")[0]) for f in failed))
+    else:
+        text = failed[0] if failed else ""
+    return proc.returncode, time.perf_counter() - start, text
+
+
+def run_one(root, tmp, i, mutation, layout, new, timeout, only=None, every=False):
+    patch = patch_of(mutation, layout)
+    tests, _ = test_files(root, mutation, new, only)
+    if patch is None:
+        return mutation, "not in this code", 0.0, "", tests
+    copy = os.path.join(tmp, f"mutant{i}")
+    shutil.copytree(root, copy, ignore=IGNORE, dirs_exist_ok=True)
+    try:
+        target = os.path.join(copy, patch.path)
+        with open(target) as f:
+            text = f.read()
+        if text.count(patch.old) != 1:
+            return mutation, "PATCH DOES NOT APPLY", 0.0, "", tests
+        with open(target, "w") as f:
+            f.write(text.replace(patch.old, patch.new))
+        status, seconds, failed = run_tests(copy, tests, timeout, every)
+        result = "caught" if status not in (0, "timeout", 5) else (
+            "MISSED" if status in (0, 5) else "timeout")
+        return mutation, result, seconds, failed, tests
+    finally:
+        shutil.rmtree(copy, ignore_errors=True)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--root", default=ROOT, help="checkout to mutate (default: this one)")
+    parser.add_argument("--only", nargs="*", help="substrings of mutation names to run")
+    parser.add_argument("--area", nargs="*", help="only these areas (focal plane, passes, "
+                        "noise, runner, readers)")
+    parser.add_argument("--list", action="store_true")
+    parser.add_argument("--check", action="store_true", help="only check that patches apply")
+    parser.add_argument("--new", action="store_true",
+                        help="also run issue 19's new test files for every mutation")
+    parser.add_argument("--tests", nargs="*", help="run these test files for every mutation "
+                        "instead of its own")
+    parser.add_argument("--every", action="store_true",
+                        help="run every test (no -x) and list all the files that fail")
+    parser.add_argument("--jobs", type=int, default=1, help="mutants tested at once")
+    parser.add_argument("--timeout", type=float, default=1200)
+    parser.add_argument("--no-baseline", action="store_true")
+    parser.add_argument("--markdown", metavar="FILE", help="also write the table to FILE")
+    args = parser.parse_args(argv)
+    root = os.path.abspath(args.root)
+    layout = layout_of(root)
+    chosen = [m for m in MUTATIONS if (not args.only or any(s in m.name for s in args.only))
+              and (not args.area or m.area in args.area)]
+    if args.list or args.check:
+        bad = 0
+        for m in chosen:
+            patch = patch_of(m, layout)
+            tests, missing = test_files(root, m, args.new, args.tests)
+            count = None if patch is None else applies(root, patch)
+            bad += count not in (None, 1)
+            state = "n/a" if count is None else ("ok" if count == 1 else f"{count} matches")
+            print(f"{state:>10s}  {m.area:12s} {m.name}: "
+                  f"{patch.path if patch else '-'} -> {' '.join(tests)}"
+                  + (f" (missing: {' '.join(missing)})" if missing else ""))
+        return 1 if bad else 0
+    print(f"checkout {root} ({layout} layout), {len(chosen)} mutations", flush=True)
+    rows, bad = [], 0
+    with tempfile.TemporaryDirectory(prefix="inject-mutants-") as tmp:
+        if not args.no_baseline:
+            base = os.path.join(tmp, "baseline")
+            shutil.copytree(root, base, ignore=IGNORE, dirs_exist_ok=True)
+            tests = sorted({t for m in chosen
+                            for t in test_files(root, m, args.new, args.tests)[0]})
+            status, seconds, failed = run_tests(base, tests, args.timeout)
+            print(f"baseline (unmutated) on {len(tests)} test files: "
+                  f"{'pass' if status == 0 else 'FAIL ' + failed} in {seconds:.0f} s",
+                  flush=True)
+            if status != 0:
+                return 1
+            shutil.rmtree(base)
+        with ThreadPoolExecutor(max(1, args.jobs)) as pool:
+            futures = [pool.submit(run_one, root, tmp, i, m, layout, args.new, args.timeout,
+                                   args.tests, args.every) for i, m in enumerate(chosen)]
+            for future in futures:
+                m, result, seconds, failed, _ = future.result()
+                bad += result not in ("caught", "not in this code")
+                rows.append((m, result, seconds, failed))
+                print(f"{result:>7s}  {seconds:6.0f} s  {m.name}  ({failed or '-'})",
+                      flush=True)
+    failing = "test files that fail" if args.every else "first failing test"
+    lines = [f"| mutation | area | audit | file | result | {failing} | time (s) |",
+             "|---|---|:-:|---|---|---|---:|"]
+    for m, result, seconds, failed in rows:
+        patch = patch_of(m, layout)
+        lines.append(f"| {m.name} | {m.area} | {'yes' if m.audit else ''} | "
+                     f"{patch.path if patch else '-'} | {result} | "
+                     f"{failed.replace('|', '/') or '-'} | {seconds:.0f} |")
+    caught = sum(r[1] == "caught" for r in rows)
+    lines.append("")
+    lines.append(f"{caught} of {len(rows)} mutations caught ({layout} layout, "
+                 f"{describe(root)}).")
+    print("\n" + "\n".join(lines))
+    if args.markdown:
+        with open(args.markdown, "w") as stream:
+            stream.write("\n".join(lines) + "\n")
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
