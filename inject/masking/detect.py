@@ -520,39 +520,56 @@ def _star_mask(z):
     region instead of breaking into compact fragments), with margins growing with their
     peak; and the compact blobs (:data:`BLOB_RADIUS`) of regions a streak has joined."""
     above = z > STAR_LOW_SIGMA
-    stars = _compact_regions(z, above)
+    labels, n = ndimage.label(above, structure=np.ones((3, 3)))
+    stars = _compact_regions(z, above, (labels, n))
     # A streak crossing a star or a galaxy joins it into one long region, which stays
     # unsuppressed: the galaxy, clipped but wide, then outweighs a faint line. The blob is
     # where the region is much thicker than its typical thickness (the line's): its pixels
     # further from the region's edge than BLOB_THICKNESS times the region's median distance,
     # grown back by that distance, are judged as a region of their own.
-    rest = (above & ~stars).view(np.uint8)
-    dist = cv2.distanceTransform(rest, cv2.DIST_L2, 3)
-    labels, n = ndimage.label(rest, structure=np.ones((3, 3)))
-    if n:
-        # Only regions thicker somewhere than BLOB_RADIUS can hold a blob (a few: the median
-        # over the thousands of small noise regions of a CCD would cost 0.2 s).
-        thick = np.unique(labels[dist > BLOB_RADIUS + 0.5])
-        thr = np.full(n + 1, np.inf)
-        if thick.size:
-            sel = np.isin(labels, thick)
-            med = np.asarray(ndimage.median(dist[sel], labels[sel], thick))
-            thr[thick] = np.maximum(BLOB_RADIUS + 0.5, BLOB_THICKNESS * med)
-        core = dist > thr[labels]
-        if core.any():
-            r = int(min(np.ceil(thr[1:][np.isfinite(thr[1:])].max()), MAX_MARGIN))
-            r = int(min(r, np.ceil(dist[core].max())))
-            disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-            blob = cv2.dilate(core.view(np.uint8), disc).view(bool) & rest.view(bool)
-            np.logical_or(stars, _compact_regions(z, blob), out=stars)
+    rest = above & ~stars
+    dist = cv2.distanceTransform(rest.view(np.uint8), cv2.DIST_L2, 3)
+    seeds = dist > BLOB_RADIUS + 0.5
+    # Only regions thicker somewhere than BLOB_RADIUS can hold a blob: a few, each handled in
+    # its own box (a CCD's thousands of small noise regions are never looked at; whole-image
+    # passes per step cost ~50 ms a CCD). A region is what is left of one above
+    # STAR_LOW_SIGMA once the compact ones and their margins are taken out.
+    if not seeds.any():
+        return stars
+    blob = np.zeros(z.shape, dtype=bool)
+    for lab in np.unique(labels[seeds]):
+        x, y, w, h = cv2.boundingRect((labels == lab).view(np.uint8))
+        box = (slice(y, y + h), slice(x, x + w))
+        own = (labels[box] == lab) & rest[box]
+        d = dist[box]
+        thr = max(BLOB_RADIUS + 0.5, BLOB_THICKNESS * float(np.median(d[own])))
+        core = own & (d > thr)
+        cx, cy, cw, ch = cv2.boundingRect(core.view(np.uint8))
+        if cw == 0:
+            continue
+        r = int(min(np.ceil(thr), MAX_MARGIN, np.ceil(d[core].max())))
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        # Grown within the core's box widened by r (not the whole region's, a CCD's width
+        # for a streak).
+        sub = (slice(max(0, cy - r), cy + ch + r), slice(max(0, cx - r), cx + cw + r))
+        grown = cv2.dilate(np.ascontiguousarray(core[sub]).view(np.uint8), disc)
+        blob[box][sub] |= grown.view(bool) & own[sub]
+    x, y, w, h = cv2.boundingRect(blob.view(np.uint8))
+    if w > 0:
+        # The blobs' compact parts, margins included, lie within MAX_MARGIN of their box.
+        pad = MAX_MARGIN + 1
+        win = (slice(max(0, y - pad), y + h + pad), slice(max(0, x - pad), x + w + pad))
+        stars[win] |= _compact_regions(z[win], blob[win])
     return stars
 
 
-def _compact_regions(z, above):
+def _compact_regions(z, above, labelled=None):
     """The compact regions of bool image ``above`` that reach :data:`STAR_SIGMA` in ``z``,
-    grown by margins that increase with their peak (see :func:`_star_mask`)."""
+    grown by margins that increase with their peak (see :func:`_star_mask`); ``labelled``:
+    ``above``'s 8-connected labels and their count, if already known."""
     zp = z
-    labels, n = ndimage.label(above, structure=np.ones((3, 3)))
+    labels, n = (ndimage.label(above, structure=np.ones((3, 3))) if labelled is None
+                 else labelled)
     if n == 0:
         return np.zeros(z.shape, dtype=bool)
     yy, xx = np.nonzero(labels)
