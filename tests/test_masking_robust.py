@@ -16,7 +16,13 @@ from inject.cli.main import main
 from inject.masking.detect import BAD_PLANES, detect_streaks, prepare
 from inject.masking.geometry import Line
 from inject.masking.mask import FALLBACK_MAX_PX, mask_spans, paint
-from inject.masking.measure import Profile, half_max_width, profile_fwhm, wing_reach
+from inject.masking.measure import (
+    Profile,
+    _robust_line_fit,
+    half_max_width,
+    profile_fwhm,
+    wing_reach,
+)
 from inject.masking.run import MaskResult, analyse
 from inject.scene import MASK_PLANES
 
@@ -79,6 +85,20 @@ def test_fwhm_of_a_cut_profile_is_measured_or_flagged():
     for cut in (0.0, 0.3 * fwhm, 0.5 * fwhm):
         f, _, centre, _ = profile_fwhm(gaussian_profile(sigma, 10.0, cut=cut, pixel=True))
         assert math.isnan(f) and math.isnan(centre)
+
+
+def test_line_fit_is_not_pulled_by_one_heavy_segment():
+    """Segment offsets on the line s = 0.1 + 0.002 t (17 segments, weight 1) and one on a
+    star beside it: 2.5 px off with 5 times the weight (its amplitude). The fit is the line,
+    to rounding; a weighted least-squares start is pulled 1.4 px towards the star and would
+    see every other segment as an outlier (the old fit ended 1.3 px off)."""
+    t = np.arange(-200.0, 201.0, 25.0)
+    s = 0.1 + 0.002 * t
+    w = np.ones(t.size)
+    s[10] -= 2.5
+    w[10] = 5.0
+    a, b = _robust_line_fit(t, s, w)
+    assert a == pytest.approx(0.1, abs=1e-9) and b == pytest.approx(0.002, abs=1e-12)
 
 
 def test_wing_reach_is_one_sided_at_a_cut():

@@ -693,9 +693,31 @@ def _main_bump(template, smooth_px=1.0):
     return keep
 
 
+#: A segment weighs at most this many times the median of the heaviest third
+#: (:func:`_robust_line_fit`): the streak's own segments, unless it covers under a sixth of
+#: the line.
+MAX_SEGMENT_WEIGHT = 2.0
+
+
+def _weighted_median(x, w):
+    """Median of ``x`` with weights ``w`` (the first value reaching half the total weight)."""
+    order = np.argsort(x)
+    cum = np.cumsum(w[order])
+    return float(x[order][np.searchsorted(cum, 0.5 * cum[-1])])
+
+
 def _robust_line_fit(t, s, w):
     """Offset and slope of ``s = a + b t``, weighted by ``w`` (~ 1 / error), with 3-sigma
-    clipping of the weighted residuals (2 points: exact; 1: offset only)."""
+    clipping of the weighted residuals (2 points: exact; 1: offset only).
+
+    A segment far brighter than the rest of a streak is a star or a galaxy beside it, not a
+    better measure of its position, and a single heavy outlier pulls a least-squares start so
+    far that every other point looks as far off as it: the weights are capped at
+    :data:`MAX_SEGMENT_WEIGHT` times the median of the heaviest third, and the first clipping
+    is about a weighted Theil-Sen line (weighted medians of the pairwise slopes, pair weight
+    ``w_i w_j``, and of the offsets), which segments beyond the streak's ends, of little
+    weight, do not move either.
+    """
     ok = np.isfinite(s) & (w > 0)
     t, s, w = t[ok], s[ok], w[ok]
     if s.size == 0:
@@ -705,7 +727,18 @@ def _robust_line_fit(t, s, w):
             b = (s[1] - s[0]) / (t[1] - t[0])
             return float(s[0] - b * t[0]), float(b)
         return float(np.average(s, weights=w)), 0.0
-    keep = np.ones(s.size, dtype=bool)
+    top = np.sort(w)[-max(1, s.size // 3):]
+    w = np.minimum(w, MAX_SEGMENT_WEIGHT * np.median(top))
+    i, j = np.triu_indices(s.size, 1)
+    dt = t[j] - t[i]
+    pair = dt != 0
+    b = (_weighted_median((s[j] - s[i])[pair] / dt[pair], (w[i] * w[j])[pair])
+         if pair.any() else 0.0)
+    a = _weighted_median(s - b * t, w)
+    res = (s - (a + b * t)) * w / np.median(w)
+    keep = np.abs(res) <= 3 * max(1.4826 * np.median(np.abs(res)), 0.02)
+    if keep.sum() < 3:
+        keep[:] = True
     for _ in range(5):
         b, a = np.polyfit(t[keep], s[keep], 1, w=w[keep])
         res = (s - (a + b * t)) * w / np.median(w[keep])
@@ -773,10 +806,16 @@ def refine_line(prep, line, width_px, iterations=3, exclude=(), converged=None):
                    & (template.count > 0)[None, :]).astype(float)
         shifts, amplitude = _segment_shifts(np.nan_to_num(prof), weights, tpl,
                                             template.distance, max_shift)
-        centres = (np.arange(nseg) + 0.5) * seg_len - 0.5 * length
-        # A segment's offset error scales as 1 / amplitude: segments off the streak (beyond
-        # its end) weigh nothing.
-        a, b = _robust_line_fit(centres, shifts, np.clip(np.nan_to_num(amplitude), 0, None))
+        # A segment's offset error scales as 1 / (amplitude sqrt(pixels)): segments off the
+        # streak (beyond its end) weigh nothing, and one cut by an edge or a hole weighs by
+        # its share of a whole segment's pixels (its few pixels' amplitude is noisy, and a
+        # high one alone would pull the fit). It stands at the mean position of its pixels.
+        n = np.bincount(seg, minlength=nseg).astype(float)
+        whole = np.median(n[n > 0]) if (n > 0).any() else 1.0
+        centres = np.where(n > 0, np.bincount(seg, t, nseg) / np.maximum(n, 1),
+                           (np.arange(nseg) + 0.5) * seg_len - 0.5 * length)
+        weight = np.clip(np.nan_to_num(amplitude), 0, None) * np.sqrt(np.minimum(n / whole, 1))
+        a, b = _robust_line_fit(centres, shifts, weight)
         if nseg < 3:
             b = 0.0 if nseg == 1 else b
         # Shifts are relative to the template, which sits where the line was: its own centre
