@@ -25,8 +25,9 @@ Usage::
 The tables of docs/explanation/testing.md come from::
 
     git worktree add /tmp/before 1cf9c16   # the code before issue 19's session
+    git worktree add /tmp/after c86fddb    # the code with issue 19's tests
     python scripts/mutation_check_pipeline.py --root /tmp/before --markdown before.md
-    python scripts/mutation_check_pipeline.py --new --markdown after.md
+    python scripts/mutation_check_pipeline.py --root /tmp/after --new --markdown after.md
 
 ``--every`` drops ``-x`` and lists every test file that fails (several times slower).
 
