@@ -207,8 +207,12 @@ def test_ra_dec_far_off_a_sip_image(tmp_path):
                  "--mag", "7", "--ra0", repr(ra), "--dec0", repr(dec), "--angle", "0",
                  "--track-length", str(-x + 100), "--no-noise"]) == 0
     truth = Table.read(out, hdu="TRUTH")
-    assert truth["x0"][0] == pytest.approx(x, abs=1e-3)
+    # TRUTH describes the part on the image (grown by the reach): its far end is the start
+    # plus the track's length, and its row the start's.
+    assert truth["x1"][0] == pytest.approx(x + (-x + 100), abs=1e-3)
     assert truth["y0"][0] == pytest.approx(y, abs=1e-3)
+    assert truth["y1"][0] == pytest.approx(y, abs=1e-3)
+    assert x < truth["x0"][0] < -0.5
     assert truth["charge_in_image_e"][0] > 0
 
 
