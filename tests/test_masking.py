@@ -128,6 +128,18 @@ def test_no_false_positive_on_small_streak_free_cut_outs(size, seed):
     assert res.streaks == []
 
 
+def test_no_false_line_along_star_halos_in_an_unbinned_search():
+    """A streak-free 1024 px cut-out (searched unbinned) with a bright star pair: their faint
+    halos, outside the star mask of the unbinned image, added up along a tangent line at the
+    pyramid's coarse levels to z 8.3 (threshold 7.5): a false streak 184 px long and 30 px
+    wide across the top-left corner."""
+    raw = apply_overrides(DEFAULT_SCENE, ["seed=3022", "stars={mag_limit: 24}",
+                                          "detector.nx=1024", "detector.ny=1024"])
+    raw["satellites"] = []
+    res, _, _, _ = run(parse_scene(raw))
+    assert res.streaks == []
+
+
 def test_threshold_for_small_searches():
     from inject.masking.detect import FALSE_ALARM_Z, threshold_for
     assert threshold_for((1000, 1018)) == FALSE_ALARM_Z  # full CCD

@@ -240,6 +240,11 @@ class Prepared:
     holes : ndarray or None
         Bool, binned pixels with no usable pixel (NaN, flagged bad or dead) outside stars;
         None if there are none.
+    halos : ndarray or None
+        Bool, binned pixels of the compact sources of the image binned :data:`BIN` x
+        :data:`BIN` that the star mask leaves (their faint halos), left out of the pyramid
+        levels binned :data:`BIN` or more from the image (:func:`level_images`); None for
+        an image searched at :data:`BIN` or with none.
     """
 
     residual: np.ndarray
@@ -250,6 +255,7 @@ class Prepared:
     zbinned: np.ndarray | None = None
     holes: np.ndarray | None = None
     levels: int = LEVELS
+    halos: np.ndarray | None = None
 
     @property
     def shape(self):
@@ -563,6 +569,17 @@ def _star_mask(z):
     return stars
 
 
+def _coarse_star_mask(z, f):
+    """:func:`_star_mask` of significance image ``z`` binned ``f`` x ``f`` (back in units of
+    its own noise), blown up to ``z``'s shape (bool)."""
+    ny, nx = z.shape[0] // f, z.shape[1] // f
+    zc = cv2.resize(np.ascontiguousarray(z[:ny * f, :nx * f]), (nx, ny),
+                    interpolation=cv2.INTER_AREA) * np.float32(f)
+    out = np.zeros(z.shape, dtype=bool)
+    out[:ny * f, :nx * f] = np.repeat(np.repeat(_star_mask(zc), f, axis=0), f, axis=1)
+    return out
+
+
 def _compact_regions(z, above, labelled=None):
     """The compact regions of bool image ``above`` that reach :data:`STAR_SIGMA` in ``z``,
     grown by margins that increase with their peak (see :func:`_star_mask`); ``labelled``:
@@ -704,12 +721,23 @@ def prepare(image, bad=None, bin_factor=None, box=BACKGROUND_BOX):
         z[partial] *= np.sqrt(count[partial] / area)
     z[~np.isfinite(z)] = 0
     stars_b = _star_mask(z)
+    halos = None
+    if bin_factor < BIN:
+        # A bright star's halo lies below STAR_LOW_SIGMA in the pixels of a finely binned
+        # image, outside its star mask, yet adds up along a tangent line at the pyramid's
+        # coarse levels (streak-free 1024 px LSSTCam cut-outs searched unbinned reached z
+        # 7.6-8.3 so, 5.1-5.6 with these halos left out): the coarse levels leave out the
+        # compact sources of the image binned BIN, as a search binned BIN does. The fine
+        # levels and the measurements keep them (a narrow streak beside a star).
+        halos = _coarse_star_mask(z, BIN // bin_factor) & ~stars_b
+        halos = halos if halos.any() else None
     work = np.where(stars_b, 0, np.clip(z, -CLIP_SIGMA, CLIP_SIGMA)).astype(np.float32)
     # Holes: unusable blocks that no star covers (a star's saturated core is a star's).
     holes = (count == 0) & ~stars_b
     return Prepared(residual=residual, sigma=sigma, stars_binned=stars_b, binned=work,
                     bin=bin_factor, zbinned=np.where(stars_b, 0, z).astype(np.float32),
-                    holes=holes if holes.any() else None, levels=search_levels(bin_factor))
+                    holes=holes if holes.any() else None, levels=search_levels(bin_factor),
+                    halos=halos)
 
 
 def _row_scales(h, n_usable, every=8):
@@ -788,6 +816,17 @@ def pyramid(work, levels=LEVELS):
         images.append((cv2.resize(img[:2 * ny, :2 * nx], (nx, ny),
                                   interpolation=cv2.INTER_AREA), 2 * f))
     return images
+
+
+def level_images(prep, work):
+    """The :func:`pyramid` of search image ``work`` of ``prep``, its levels binned
+    :data:`BIN` or more from the image built from ``work`` without the
+    :attr:`Prepared.halos`."""
+    levels = pyramid(work, prep.levels)
+    if prep.halos is None:
+        return levels
+    coarse = pyramid(np.where(prep.halos, np.float32(0), work), prep.levels)
+    return [c if prep.bin * c[1] >= BIN else fine for fine, c in zip(levels, coarse)]
 
 
 def hough_significance(image, min_length):
@@ -874,7 +913,7 @@ def best_line(prep, work, scales=None, norms=None):
     """
     best = None
     used = []
-    for k, (image, f) in enumerate(pyramid(work, prep.levels)):
+    for k, (image, f) in enumerate(level_images(prep, work)):
         factor = prep.bin * f
         z, row, col, sc = hough_peak(image, min_line_cells(image.shape, factor),
                                      None if scales is None else scales[k],
