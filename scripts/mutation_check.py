@@ -129,8 +129,9 @@ def copy_tree(dest):
     shutil.copytree(ROOT, dest, ignore=IGNORE, dirs_exist_ok=True)
 
 
-def run_tests(copy, tests, timeout):
-    """Run ``tests`` in ``copy``; return (status, seconds, first failing test or '')."""
+def run_tests(copy, tests, timeout, every=False):
+    """Run ``tests`` in ``copy``; return (status, seconds, first failing test or ''), or with
+    ``every`` (no ``-x``) the failing test files, comma-separated, in place of the test."""
     env = dict(os.environ, PYTHONPATH=copy + os.pathsep + os.environ.get("PYTHONPATH", ""),
                PYTHONDONTWRITEBYTECODE="1")
     check = subprocess.run([sys.executable, "-c", "import inject; print(inject.__file__)"],
@@ -139,14 +140,18 @@ def run_tests(copy, tests, timeout):
         raise SystemExit(f"the copy's package is not the one imported: {check.stdout.strip()}")
     start = time.perf_counter()
     try:
-        proc = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p",
-                               "no:cacheprovider", *tests], cwd=copy, env=env,
+        proc = subprocess.run([sys.executable, "-m", "pytest", *([] if every else ["-x"]),
+                               "-q", "-p", "no:cacheprovider", *tests], cwd=copy, env=env,
                               capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         return "timeout", time.perf_counter() - start, ""
-    failed = next((line.split()[1] for line in proc.stdout.splitlines()
-                   if line.startswith(("FAILED", "ERROR"))), "")
-    return proc.returncode, time.perf_counter() - start, failed
+    failed = [line.split()[1] for line in proc.stdout.splitlines()
+              if line.startswith(("FAILED", "ERROR")) and len(line.split()) > 1]
+    if every:
+        text = ", ".join(dict.fromkeys(os.path.basename(f.split("::")[0]) for f in failed))
+    else:
+        text = failed[0] if failed else ""
+    return proc.returncode, time.perf_counter() - start, text
 
 
 def main(argv=None):

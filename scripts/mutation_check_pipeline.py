@@ -41,9 +41,10 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+
+from mutation_check import run_tests  # this folder's: the same pytest run in a copy
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 IGNORE = shutil.ignore_patterns(".venv", ".git", "out", "__pycache__", "*.egg-info",
@@ -338,31 +339,6 @@ def describe(root):
         return root
     dirty = git("status", "--porcelain", "--untracked-files=no").stdout.strip()
     return f"commit {head.stdout.strip()}" + (" with local changes" if dirty else "")
-
-
-def run_tests(copy, tests, timeout, every=False):
-    """Run ``tests`` in ``copy``; return (status, seconds, first failing test or ''), or with
-    ``every`` (no ``-x``) the failing test files, comma-separated, in place of the test."""
-    env = dict(os.environ, PYTHONPATH=copy + os.pathsep + os.environ.get("PYTHONPATH", ""),
-               PYTHONDONTWRITEBYTECODE="1")
-    check = subprocess.run([sys.executable, "-c", "import inject; print(inject.__file__)"],
-                           cwd=copy, env=env, capture_output=True, text=True)
-    if not check.stdout.startswith(copy):
-        raise SystemExit(f"the copy's package is not the one imported: {check.stdout.strip()}")
-    start = time.perf_counter()
-    try:
-        proc = subprocess.run([sys.executable, "-m", "pytest", *([] if every else ["-x"]),
-                               "-q", "-p", "no:cacheprovider", *tests], cwd=copy, env=env,
-                              capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired:
-        return "timeout", time.perf_counter() - start, ""
-    failed = [line.split()[1] for line in proc.stdout.splitlines()
-              if line.startswith(("FAILED", "ERROR")) and len(line.split()) > 1]
-    if every:
-        text = ", ".join(dict.fromkeys(os.path.basename(f.split("::")[0]) for f in failed))
-    else:
-        text = failed[0] if failed else ""
-    return proc.returncode, time.perf_counter() - start, text
 
 
 def run_one(root, tmp, i, mutation, layout, new, timeout, only=None, every=False):
