@@ -3,8 +3,8 @@
 The ``inject`` parser and entry point; each command is a module of :mod:`inject.cli` (its
 parser and its run: :mod:`~inject.cli.profile`, :mod:`~inject.cli.simulate`,
 :mod:`~inject.cli.add_streak`, :mod:`~inject.cli.mask`, :mod:`~inject.cli.evaluate`,
-:mod:`~inject.cli.focalplane`, :mod:`~inject.cli.satellite_pass`), which imports the engine
-only when it runs, so that ``inject --help`` stays quick.
+:mod:`~inject.cli.focalplane`, :mod:`~inject.cli.satellite_pass`, :mod:`~inject.cli.survey`),
+which imports the engine only when it runs, so that ``inject --help`` stays quick.
 
 Each subcommand parses its options, calls the engine and prints or writes the result. Any
 :class:`~inject.errors.InjectError` becomes a one-line message on stderr and exit status 2
@@ -32,6 +32,7 @@ from inject.cli.mask import add_mask_parser
 from inject.cli.profile import add_profile_parser
 from inject.cli.satellite_pass import add_pass_parser
 from inject.cli.simulate import add_simulate_parser
+from inject.cli.survey import add_survey_parser
 from inject.errors import InjectError, InputWarning, OrbitWarning
 from inject.signals import Stopped, handling
 
@@ -85,7 +86,7 @@ def build_parser():
     sub = parser.add_subparsers(dest="command", required=True)
     for add_parser in (add_profile_parser, add_simulate_parser, add_add_streak_parser,
                        add_mask_parser, add_evaluate_parser, add_focalplane_parser,
-                       add_pass_parser):
+                       add_pass_parser, add_survey_parser):
         add_parser(sub)
     for command in sub.choices.values():
         # After the subcommand too; SUPPRESS: not given there, the top-level value stands.

@@ -1,0 +1,194 @@
+"""``inject survey``: which visits of a night a constellation streaks, and the pixels their
+masks cost (the plan: no pixel is rendered)."""
+import contextlib
+import json
+import os
+import sys
+import time
+import warnings
+
+from inject.errors import InputError, OrbitWarning
+
+# ``inject --help`` imports this module: the orbits (astropy, SGP4), the streak model and the
+# survey engine are imported inside the functions that use them.
+
+
+def add_survey_parser(sub):
+    p = sub.add_parser(
+        "survey", help="a night of visits (opsim database or CSV) against a constellation: "
+                       "streaks, masks and pixels lost",
+        description="For every visit of VISITS (an opsim SQLite database, table "
+                    "observations, or a CSV of its columns), the satellites of the "
+                    "constellation whose sunlit track crosses a science CCD during the "
+                    "exposure: the CCDs, length, magnitude, FWHM, peak surface brightness, "
+                    "the mask the masker's rule gives it against the visit's sky, and the "
+                    "pixels that mask takes. Writes streaks.csv, visits.csv, summary.json "
+                    "and three plots in OUTDIR.")
+    p.add_argument("visits", metavar="VISITS", help="opsim SQLite database or CSV of visits")
+    p.add_argument("-o", "--output", "--out", dest="output", required=True, metavar="OUTDIR",
+                   help="output directory (made if missing; its parent must exist)")
+    p.add_argument("--constellation", required=True, metavar="CONST.yaml",
+                   help="the satellites' model (shape, mag, ref_range or lumos) and their "
+                        "orbits (shells and/or tle)")
+    p.add_argument("--render", action="store_true",
+                   help="render the streaked CCDs and mask them (not yet supported)")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="worker processes over the visits (default 1: this process)")
+    p.add_argument("--scheduler", metavar="ADDRESS|local",
+                   help="a Dask scheduler address, or 'local' for a Dask LocalCluster of "
+                        "--workers processes (default: a process pool)")
+    p.add_argument("--job", type=int, metavar="J",
+                   help="plan the J-th (0-based) of --njobs interleaved slices of the visits")
+    p.add_argument("--njobs", type=int, metavar="N")
+    p.add_argument("--no-plots", action="store_true", help="write the tables only")
+    p.add_argument("--json", action="store_true", help="print summary.json on stdout")
+    p.add_argument("--overwrite", action="store_true", help="replace earlier outputs")
+    p.set_defaults(func=run_survey)
+
+
+#: Visits sent to a worker at a time.
+CHUNK_VISITS = 8
+
+
+def run_survey(args):
+    from inject.exposure.runner import check_outdir
+    from inject.survey.outputs import output_paths
+
+    if args.render:
+        raise InputError("--render", True, "not yet supported: this version plans (no "
+                                           "pixels); run without --render")
+    if args.workers is not None and args.workers < 1:
+        raise InputError("--workers", args.workers, "must be >= 1")
+    from inject.survey.visits import read_visits, select_visits
+
+    night = read_visits(args.visits)
+    visits = select_visits(night, args.job, args.njobs)
+    if not visits:
+        raise InputError("--job", args.job, f"takes none of the {len(night)} visits "
+                                            f"(--njobs {args.njobs})")
+    constellation = _constellation(args.constellation, night)
+    check_outdir(args.output)
+    paths = output_paths(args.output, args.job, args.njobs)
+    from inject.io.atomic import check_writable
+
+    made = not os.path.isdir(args.output)
+    if not made:  # an output there without --overwrite is refused before any work
+        for path in paths.values():
+            check_writable(path, args.overwrite)
+    if made:
+        from inject.exposure.runner import make_outdir
+
+        make_outdir(args.output)
+    try:
+        started = time.perf_counter()
+        plans = _plan(visits, constellation, args, night[0])
+        elapsed = time.perf_counter() - started
+        _write(args, paths, plans, night, visits, constellation, elapsed)
+    except BaseException:
+        if made:  # the folder this run made, if nothing else was put there meanwhile
+            with contextlib.suppress(OSError):
+                os.rmdir(args.output)
+        raise
+
+
+def _constellation(path, night):
+    from inject.survey.constellation import read_constellation
+
+    constellation = read_constellation(path, night[0].start.utc)
+    constellation.check_epochs(night[0].start, night[-1].start)
+    return constellation
+
+
+def _plan(visits, constellation, args, first):
+    """Every visit's plan, in this process or on workers, with a progress bar."""
+    from inject.survey.plan import plan_chunk, plan_visits
+
+    progress = _Progress(len(visits))
+    workers = args.workers or 1
+    try:
+        if workers == 1 and not args.scheduler:
+            with warnings.catch_warnings():
+                # An epoch's warning is said once, for the night (check_epochs).
+                warnings.simplefilter("ignore", OrbitWarning)
+                return plan_visits(visits, constellation, progress=progress.step)
+        chunks = [visits[k:k + CHUNK_VISITS] for k in range(0, len(visits), CHUNK_VISITS)]
+        epoch = first.start.utc.isot
+        path = os.path.abspath(args.constellation)
+        if args.scheduler:
+            from inject.exposure.runner import dask_executor
+
+            with dask_executor(args.scheduler, args.workers) as executor:
+                return _gather(executor, plan_chunk, path, epoch, chunks, progress)
+        from inject.exposure.runner import process_pool
+
+        pool = process_pool(workers)
+        try:
+            result = _gather(pool, plan_chunk, path, epoch, chunks, progress)
+        except BaseException:
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        pool.shutdown()
+        return result
+    finally:
+        progress.close()
+
+
+def _gather(executor, function, path, epoch, chunks, progress):
+    from concurrent.futures import as_completed
+
+    futures = {executor.submit(function, path, epoch, chunk): k for k, chunk in enumerate(chunks)}
+    out = [None] * len(chunks)
+    for future in as_completed(futures):
+        out[futures[future]] = future.result()
+        for _ in out[futures[future]]:
+            progress.step()
+    return [plan for chunk in out for plan in chunk]
+
+
+def _write(args, paths, plans, night, visits, constellation, elapsed):
+    from inject.orbits.passes import RUBIN
+    from inject.survey.outputs import summary, write_outputs
+
+    about = {"visits_file": os.path.abspath(args.visits),
+             "constellation_file": os.path.abspath(args.constellation),
+             "satellites": len(constellation), "night_visits": len(night),
+             "job": args.job, "njobs": args.njobs,
+             "site_lon_deg": RUBIN.lon_deg, "plan_seconds": round(elapsed, 3),
+             "plan_seconds_per_visit": round(elapsed / len(visits), 4)}
+    result = summary(plans, about, RUBIN.lon_deg)
+    written = write_outputs(paths, plans, result, args.overwrite, plots=not args.no_plots)
+    if args.json:
+        json.dump(result, sys.stdout)
+        sys.stdout.write("\n")
+    print(f"inject survey: {len(visits)} visits, {result['streaked_visits']} streaked, "
+          f"{result['streaks']} streaks, pixel fraction lost "
+          f"{result['pixel_fraction_lost_total']:.3g} ({elapsed / len(visits):.3f} s a visit); "
+          f"wrote {', '.join(written.values())}", file=sys.stderr)
+
+
+class _Progress:
+    """A bar over the visits on stderr: tqdm on a terminal, a line per tenth otherwise."""
+
+    def __init__(self, total):
+        self.total, self.done, self.next_line = total, 0, 0
+        self.bar = None
+        if sys.stderr.isatty():
+            try:
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=total, unit="visit", file=sys.stderr)
+            except ImportError:
+                pass
+
+    def step(self):
+        self.done += 1
+        if self.bar is not None:
+            self.bar.update(1)
+        elif self.done >= self.next_line or self.done == self.total:
+            print(f"inject survey: visit {self.done}/{self.total}", file=sys.stderr,
+                  flush=True)
+            self.next_line = self.done + max(1, self.total // 10)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()

@@ -1,0 +1,13 @@
+"""A survey night: which visits a satellite constellation streaks, and the pixels its masks cost.
+
+- :mod:`~inject.survey.visits`: the visits of an opsim database (SQLite, table
+  ``observations``) or a CSV with its columns.
+- :mod:`~inject.survey.constellation`: the constellation file (the satellites' model, Walker
+  shells and TLE files).
+- :mod:`~inject.survey.plan`: per visit, the sunlit crossings of the science CCDs, each with its
+  length, magnitude, FWHM, peak surface brightness, mask width and the pixels its mask takes.
+- :mod:`~inject.survey.outputs`: ``streaks.csv``, ``visits.csv``, ``summary.json`` and the
+  plots, written together (:func:`inject.io.atomic.output_group`).
+
+The command line is :mod:`inject.cli.survey` (``inject survey``).
+"""

@@ -1,0 +1,201 @@
+"""A constellation file: one satellite model and the orbits that carry it.
+
+.. code-block:: yaml
+
+    shape: {type: box, length: 7.25, width: 2.65}   # the model keys of a scene satellite
+    mag: 5.0
+    ref_range: 550
+    # lumos: {surfaces: [...]}                      # optional, as a scene's orbit satellite
+    epoch: 2026-06-15T23:00:00                      # optional: the shells' epoch (UTC)
+    shells:                                         # Walker-delta shells
+      - {height: 550, inclination: 53, planes: 72, per_plane: 22, phasing: 1}
+    tle: catalog.tle                                # and/or TLEs, each after a name line
+
+The model keys are checked as a scene's satellite's (:func:`inject.config.parse_satellite`);
+a shell is :func:`inject.orbits.passes.walker_shell` ``i: t/p/f`` with ``t = planes x
+per_plane`` (optional ``raan0``, deg, and ``name``); its epoch is ``epoch`` or the first
+visit's start. A ``tle`` file (relative to the constellation file's folder, or absolute) holds
+any number of TLEs, each two lines optionally after a name line; a satellite's name is its
+name line (or its catalog number).
+"""
+import os
+import warnings
+from dataclasses import dataclass, field
+
+from inject.config import ORBIT_SATELLITE_KEYS, parse_satellite
+from inject.errors import InjectError, OrbitError, OrbitWarning, SceneError
+from inject.orbits.passes import EPOCH_REFUSE_DAYS, EPOCH_WARN_DAYS, Orbit, walker_shell
+from inject.schema import check_keys, load_scene_file, number
+from inject.validate import parse_time
+
+#: Keys of a constellation file.
+CONSTELLATION_KEYS = (ORBIT_SATELLITE_KEYS - {"orbit"}) | {"shells", "tle", "epoch"}
+#: Keys of a shell (``raan0`` and ``name`` optional).
+SHELL_KEYS = ("height", "inclination", "planes", "per_plane", "phasing", "raan0", "name")
+#: The lowest shell, km: below ~150 km a satellite re-enters within days (the atmosphere's
+#: drag), so no constellation flies there.
+MIN_SHELL_HEIGHT_KM = 150.0
+
+
+@dataclass(frozen=True, eq=False)
+class Constellation:
+    """The satellites of a survey run.
+
+    Attributes
+    ----------
+    satellite : inject.config.SatelliteSpec
+        The model every satellite shares (shape, mag, ref_range; no height: the orbits').
+    lumos : dict or None
+        A ``lumos:`` mapping (brightness from lumos-sat's BRDF models).
+    orbits : tuple of inject.orbits.passes.Orbit
+        Every satellite, shells first, then the TLEs in file order.
+    source : str
+        The file, for messages.
+    """
+
+    satellite: object
+    lumos: dict | None
+    orbits: tuple = field(repr=False)
+    source: str = "constellation"
+
+    def __len__(self):
+        return len(self.orbits)
+
+    def check_epochs(self, first, last):
+        """Refuse (OrbitError) a TLE whose epoch is more than
+        :data:`~inject.orbits.passes.EPOCH_REFUSE_DAYS` from a visit of the night
+        (``first`` to ``last``, Times), and warn once for those more than
+        :data:`~inject.orbits.passes.EPOCH_WARN_DAYS` away."""
+        far, worst = 0, None
+        for orbit in self.orbits:
+            days = max(abs((first - orbit.epoch).to_value("day")),
+                       abs((last - orbit.epoch).to_value("day")))
+            if days > EPOCH_REFUSE_DAYS:
+                raise OrbitError(f"{self.source}: orbit {orbit.name!r}: epoch "
+                                 f"{orbit.epoch.isot} is {days:.1f} days from a visit (more "
+                                 f"than {EPOCH_REFUSE_DAYS:g} is refused)")
+            if days > EPOCH_WARN_DAYS:
+                far += 1
+                worst = max(worst or 0.0, days)
+        if far:
+            warnings.warn(f"{self.source}: {far} of {len(self.orbits)} orbits have epochs more "
+                          f"than {EPOCH_WARN_DAYS:g} days from a visit (up to {worst:.1f}): "
+                          f"positions may be km off", OrbitWarning, stacklevel=2)
+
+
+def read_constellation(path, default_epoch):
+    """A :class:`Constellation` from its YAML file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    default_epoch : Time or str
+        The shells' epoch when the file gives none (the first visit's start).
+
+    Raises
+    ------
+    SceneError
+        The file is not a mapping, a key is unknown or missing, the model is out of range,
+        or a shell cannot exist (height below :data:`MIN_SHELL_HEIGHT_KM`, no satellites,
+        phasing outside ``0 .. planes - 1``).
+    OrbitError
+        A TLE is malformed.
+    """
+    path = os.fspath(path)
+    raw = load_scene_file(path)
+    return parse_constellation(raw, default_epoch, os.path.dirname(os.path.abspath(path)),
+                               source=path)
+
+
+def parse_constellation(raw, default_epoch, folder=".", source="constellation"):
+    """A :class:`Constellation` from a mapping (the file's content); ``folder`` resolves a
+    relative ``tle`` path. Raises as :func:`read_constellation`."""
+    check_keys(source, raw, CONSTELLATION_KEYS, {"shape", "mag"})
+    if "shells" not in raw and "tle" not in raw:
+        raise SceneError(f"{source}: give shells, tle or both (the satellites)")
+    satellite = parse_satellite("satellite", raw, height_from_orbit=True)
+    lumos = raw.get("lumos")
+    if lumos is not None:
+        from inject.orbits.lumos import surfaces
+
+        surfaces("lumos", lumos)  # checked now, not at the first sunlit crossing
+    try:
+        epoch = parse_time(raw.get("epoch", default_epoch), "epoch")
+    except InjectError as err:
+        raise SceneError(f"{source}: {err}") from None
+    orbits = []
+    shells = raw.get("shells", [])
+    if not isinstance(shells, list) or ("shells" in raw and not shells):
+        raise SceneError(f"shells={shells!r}: must be a list of shells")
+    for i, shell in enumerate(shells):
+        orbits += _shell(f"shells[{i}]", shell, epoch)
+    if "tle" in raw:
+        tle = raw["tle"]
+        if not isinstance(tle, str) or not tle.strip():
+            raise SceneError(f"tle={tle!r}: must be a file name")
+        orbits += read_tles(tle if os.path.isabs(tle) else os.path.join(folder, tle))
+    return Constellation(satellite, lumos, tuple(orbits), source)
+
+
+def _shell(where, spec, epoch):
+    """The orbits of one Walker shell, its values checked."""
+    check_keys(where, spec, SHELL_KEYS, SHELL_KEYS[:5])
+    height = number(f"{where}.height", spec["height"])
+    if height < MIN_SHELL_HEIGHT_KM:
+        raise SceneError(f"{where}.height={height:g}: below {MIN_SHELL_HEIGHT_KM:g} km no "
+                         f"satellite stays up (km above the Earth's surface)")
+    planes = number(f"{where}.planes", spec["planes"], int)
+    per_plane = number(f"{where}.per_plane", spec["per_plane"], int)
+    if planes < 1 or per_plane < 1:
+        raise SceneError(f"{where}: planes={planes}, per_plane={per_plane}: a shell needs at "
+                         f"least one plane of at least one satellite")
+    phasing = number(f"{where}.phasing", spec["phasing"], int)
+    if not 0 <= phasing < planes:
+        raise SceneError(f"{where}.phasing={phasing}: must be in 0 .. planes - 1 = {planes - 1}"
+                         f" (Walker's F)")
+    inclination = number(f"{where}.inclination", spec["inclination"])
+    raan0 = number(f"{where}.raan0", spec.get("raan0", 0.0))
+    name = spec.get("name", where.replace("[", "").replace("]", ""))
+    if not isinstance(name, str) or not name.strip():
+        raise SceneError(f"{where}.name={name!r}: must be a non-empty string")
+    try:
+        return walker_shell(planes * per_plane, planes, phasing, height, inclination, epoch,
+                            raan0, name=name.strip())
+    except InjectError as err:
+        raise SceneError(f"{where}: {err}") from None
+
+
+def read_tles(path):
+    """Every TLE of a file: two lines each, optionally after a name line.
+
+    Raises
+    ------
+    OrbitError
+        The file cannot be read, a line is out of place, or a TLE is malformed (named by its
+        line number).
+    """
+    try:
+        with open(path, encoding="ascii") as stream:
+            lines = [(k + 1, ln.rstrip()) for k, ln in enumerate(stream) if ln.strip()]
+    except (OSError, UnicodeDecodeError) as err:
+        raise OrbitError(f"TLE file {str(path)!r}: cannot be read ({err})") from None
+    orbits, name, k = [], None, 0
+    while k < len(lines):
+        number_, text = lines[k]
+        if text.startswith("1 ") and k + 1 < len(lines) and lines[k + 1][1].startswith("2 "):
+            try:
+                orbits.append(Orbit.from_tle(text, lines[k + 1][1], name))
+            except OrbitError as err:
+                raise OrbitError(f"TLE file {str(path)!r} line {number_}: {err}") from None
+            name, k = None, k + 2
+        elif name is None and not text.startswith(("1 ", "2 ")):
+            name, k = text.strip().removeprefix("0 "), k + 1
+        else:
+            raise OrbitError(f"TLE file {str(path)!r} line {number_}: {text[:30]!r} is not "
+                             f"where a name or a TLE's first line can be")
+    if name is not None:
+        raise OrbitError(f"TLE file {str(path)!r}: ends with a name line and no TLE")
+    if not orbits:
+        raise OrbitError(f"TLE file {str(path)!r}: holds no TLE")
+    return orbits
+

@@ -1,0 +1,205 @@
+"""What ``inject survey`` writes: ``streaks.csv``, ``visits.csv``, ``summary.json`` and three
+plots, all or none of them (:func:`inject.io.atomic.output_group`).
+
+``streaks.csv`` has one row per visit and satellite whose sunlit streak crosses a science CCD
+(:data:`inject.survey.plan.STREAK_FIELDS`), ``visits.csv`` one row per visit, streaked or not
+(:data:`inject.survey.plan.VISIT_FIELDS`). ``summary.json`` holds the totals, the
+distributions of FWHM and mask width over the streaks, and the same per band and per hour of
+the night (local mean solar time at the site). The plots: streaks per visit through the night
+(``streaks_per_visit.png``), the pixel fraction lost per visit (``pixel_fraction.png``) and a
+sky map of the visits coloured by it (``sky_map.png``).
+
+A ``--job J --njobs N`` slice writes the same files with ``-jobJ-of-N`` before the extension,
+so that the slices of a night can share one folder.
+"""
+import csv
+import io
+import json
+import math
+import os
+
+import numpy as np
+
+from inject.io.atomic import atomic_path, output_group
+from inject.survey.plan import STREAK_FIELDS, TOTAL_PIXELS, VISIT_FIELDS
+from inject.survey.visits import night_hours
+
+#: Files of a run, by kind (the plots last).
+NAMES = {"streaks": "streaks.csv", "visits": "visits.csv", "summary": "summary.json",
+         "night": "streaks_per_visit.png", "fraction": "pixel_fraction.png",
+         "sky": "sky_map.png"}
+
+
+def output_paths(outdir, job=None, njobs=None):
+    """``{kind: path}`` of a run's files (a job's carry its slice in their names)."""
+    out = {}
+    for kind, name in NAMES.items():
+        if job is not None:
+            stem, ext = os.path.splitext(name)
+            name = f"{stem}-job{job}-of-{njobs}{ext}"
+        out[kind] = os.path.join(outdir, name)
+    return out
+
+
+def _cell(value):
+    if value is None:
+        return ""
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return "" if not math.isfinite(value) else repr(round(value, 6))
+    return value
+
+
+def csv_text(rows, fields):
+    """CSV text of ``rows`` (dicts) with the columns ``fields``; NaN and None as empty."""
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fields, lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: _cell(row[k]) for k in fields})
+    return text.getvalue()
+
+
+def _distribution(values):
+    values = np.asarray([v for v in values if math.isfinite(v)], float)
+    if not values.size:
+        return None
+    q = np.percentile(values, [0, 10, 50, 90, 100])
+    return {"min": float(q[0]), "p10": float(q[1]), "median": float(q[2]),
+            "p90": float(q[3]), "max": float(q[4]), "mean": float(values.mean())}
+
+
+def _totals(plans):
+    """Counts, pixel fractions and distributions of a set of visit plans."""
+    n = len(plans)
+    streaks = [s for p in plans for s in p.streaks]
+    lost = np.array([p.pixels_lost for p in plans], float)
+    fraction = lost / TOTAL_PIXELS
+    counts = np.array([len(p.streaks) for p in plans], float)
+    return {
+        "visits": n,
+        "streaked_visits": int(np.count_nonzero(counts)),
+        "streaked_fraction": float(np.count_nonzero(counts) / n) if n else None,
+        "streaks": len(streaks),
+        "streaks_per_visit": float(counts.mean()) if n else None,
+        "pixels_lost": int(lost.sum()),
+        "pixel_fraction_lost_total": float(lost.sum() / (n * TOTAL_PIXELS)) if n else None,
+        "pixel_fraction_lost_median": float(np.median(fraction)) if n else None,
+        "pixel_fraction_lost_max": float(fraction.max()) if n else None,
+        "pixel_fraction_lost_median_streaked": (float(np.median(fraction[counts > 0]))
+                                                if counts.any() else None),
+        "fwhm_arcsec": _distribution([s.fwhm_arcsec for s in streaks]),
+        "mask_width_px": _distribution([s.mask_width_px for s in streaks]),
+        "peak_e_per_px": _distribution([s.peak_e_per_px for s in streaks]),
+        "mag": _distribution([s.mag for s in streaks]),
+        "length_deg": _distribution([s.length_deg for s in streaks]),
+    }
+
+
+def summary(plans, about, site_lon_deg):
+    """The ``summary.json`` mapping: ``about`` (inputs, for the record), the night's totals,
+    and the same per band and per hour of the night (local mean solar time, 24 and above
+    after midnight)."""
+    out = {**about, "total_pixels_per_visit": TOTAL_PIXELS, **_totals(plans)}
+    out["by_band"] = {b: _totals([p for p in plans if p.visit.band == b])
+                      for b in sorted({p.visit.band for p in plans}, key="ugrizy".index)}
+    hours = night_hours([p.visit for p in plans], site_lon_deg) if plans else []
+    by_hour = {}
+    for hour in sorted({int(h) for h in hours}):
+        chosen = [p for p, h in zip(plans, hours) if int(h) == hour]
+        by_hour[f"{hour % 24:02d}"] = _totals(chosen)
+    out["by_hour"] = by_hour
+    return out
+
+
+def write_outputs(paths, plans, summary_map, overwrite=False, plots=True):
+    """Write every file of :func:`output_paths` together (or none: an output group).
+
+    Raises
+    ------
+    OutputError
+        A file exists without ``overwrite``, or cannot be written.
+    """
+    rows = [row for p in plans for row in p.streak_rows()]
+    visits = [p.visit_row() for p in plans]
+    wanted = paths if plots else {k: v for k, v in paths.items()
+                                  if k in ("streaks", "visits", "summary")}
+    with output_group(list(wanted.values()), overwrite):
+        _write_text(paths["streaks"], csv_text(rows, STREAK_FIELDS), overwrite)
+        _write_text(paths["visits"], csv_text(visits, VISIT_FIELDS), overwrite)
+        _write_text(paths["summary"], json.dumps(summary_map, indent=1) + "\n", overwrite)
+        if plots:
+            write_plots(paths, plans, summary_map.get("site_lon_deg", -70.7494), overwrite)
+    return wanted
+
+
+def _write_text(path, text, overwrite):
+    with atomic_path(path, overwrite) as tmp:
+        with open(tmp, "w", newline="", encoding="utf-8") as stream:
+            stream.write(text)
+
+
+def write_plots(paths, plans, site_lon_deg, overwrite=False):
+    """The night's three plots (PNG): streaks per visit against the hour of the night, the
+    pixel fraction lost per visit, and the visits on the sky coloured by it."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    hours = night_hours([p.visit for p in plans], site_lon_deg) if plans else np.array([])
+    counts = np.array([len(p.streaks) for p in plans])
+    fraction = np.array([p.pixels_lost for p in plans], float) / TOTAL_PIXELS
+    bands = [p.visit.band for p in plans]
+    colours = dict(zip("ugrizy", ("#56b4e9", "#009e73", "#e69f00", "#d55e00", "#cc79a7",
+                                  "#000000")))
+
+    def figure():
+        fig = Figure(figsize=(8, 4))
+        FigureCanvasAgg(fig)
+        return fig, fig.add_axes([0.1, 0.14, 0.86, 0.78])
+
+    def hour_axis(ax):
+        ticks = np.arange(np.floor(hours.min()), np.ceil(hours.max()) + 1) if len(hours) \
+            else np.arange(18, 31)
+        ax.set_xticks(ticks)
+        ax.set_xticklabels([f"{int(t) % 24:02d}" for t in ticks], fontsize=7)
+        ax.set_xlabel("local mean solar time at the site (h)")
+
+    for kind, values, label in (("night", counts, "streaks per visit"),
+                                ("fraction", fraction, "pixel fraction lost per visit")):
+        fig, ax = figure()
+        for b in "ugrizy":
+            sel = np.array([x == b for x in bands], bool)
+            if sel.any():
+                ax.plot(hours[sel], values[sel], "o", ms=3, color=colours[b], label=b)
+        hour_axis(ax)
+        ax.set_ylabel(label)
+        ax.set_title(f"{len(plans)} visits, {int(np.count_nonzero(counts))} streaked",
+                     fontsize=9)
+        if plans:
+            ax.legend(fontsize=7, ncol=6, loc="upper right")
+        _save(fig, paths[kind], overwrite)
+
+    fig = Figure(figsize=(8, 4.6))
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes([0.06, 0.1, 0.78, 0.82], projection="mollweide")
+    ra = np.array([p.visit.ra_deg for p in plans], float)
+    dec = np.array([p.visit.dec_deg for p in plans], float)
+    # RA increasing to the left, as the sky is seen.
+    x = -np.radians(((ra + 180.0) % 360.0) - 180.0)
+    order = np.argsort(fraction)
+    points = ax.scatter(x[order], np.radians(dec[order]), c=fraction[order], s=8,
+                        cmap="viridis", vmin=0.0, vmax=max(float(fraction.max(initial=0.0)),
+                                                           1e-6))
+    ax.set_xticks(np.radians(np.arange(-150, 181, 30)))
+    ax.set_xticklabels([f"{(-a) % 360:d}" for a in range(-150, 181, 30)], fontsize=6)
+    ax.tick_params(labelsize=6)
+    ax.grid(True, lw=0.3)
+    ax.set_title("visits (RA, Dec), coloured by the pixel fraction lost", fontsize=9)
+    bar = fig.colorbar(points, cax=fig.add_axes([0.87, 0.15, 0.02, 0.7]))
+    bar.ax.tick_params(labelsize=6)
+    _save(fig, paths["sky"], overwrite)
+
+
+def _save(fig, path, overwrite):
+    with atomic_path(path, overwrite) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)

@@ -1,0 +1,475 @@
+"""The plan of a survey night: each visit's sunlit streaks on the science CCDs, and the pixels
+their masks take. No pixel is rendered.
+
+For each visit (:func:`plan_visit`):
+
+1. Candidates: :func:`inject.orbits.passes.crossing_candidates` (every satellite, SGP4 every
+   5 s, a margin of 1 deg around the field).
+2. Exact passes of the candidates: :func:`inject.orbits.passes.compute_pass` every
+   :data:`~inject.orbits.passes.TRACK_STEP_S` (light time, the stars' aberration, the
+   penumbra), all sharing one :class:`~inject.orbits.passes.FieldFrame` of the visit's times.
+3. Sunlit runs: :func:`inject.orbits.tracks.sunlit_runs`, the track's sunlit parts as
+   focal-plane polylines with the model's values at each vertex (a vertex at least every second
+   and wherever the path bends by 0.05 px). A visit of several snaps has no streak during the
+   readouts between them.
+4. Crossing: a run *crosses* a CCD when its centre line enters the CCD's pixel area (the gaps
+   between CCDs are no CCD). A satellite whose sunlit runs cross at least one CCD is a streak
+   of the visit: one row of ``streaks.csv``.
+5. The streak's model at the middle of its crossing (the vertex values there, the visit's band
+   and seeing): FWHM, peak surface brightness, and the mask width by the masker's surface-
+   brightness rule (:func:`mask_width_px`) against the visit's sky noise.
+6. Pixels lost: the mask, a rectangle of that width along every segment of the run with end
+   caps of half the width at the run's ends (as :func:`inject.masking.mask.mask_spans` draws
+   it along a measured line), rasterised on each CCD it reaches (pixel centres inside), and
+   the streaks of a visit merged on each CCD so that their overlaps count once.
+
+Every number is per visit; nothing is kept between visits but the constellation.
+"""
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from inject.camera import layout as fp
+from inject.camera.wcs import Pointing
+from inject.errors import OrbitWarning
+from inject.instrument import LSST
+from inject.masking.geometry import Line, rectangle_spans
+from inject.masking.mask import MIN_FWHM
+from inject.maskplanes import STREAK_MASK_SIGMA
+from inject.orbits.passes import (
+    RUBIN,
+    TRACK_STEP_S,
+    Exposure,
+    FieldFrame,
+    compute_pass,
+    crossing_candidates,
+)
+from inject.orbits.tracks import sunlit_runs
+from inject.photometry import sky_per_pixel
+from inject.profile import Seeing
+from inject.streak import StreakModel
+from inject.trajectory import clip_path
+
+#: Pixels of the 189 science CCDs.
+TOTAL_PIXELS = int(sum(c.shape[0] * c.shape[1] for c in fp.CCDS))
+#: Seeing of the streak model when a visit has none (the model's default), arcsec.
+DEFAULT_SEEING = Seeing().fwhm_arcsec
+#: Vertices more than this many seconds apart belong to different snaps (a run's vertices are
+#: at most 1 s apart).
+SNAP_BREAK_S = 1.5
+
+#: Columns of ``streaks.csv``.
+STREAK_FIELDS = ("observationId", "satellite", "n_ccds", "ccds", "length_deg", "mag",
+                 "fwhm_arcsec", "peak_e_per_px", "mask_width_px", "pixels_lost", "band",
+                 "mjd", "t_mid_s", "alt_deg", "range_km", "height_km",
+                 "angular_speed_deg_s", "sun_fraction_min", "sunlit_parts")
+#: Columns of ``visits.csv``.
+VISIT_FIELDS = ("observationId", "mjd", "band", "n_streaks", "n_ccds_streaked", "pixels_lost",
+                "pixel_fraction_lost", "fieldRA", "fieldDec", "rotSkyPos", "exptime_s",
+                "alt_deg", "seeing_arcsec", "sky_e_per_px", "n_candidates")
+
+
+@dataclass
+class Streak:
+    """One satellite's sunlit crossing of a visit's science CCDs.
+
+    Attributes
+    ----------
+    satellite : str
+        The satellite's name.
+    ccds : tuple of str
+        CCDs its sunlit centre line crosses, in detector-id order.
+    length_deg : float
+        Length of its sunlit track on those CCDs (the gaps excluded), deg.
+    mag : float
+        Apparent AB magnitude at the middle of the crossing (penumbra included).
+    fwhm_arcsec : float
+        The model's FWHM across the track (:attr:`inject.streak.StreakModel.fwhm_arcsec`).
+    peak_e_per_px : float
+        The model's peak surface brightness, e-/px.
+    mask_width_px : float
+        The mask's full width (:func:`mask_width_px`), averaged over the CCDs crossed by
+        their share of the length (it depends on the sensor's read noise).
+    pixels_lost : int
+        Pixels its mask takes on all CCDs (those shared with another streak of the visit
+        included: the visit's total counts them once).
+    """
+
+    satellite: str
+    ccds: tuple
+    length_deg: float
+    mag: float
+    fwhm_arcsec: float
+    peak_e_per_px: float
+    mask_width_px: float
+    pixels_lost: int = 0
+    t_mid_s: float = math.nan
+    alt_deg: float = math.nan
+    range_km: float = math.nan
+    height_km: float = math.nan
+    angular_speed_deg_s: float = math.nan
+    sun_fraction_min: float = math.nan
+    sunlit_parts: int = 1
+
+
+@dataclass
+class VisitPlan:
+    """A visit's streaks and the pixels their masks take.
+
+    ``pixels_by_ccd`` maps a CCD's name to the pixels masked on it (every streak of the
+    visit merged), ``sky_e_per_px`` and ``seeing_arcsec`` are what the masks were computed
+    with (None when the visit has no candidate).
+    """
+
+    visit: object
+    streaks: list = field(default_factory=list)
+    pixels_by_ccd: dict = field(default_factory=dict)
+    n_candidates: int = 0
+    alt_deg: float = math.nan
+    sky_e_per_px: float | None = None
+    seeing_arcsec: float | None = None
+
+    @property
+    def pixels_lost(self):
+        return int(sum(self.pixels_by_ccd.values()))
+
+    @property
+    def n_ccds_streaked(self):
+        return len({c for s in self.streaks for c in s.ccds})
+
+    def streak_rows(self):
+        """The visit's rows of ``streaks.csv`` (:data:`STREAK_FIELDS`)."""
+        v = self.visit
+        return [{"observationId": v.observation_id, "satellite": s.satellite,
+                 "n_ccds": len(s.ccds), "ccds": " ".join(s.ccds),
+                 "length_deg": s.length_deg, "mag": s.mag, "fwhm_arcsec": s.fwhm_arcsec,
+                 "peak_e_per_px": s.peak_e_per_px, "mask_width_px": s.mask_width_px,
+                 "pixels_lost": s.pixels_lost, "band": v.band, "mjd": v.mjd_tai,
+                 "t_mid_s": s.t_mid_s, "alt_deg": s.alt_deg, "range_km": s.range_km,
+                 "height_km": s.height_km, "angular_speed_deg_s": s.angular_speed_deg_s,
+                 "sun_fraction_min": s.sun_fraction_min, "sunlit_parts": s.sunlit_parts}
+                for s in self.streaks]
+
+    def visit_row(self):
+        """The visit's row of ``visits.csv`` (:data:`VISIT_FIELDS`)."""
+        v = self.visit
+        return {"observationId": v.observation_id, "mjd": v.mjd_tai, "band": v.band,
+                "n_streaks": len(self.streaks), "n_ccds_streaked": self.n_ccds_streaked,
+                "pixels_lost": self.pixels_lost,
+                "pixel_fraction_lost": self.pixels_lost / TOTAL_PIXELS,
+                "fieldRA": v.ra_deg, "fieldDec": v.dec_deg, "rotSkyPos": v.rotation_deg,
+                "exptime_s": v.exptime_s, "alt_deg": self.alt_deg,
+                "seeing_arcsec": self.seeing_arcsec, "sky_e_per_px": self.sky_e_per_px,
+                "n_candidates": self.n_candidates}
+
+
+# --- the visit's sky -----------------------------------------------------------------------
+
+def sky_sigma(visit, alt_deg, vendor):
+    """Per-pixel noise of a visit's image, e-: sky and read noise (one read per snap).
+
+    The sky is the visit's ``skyBrightness`` when given, else the band's dark sky at zenith
+    (SMTN-002, :func:`inject.photometry.sky_per_pixel`) brightened by the airmass ``sec z``
+    at the boresight's altitude, over the whole open-shutter time.
+
+    Returns
+    -------
+    sigma : float
+        e- per pixel.
+    sky : float
+        The sky alone, e- per pixel.
+    """
+    sky = sky_per_pixel(visit.band, visit.exptime_s, LSST.pixel_scale_arcsec,
+                        visit.sky_brightness)
+    if visit.sky_brightness is None:
+        sky /= math.sin(math.radians(max(alt_deg, 1.0)))
+    read = fp.SENSORS[vendor].median("read_noise")
+    return math.sqrt(sky + visit.n_exposures * read ** 2), float(sky)
+
+
+def mask_width_px(model, sigma, sb_sigma=STREAK_MASK_SIGMA):
+    """Full width (px) of the mask the masker's surface-brightness rule gives this streak.
+
+    The rule of :func:`inject.masking.mask.sb_width`, on the model's cross-section instead of
+    a measured profile: out to where the charge per pixel (pixels aligned with the track,
+    :attr:`~inject.streak.StreakModel.pixel_lsf`) drops below ``sb_sigma`` times the sky noise
+    ``sigma`` (e-) on either side, and never narrower than
+    :data:`~inject.masking.mask.MIN_FWHM` times the pixelated FWHM.
+    """
+    lsf = model.pixel_lsf
+    scale = model.pixel_scale
+    charge = model.flux_per_px * lsf.lsf * scale
+    above = np.flatnonzero(charge >= sb_sigma * sigma)
+    reach = float(np.max(np.abs(lsf.offset_arcsec[above]))) / scale if above.size else 0.0
+    fwhm = float(lsf.fwhm()) / scale
+    return 2.0 * max(reach, 0.5 * MIN_FWHM * fwhm)
+
+
+# --- pixels ---------------------------------------------------------------------------------
+
+def union_pixels(spans):
+    """Pixels covered by a set of row runs, each pixel once.
+
+    Parameters
+    ----------
+    spans : list of (rows, start, stop)
+        Row indices and half-open column ranges (as
+        :func:`inject.masking.geometry.rectangle_spans` returns them).
+
+    Returns
+    -------
+    int
+    """
+    spans = [s for s in spans if len(s[0])]
+    if not spans:
+        return 0
+    rows = np.concatenate([s[0] for s in spans]).astype(np.int64)
+    start = np.concatenate([s[1] for s in spans]).astype(np.int64)
+    stop = np.concatenate([s[2] for s in spans]).astype(np.int64)
+    # Rows apart by more than any column: intervals of one row never touch another's.
+    big = int(stop.max()) + 1
+    lo, hi = rows * big + start, rows * big + stop
+    order = np.lexsort((lo, rows))
+    lo, hi = lo[order], hi[order]
+    reach = np.maximum.accumulate(hi)
+    before = np.concatenate([[np.iinfo(np.int64).min], reach[:-1]])
+    return int(np.sum(np.maximum(hi - np.maximum(lo, before), 0)))
+
+
+def run_spans(xs_mm, ys_mm, width_px, ccd):
+    """Row runs of a streak's mask on one CCD: a rectangle ``width_px`` wide along every
+    segment of the polyline (focal-plane mm), extended by half the width beyond the first and
+    last vertices (the end caps), pixel centres inside, clipped to the CCD.
+
+    Returns
+    -------
+    list of (rows, start, stop)
+    """
+    half = 0.5 * width_px
+    px, py = ccd.focal_to_pixel(np.asarray(xs_mm, float), np.asarray(ys_mm, float))
+    n = len(px)
+    # Only the segments that come within reach of the CCD (its pixel area grown by the
+    # width: the rectangle reaches half of it, the cap another half).
+    pieces = clip_path(px, py, (-0.5 - width_px, ccd.shape[1] - 0.5 + width_px,
+                                -0.5 - width_px, ccd.shape[0] - 0.5 + width_px))
+    out = []
+    for k in sorted({piece[0] for piece in pieces}):
+        x0, y0, x1, y1 = px[k], py[k], px[k + 1], py[k + 1]
+        length = math.hypot(x1 - x0, y1 - y0)
+        ux, uy = (x1 - x0) / length, (y1 - y0) / length
+        if k == 0:  # the streak's start: its cap
+            x0, y0 = x0 - half * ux, y0 - half * uy
+        if k == n - 2:  # its end
+            x1, y1 = x1 + half * ux, y1 + half * uy
+        out.append(rectangle_spans(ccd.shape, Line(x0, y0, x1, y1), half))
+    return out
+
+
+def _bounds_array():
+    return np.array([c.bounds_mm() for c in fp.CCDS])
+
+
+_BOUNDS = _bounds_array()
+
+
+def crossed_ccds(xs_mm, ys_mm):
+    """The CCDs a polyline (mm) crosses, with the length (mm) of the polyline on each.
+
+    Returns
+    -------
+    dict
+        ``{CCD: length_mm}`` in detector-id order.
+    """
+    xs, ys = np.asarray(xs_mm, float), np.asarray(ys_mm, float)
+    near = np.flatnonzero((_BOUNDS[:, 0] <= xs.max()) & (_BOUNDS[:, 1] >= xs.min())
+                          & (_BOUNDS[:, 2] <= ys.max()) & (_BOUNDS[:, 3] >= ys.min()))
+    out = {}
+    for i in near:
+        ccd = fp.CCDS[i]
+        pieces = clip_path(xs, ys, ccd.bounds_mm())
+        if pieces:
+            out[ccd] = float(sum((t1 - t0) * math.hypot(xs[k + 1] - xs[k], ys[k + 1] - ys[k])
+                                 for k, t0, t1 in pieces))
+    return out
+
+
+def _angular_length_deg(xs_mm, ys_mm, pieces_by_ccd):
+    """Sky length (deg) of a polyline's parts on CCDs: the clipped pieces' ends through the
+    distortion to field angles."""
+    total = 0.0
+    for ccd in pieces_by_ccd:
+        for k, t0, t1 in clip_path(xs_mm, ys_mm, ccd.bounds_mm()):
+            xa = xs_mm[k] + np.array([t0, t1]) * (xs_mm[k + 1] - xs_mm[k])
+            ya = ys_mm[k] + np.array([t0, t1]) * (ys_mm[k + 1] - ys_mm[k])
+            ax, ay = fp.field_angle(xa, ya)
+            total += math.hypot(ax[1] - ax[0], ay[1] - ay[0])
+    return math.degrees(total)
+
+
+# --- one visit ------------------------------------------------------------------------------
+
+def visit_times(visit, step_s=TRACK_STEP_S):
+    """Sample times (s from the visit's start) of its snaps, ``step_s`` apart within each."""
+    out = []
+    for start, duration in visit.snaps():
+        n = max(2, int(math.ceil(duration / step_s)) + 1)
+        out.append(start + np.linspace(0.0, duration, n))
+    return np.concatenate(out)
+
+
+def _split_snaps(run, t_s):
+    """A run's vertex indices cut where consecutive vertices straddle a readout."""
+    cuts = np.flatnonzero(np.diff(t_s[run]) > SNAP_BREAK_S) + 1
+    return [part for part in np.split(run, cuts) if len(part) >= 2]
+
+
+def plan_visit(visit, constellation, site=RUBIN):
+    """The :class:`VisitPlan` of one visit.
+
+    Parameters
+    ----------
+    visit : inject.survey.visits.Visit
+    constellation : inject.survey.constellation.Constellation
+    site : inject.orbits.passes.Site
+
+    Returns
+    -------
+    VisitPlan
+    """
+    from astropy import units as u
+
+    plan = VisitPlan(visit)
+    pointing = Pointing(visit.ra_deg, visit.dec_deg, visit.rotation_deg)
+    ts = visit_times(visit)
+    exposure = Exposure(visit.start, float(ts[-1]))
+    orbits = constellation.orbits
+    idx = crossing_candidates(orbits, exposure, pointing, site)
+    plan.n_candidates = int(len(idx))
+    if not len(idx):
+        return plan
+    frame = FieldFrame.build(exposure.start + ts * u.s, pointing, site)
+    i_mid = int(np.argmin(np.abs(ts - 0.5 * ts[-1])))
+    plan.alt_deg = float(frame.alt_deg[i_mid])
+    sigmas = {}
+    for vendor in fp.SENSORS:
+        sigmas[vendor], plan.sky_e_per_px = sky_sigma(visit, plan.alt_deg, vendor)
+    seeing = visit.seeing_arcsec if visit.seeing_arcsec is not None else DEFAULT_SEEING
+    plan.seeing_arcsec = seeing
+    spec = constellation.satellite
+    spans_by_ccd = {}
+    for i in idx:
+        orbit = orbits[i]
+        p = compute_pass(orbit, exposure, pointing, site, t_s=ts, frame=frame,
+                         check_epoch=False)
+        if not p.in_field:
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", OrbitWarning)  # no streak: said by its absence
+            runs, _ = sunlit_runs("satellite.orbit", p, spec.mag, constellation.lumos,
+                                  spec.ref_range)
+        xd, yd = p.focal_mm()
+        crossings = []
+        for run, values in runs:
+            for piece in _split_snaps(run, p.t_s):
+                hit = crossed_ccds(xd[piece], yd[piece])
+                if hit:
+                    first = int(np.flatnonzero(run == piece[0])[0])
+                    crossings.append((piece, values[first:first + len(piece)], hit))
+        if not crossings:
+            continue
+        streak, widths = _streak(orbit.name, p, crossings, spec, visit, seeing, sigmas)
+        mine = {}
+        for piece, _, _ in crossings:
+            for ccd in fp.ccds_reached(xd[piece], yd[piece], margin_px=max(widths.values())):
+                mine.setdefault(ccd.name, []).extend(
+                    run_spans(xd[piece], yd[piece], widths[ccd.vendor], ccd))
+        streak.pixels_lost = sum(union_pixels(spans) for spans in mine.values())
+        for name, spans in mine.items():
+            spans_by_ccd.setdefault(name, []).extend(spans)
+        plan.streaks.append(streak)
+    merged = {name: union_pixels(spans) for name, spans in spans_by_ccd.items()}
+    plan.pixels_by_ccd = {name: n for name, n in merged.items() if n}
+    return plan
+
+
+def _streak(name, p, crossings, spec, visit, seeing, sigmas):
+    """A :class:`Streak` from its crossing parts (the model at the middle of the samples on
+    the CCDs crossed) and its mask width (px) on each sensor type."""
+    inside = []
+    lengths = {}
+    xd, yd = p.focal_mm()
+    total_deg = 0.0
+    for piece, values, hit in crossings:
+        xs, ys = xd[piece], yd[piece]
+        total_deg += _angular_length_deg(xs, ys, hit)
+        for ccd, mm in hit.items():
+            lengths[ccd] = lengths.get(ccd, 0.0) + mm
+        for n, (x, y) in enumerate(zip(xs, ys)):
+            if any(_inside(ccd, x, y) for ccd in hit):
+                inside.append((piece, values, n))
+    if not inside:  # crosses only between vertices: take the vertex before the first crossing
+        piece, values, _ = crossings[0]
+        inside = [(piece, values, 0)]
+    piece, values, n = inside[len(inside) // 2]
+    v = values[n]
+    j = piece[n]
+    model = StreakModel(height_km=v["height"], zenith_deg=v["zenith"], phi_deg=v["phi"],
+                        shape=spec.shape, mag=v["mag"], band_name=visit.band,
+                        seeing=Seeing(seeing), telescope=LSST, ref_range_km=spec.ref_range,
+                        range_km=v["range"], angular_speed_rad_s=v["angular_speed"])
+    widths = {vendor: mask_width_px(model, sigma) for vendor, sigma in sigmas.items()}
+    total_mm = sum(lengths.values())
+    mean_width = sum(widths[c.vendor] * mm for c, mm in lengths.items()) / total_mm \
+        if total_mm > 0 else widths["e2v"]
+    lit = np.concatenate([piece for piece, _, _ in crossings])
+    streak = Streak(
+        satellite=name, ccds=tuple(c.name for c in sorted(lengths, key=lambda c: c.id)),
+        length_deg=total_deg, mag=float(model.apparent_mag), fwhm_arcsec=model.fwhm_arcsec,
+        peak_e_per_px=model.peak_e_per_px, mask_width_px=float(mean_width),
+        t_mid_s=float(p.t_s[j]), alt_deg=float(p.alt_deg[j]), range_km=float(p.range_km[j]),
+        height_km=float(p.height_km[j]),
+        angular_speed_deg_s=float(np.degrees(p.angular_speed_rad_s[j])),
+        sun_fraction_min=float(p.sun_fraction[lit].min()), sunlit_parts=len(crossings))
+    return streak, widths
+
+
+def _inside(ccd, x, y):
+    xmin, xmax, ymin, ymax = ccd.bounds_mm()
+    return xmin <= x <= xmax and ymin <= y <= ymax
+
+
+# --- many visits ----------------------------------------------------------------------------
+
+def plan_visits(visits, constellation, site=RUBIN, progress=None):
+    """:func:`plan_visit` for each visit, in order (``progress()`` called after each)."""
+    out = []
+    for visit in visits:
+        out.append(plan_visit(visit, constellation, site))
+        if progress is not None:
+            progress()
+    return out
+
+
+#: Constellations already read in this process, by (path, epoch, file time): a worker reads
+#: its constellation once, whatever number of visits it plans.
+_CONSTELLATIONS = {}
+
+
+def plan_chunk(constellation_path, epoch, visits):
+    """Plan ``visits`` in a worker process, reading the constellation file once per process
+    (SGP4's element sets do not pickle). Returns a list of :class:`VisitPlan`."""
+    import os
+
+    from inject.survey.constellation import read_constellation
+
+    key = (os.path.abspath(constellation_path), epoch, os.path.getmtime(constellation_path))
+    if key not in _CONSTELLATIONS:
+        _CONSTELLATIONS.clear()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", OrbitWarning)  # the caller has warned
+            _CONSTELLATIONS[key] = read_constellation(constellation_path, epoch)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OrbitWarning)
+        return plan_visits(visits, _CONSTELLATIONS[key])

@@ -1,0 +1,313 @@
+"""The visits of a night: an opsim database (SQLite) or a CSV with the same columns.
+
+The columns read are those LSST's scheduler (rubin_scheduler, formerly opsim) writes in its
+``observations`` table:
+
+==========================  =============================================================
+``observationId``           the visit's id (integer)
+``observationStartMJD``     the start of the first exposure, MJD in **TAI**
+``fieldRA``, ``fieldDec``   the boresight, ICRS, deg
+``rotSkyPos``               the sky's orientation on the focal plane, deg (below)
+``band`` or ``filter``      the filter, ``u g r i z y`` (``band`` first: newer databases put the
+                            physical filter's name, such as ``r_57``, in ``filter``)
+``visitExposureTime``       the open-shutter time of the whole visit, s
+``numExposures``            optional (default 1): snaps in the visit
+``seeingFwhmEff``           optional: the effective PSF FWHM, arcsec
+``skyBrightness``           optional: the sky, mag/arcsec^2
+==========================  =============================================================
+
+Times. ``observationStartMJD`` is TAI (the scheduler's convention); it becomes an astropy
+:class:`~astropy.time.Time` with ``scale="tai"``, which the orbits read in UTC (37 s
+earlier on the clock).
+
+Rotation. ``rotSkyPos`` is taken as the angle LSST's camera and pipelines call rotSkyPos, the
+position angle of the focal plane's +y axis measured from north through east: the
+``rotation`` of :class:`inject.camera.wcs.Pointing` (afw's ``makeCdMatrix(orientation=
+rotSkyPos, flipX=False)``). rubin_scheduler writes this angle (its ``RotationConverter``:
+rotSkyPos = parallactic angle - rotTelPos - 90 deg); databases of the older rubin_sim schema
+described it as rotTelPos - parallactic angle, which turns the focal plane about the boresight
+(the streak counts are unchanged on average, the CCDs each one crosses are not).
+
+Snaps. A visit of ``numExposures`` = n snaps is n exposures of ``visitExposureTime / n``
+seconds, each after the previous one's readout (:data:`READOUT_S`): a satellite that crosses
+the field during a readout leaves no streak.
+
+Seeing. ``seeingFwhmEff`` is the FWHM of the single Gaussian with the PSF's effective number of
+pixels; the streak model's seeing is the PSF's own FWHM, ``FWHMgeom = 0.822 FWHMeff + 0.052``
+(arcsec; SMTN-002, Ivezic et al. 2019). Without the column the model's default is used.
+"""
+import csv
+import math
+import os
+import sqlite3
+from dataclasses import dataclass
+
+import numpy as np
+
+from inject.errors import FileFormatError, InputError
+from inject.photometry import BANDS
+
+#: Readout between two snaps of a visit, s (LSSTCam reads out in 2 s).
+READOUT_S = 2.0
+
+#: Columns every visit needs (``band`` may be given as ``filter``).
+REQUIRED = ("observationId", "observationStartMJD", "fieldRA", "fieldDec", "rotSkyPos", "band",
+            "visitExposureTime")
+#: Columns read when present.
+OPTIONAL = ("numExposures", "seeingFwhmEff", "skyBrightness")
+
+#: FWHMgeom = a FWHMeff + b (arcsec), SMTN-002.
+FWHM_GEOM_PER_EFF = 0.822
+FWHM_GEOM_OFFSET = 0.052
+
+
+@dataclass(frozen=True)
+class Visit:
+    """One visit of the survey.
+
+    Attributes
+    ----------
+    observation_id : int
+    mjd_tai : float
+        Start of the first exposure, MJD (TAI).
+    ra_deg, dec_deg : float
+        Boresight, ICRS.
+    rotation_deg : float
+        rotSkyPos (module notes), deg.
+    band : str
+    exptime_s : float
+        Open-shutter time of the whole visit (all snaps), s.
+    n_exposures : int
+        Snaps.
+    seeing_fwhm_eff : float or None
+        ``seeingFwhmEff``, arcsec.
+    sky_brightness : float or None
+        ``skyBrightness``, mag/arcsec^2.
+    """
+
+    observation_id: int
+    mjd_tai: float
+    ra_deg: float
+    dec_deg: float
+    rotation_deg: float
+    band: str
+    exptime_s: float
+    n_exposures: int = 1
+    seeing_fwhm_eff: float | None = None
+    sky_brightness: float | None = None
+
+    @property
+    def start(self):
+        """The start as an astropy Time (TAI)."""
+        from astropy.time import Time
+
+        return Time(self.mjd_tai, format="mjd", scale="tai")
+
+    @property
+    def seeing_arcsec(self):
+        """The PSF's FWHM for the streak model (``FWHMgeom``, module notes), or None."""
+        if self.seeing_fwhm_eff is None:
+            return None
+        return FWHM_GEOM_PER_EFF * self.seeing_fwhm_eff + FWHM_GEOM_OFFSET
+
+    def snaps(self):
+        """``(start, duration)`` of each snap, s from the visit's start."""
+        n = self.n_exposures
+        each = self.exptime_s / n
+        return tuple(((each + READOUT_S) * k, each) for k in range(n))
+
+
+def read_visits(path):
+    """The visits of an opsim SQLite database or a CSV, in start order.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A SQLite file (table ``observations``) or a ``.csv`` with a header line.
+
+    Returns
+    -------
+    tuple of Visit
+
+    Raises
+    ------
+    FileFormatError
+        The file cannot be read, is not a SQLite database or CSV, has no ``observations``
+        table or lacks a column.
+    InputError
+        It holds no visit, or a value is out of its domain (named by row and column).
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileFormatError(f"{path}: no such file (an opsim database or a CSV of visits)")
+    try:
+        with open(path, "rb") as stream:
+            head = stream.read(16)
+    except OSError as err:
+        raise FileFormatError(f"{path}: cannot be read ({err.strerror or err})") from None
+    if head.startswith(b"SQLite format 3"):
+        columns, rows = _read_sqlite(path)
+    elif path.lower().endswith(".csv"):
+        columns, rows = _read_csv(path)
+    else:
+        raise FileFormatError(f"{path}: neither a SQLite database nor a .csv file")
+    names = _column_names(path, columns)
+    if not rows:
+        raise InputError("VISITS", path, "holds no visit (an empty night)")
+    visits = [_visit(path, k, dict(zip(columns, row)), names) for k, row in enumerate(rows)]
+    ids = [v.observation_id for v in visits]
+    if len(set(ids)) != len(ids):
+        seen = set()
+        twice = next(i for i in ids if i in seen or seen.add(i))
+        raise InputError(f"{path} observationId", twice, "given to two visits")
+    return tuple(sorted(visits, key=lambda v: (v.mjd_tai, v.observation_id)))
+
+
+def _read_sqlite(path):
+    try:
+        # Read-only: a database given by mistake is never changed (nor created).
+        con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    except sqlite3.Error as err:
+        raise FileFormatError(f"{path}: cannot be opened as SQLite ({err})") from None
+    try:
+        tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type IN "
+                                            "('table', 'view')")}
+        if "observations" not in tables:
+            raise FileFormatError(f"{path}: has no 'observations' table (tables: "
+                                  f"{', '.join(sorted(tables)) or 'none'}): not an opsim "
+                                  f"database")
+        cursor = con.execute("SELECT * FROM observations")
+        columns = [d[0] for d in cursor.description]
+        wanted = [c for c in columns if c in REQUIRED + OPTIONAL + ("filter",)]
+        cursor = con.execute(f"SELECT {', '.join(_quote(c) for c in wanted)} FROM observations")
+        return wanted, cursor.fetchall()
+    except sqlite3.Error as err:
+        raise FileFormatError(f"{path}: not a readable SQLite database ({err})") from None
+    finally:
+        con.close()
+
+
+def _quote(name):
+    return '"' + name.replace('"', '""') + '"'
+
+
+def _read_csv(path):
+    try:
+        with open(path, newline="", encoding="utf-8") as stream:
+            reader = csv.reader(stream)
+            header = next(reader, None)
+            rows = [row for row in reader if any(cell.strip() for cell in row)]
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise FileFormatError(f"{path}: not a readable CSV ({err})") from None
+    if header is None:
+        raise FileFormatError(f"{path}: empty (a CSV of visits needs a header line)")
+    header = [h.strip() for h in header]
+    for k, row in enumerate(rows):
+        if len(row) != len(header):
+            raise FileFormatError(f"{path}: row {k + 1} has {len(row)} fields, the header "
+                                  f"{len(header)}")
+    return header, rows
+
+
+def _column_names(path, columns):
+    """Which column gives each field (``band`` may come from ``filter``)."""
+    names = {}
+    for key in REQUIRED:
+        if key in columns:
+            names[key] = key
+        elif key == "band" and "filter" in columns:
+            names[key] = "filter"
+        else:
+            also = " (or filter)" if key == "band" else ""
+            raise FileFormatError(f"{path}: no column {key}{also}; an opsim table needs "
+                                  f"{', '.join(REQUIRED)}")
+    for key in OPTIONAL:
+        if key in columns:
+            names[key] = key
+    return names
+
+
+def _number(path, k, column, value, kind=float):
+    where = f"{path} row {k + 1} {column}"
+    if isinstance(value, str):
+        value = value.strip()
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InputError(where, value, "must be a number") from None
+    if not math.isfinite(number):
+        raise InputError(where, value, "must be finite")
+    if kind is int:
+        if number != int(number):
+            raise InputError(where, value, "must be an integer")
+        return int(number)
+    return number
+
+
+def _visit(path, k, row, names):
+    def get(key, kind=float):
+        return _number(path, k, names[key], row[names[key]], kind)
+
+    def optional(key):
+        if key not in names:
+            return None
+        value = row[names[key]]
+        if value is None or (isinstance(value, str) and not value.strip()):
+            return None
+        return get(key)
+
+    band = row[names["band"]]
+    band = band.strip() if isinstance(band, str) else band
+    # A physical filter name (r_57) in the 'filter' column: its band is the first letter.
+    if isinstance(band, str) and band not in BANDS and band[:1] in BANDS and band[1:2] in "_-":
+        band = band[0]
+    if band not in BANDS:
+        raise InputError(f"{path} row {k + 1} {names['band']}", band,
+                         f"not an LSST band ({' '.join(BANDS)})")
+    dec = get("fieldDec")
+    if abs(dec) > 90:
+        raise InputError(f"{path} row {k + 1} fieldDec", dec, "must be within [-90, 90] deg")
+    exptime = get("visitExposureTime")
+    if not exptime > 0:
+        raise InputError(f"{path} row {k + 1} visitExposureTime", exptime, "must be > 0 s")
+    n_exp = optional("numExposures")
+    n_exp = 1 if n_exp is None else _number(path, k, "numExposures", n_exp, int)
+    if n_exp < 1:
+        raise InputError(f"{path} row {k + 1} numExposures", n_exp, "must be >= 1")
+    seeing = optional("seeingFwhmEff")
+    if seeing is not None and not seeing > 0:
+        raise InputError(f"{path} row {k + 1} seeingFwhmEff", seeing, "must be > 0 arcsec")
+    return Visit(observation_id=get("observationId", int), mjd_tai=get("observationStartMJD"),
+                 ra_deg=get("fieldRA") % 360.0, dec_deg=dec,
+                 rotation_deg=get("rotSkyPos") % 360.0, band=band, exptime_s=exptime,
+                 n_exposures=n_exp, seeing_fwhm_eff=seeing,
+                 sky_brightness=optional("skyBrightness"))
+
+
+def select_visits(visits, job=None, njobs=None):
+    """The ``job``-th of ``njobs`` interleaved slices of the visits (all without a job).
+
+    Raises
+    ------
+    InputError
+        ``job`` without ``njobs`` (or the reverse), ``njobs`` < 1, ``job`` outside
+        ``0 .. njobs - 1``.
+    """
+    if job is None and njobs is None:
+        return tuple(visits)
+    if job is None or njobs is None:
+        raise InputError("--job/--njobs", (job, njobs), "give both, or neither")
+    if njobs < 1:
+        raise InputError("--njobs", njobs, "must be >= 1")
+    if not 0 <= job < njobs:
+        raise InputError("--job", job, f"must be in 0 .. {njobs - 1}")
+    return tuple(visits[job::njobs])
+
+
+def night_hours(visits, site_lon_deg):
+    """Hours of local mean solar time at each visit's start (0-24, wrapping past midnight
+    into 24-36 for a night that starts in the evening), from the site's longitude."""
+    mjd = np.array([v.mjd_tai for v in visits], float)
+    local = (mjd + site_lon_deg / 360.0) % 1.0 * 24.0
+    # Evening hours stay as they are; the morning after midnight continues past 24.
+    return np.where(local < 12.0, local + 24.0, local)
