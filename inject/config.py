@@ -20,7 +20,7 @@ from inject.photometry import band, electron_rate, sky_per_pixel
 from inject.satellite import Shape, shape_from_dict
 from inject.schema import check_keys, number, ranged
 from inject.stars import StarFieldSpec, star_field_spec
-from inject.streak import StreakModel
+from inject.streak import PUPILS, StreakModel
 from inject.trajectory import FocalTrack, Track
 from inject.validate import RANGES, check_memory, check_pointing, parse_time, positive
 
@@ -42,8 +42,8 @@ SIMULATE_BYTES_PER_PIXEL = 64
 #: and ``cutout``).
 COMMON_KEYS = frozenset({"seed", "band", "exptime", "seeing", "zenith", "sky", "stars", "noise",
                          "satellites", "pointing", "dark_current", "cosmic_rays", "units", "time",
-                         "site", "shadow_atmosphere_km"})
-SCENE_KEYS = COMMON_KEYS | {"detector"}
+                         "site", "shadow_atmosphere_km", "pupil"})
+SCENE_KEYS = COMMON_KEYS | {"detector", "field"}
 #: Keys of a focal-plane scene.
 FOCAL_KEYS = COMMON_KEYS | {"detectors", "cutout"}
 #: A satellite's model keys, whatever its track is given as.
@@ -123,6 +123,11 @@ class Scene:
     #: Height (km) of the atmosphere that grazing sunlight must clear (None: the orbits'
     #: default).
     shadow_atmosphere_km: float | None = None
+    #: The defocus kernel, ``annulus`` or ``rubin`` (:data:`inject.streak.PUPILS`).
+    pupil: str = "annulus"
+    #: A CCD scene's ``field:``, ``(angle, position_angle)`` in deg: where the CCD sits in
+    #: the field for ``pupil: rubin`` (None: on the optical axis).
+    field: tuple | None = None
 
 
 def _check_detector(spec):
@@ -229,13 +234,33 @@ def parse_common(raw):
     units = merged.get("units", "electron")
     if units not in ("electron", "adu"):
         raise SceneError(f"units={units!r}: choose electron or adu")
+    pupil = merged.get("pupil", "annulus")
+    if not isinstance(pupil, str) or pupil not in PUPILS:
+        raise SceneError(f"pupil={pupil!r}: choose " + " or ".join(PUPILS))
     return dict(
         seed=ranged("seed", "seed", merged["seed"], int), band=merged["band"],
         **{k: ranged(k, k, merged[k]) for k in ("exptime", "seeing", "zenith")},
         sky=sky, stars=stars, noise=merged["noise"], pointing=pointing, units=units,
         **{k: ranged(k, k, merged.get(k, 0.0)) for k in ("dark_current", "cosmic_rays")},
         time=None if merged.get("time") is None else exposure_start(merged["time"]),
-        site=merged.get("site"), shadow_atmosphere_km=atmosphere, raw=raw)
+        site=merged.get("site"), shadow_atmosphere_km=atmosphere, pupil=pupil, raw=raw)
+
+
+def parse_field(value):
+    """A CCD scene's ``field: {angle, position_angle}`` as ``(angle, position_angle)`` deg.
+
+    ``angle`` is the CCD's (the streak's) angle from the optical axis, 0 to 2.1 deg;
+    ``position_angle`` the direction of the outward field radius on the image, deg
+    counter-clockwise from the pixel rows' +x (default 0). None when absent.
+    """
+    if value is None:
+        return None
+    check_keys("field", value, {"angle", "position_angle"}, {"angle"})
+    angle = number("field.angle", value["angle"])
+    if not 0 <= angle <= 2.1:
+        raise SceneError(f"field.angle={angle}: must be within [0, 2.1] deg "
+                         "(LSSTCam's CCDs reach 2.05)")
+    return (angle, number("field.position_angle", value.get("position_angle", 0.0)))
 
 
 def satellite_list(raw):
@@ -352,7 +377,8 @@ def parse_scene(raw, charge_check=True):
                    {"height", "shape", "mag", "track"})
         track = parse_track(f"{where}.track", spec["track"])
         parsed.append(parse_satellite(where, spec, track))
-    scene = Scene(detector=detector, satellites=tuple(parsed), **common)
+    scene = Scene(detector=detector, satellites=tuple(parsed), field=parse_field(raw.get("field")),
+                  **common)
     if charge_check:
         check_charge(scene)
     ny, nx = detector.shape

@@ -36,6 +36,9 @@ from inject.validate import finite, positive
 #: v1.9 with the fiducial atmosphere at airmass 1.2, as Rubin's wavefront code (ts_wep) uses.
 BAND_WAVELENGTH_NM = {"u": 370.9, "g": 476.7, "r": 619.4, "i": 753.9, "z": 866.8, "y": 973.9}
 
+#: Largest field angle traced, deg: the science CCDs' outer corners are at 2.05 deg.
+FIELD_MAX_DEG = 2.1
+
 #: Default number of rays over the pupil's square (about 45% of them enter M1's clear annulus,
 #: the rest are not traced). The kernel's FWHM with 0.67" seeing moves
 #: by less than 0.02% from here to 4 times as many (docs/explanation/physics.md).
@@ -285,7 +288,7 @@ def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=
     range_km : float
         Distance from the telescope's entrance pupil to the point, km.
     field_angle_deg : float
-        Angle of the point from the optical axis, deg (LSSTCam's field reaches ~1.75).
+        Angle of the point from the optical axis, deg (LSSTCam's science CCDs reach 2.05).
     field_position_angle_deg : float
         Direction of the field position in the focal plane, deg from batoid's +x.
     n_rays : int
@@ -311,8 +314,9 @@ def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=
     check_band(band)
     range_km = positive("range_km", range_km, scalar=True)
     field = finite("field_angle_deg", field_angle_deg, scalar=True)
-    if not 0 <= field <= 2.0:
-        raise InputError("field_angle_deg", field_angle_deg, "must be within [0, 2] deg")
+    if not 0 <= field <= FIELD_MAX_DEG:
+        raise InputError("field_angle_deg", field_angle_deg,
+                         f"must be within [0, {FIELD_MAX_DEG}] deg")
     pa = finite("field_position_angle_deg", field_position_angle_deg, scalar=True)
     n_rays = int(positive("n_rays", n_rays, scalar=True))
     scale = positive("pixel_scale", pixel_scale, scalar=True)
@@ -344,3 +348,163 @@ def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=
                         transmitted=float(transmitted), star_throughput=len(sx) / n_clear,
                         band=band, range_km=range_km, field_angle_deg=field,
                         field_position_angle_deg=pa, n_traced=len(points[0]))
+
+
+# -------------------------------------------------------------------------------------------
+# The kernel grid: what scenes use
+
+#: Rays per traced kernel on the grid: the FWHM and peak of the streak's cross-section with
+#: 0.67" seeing agree with 4 times as many to 0.03% (docs/explanation/physics.md).
+GRID_RAYS = 250_000
+
+#: Ranges are traced at the centres of bins a factor 1.02 wide (log-spaced) and the kernel
+#: scaled as 1/range to the range asked for (off by at most 1%): the cross-section's FWHM and
+#: peak move by 0.03% per 1% of range scaled this way (measured at 400 and 1000 km).
+RANGE_BIN_FACTOR = 1.02
+
+#: Field angles at which kernels are traced, deg; between two, their kernels are mixed
+#: linearly. Every 0.05 deg to 1.6 deg (the mixture's FWHM and peak within 0.05% of the
+#: kernel traced halfway), every 0.01 deg beyond, where the baffles start to cut the beam
+#: (0.05 deg would be 0.6% off at 1.7 deg).
+FIELD_NODES_DEG = np.round(np.concatenate([np.arange(0.0, 1.6, 0.05),
+                                           np.arange(1.6, FIELD_MAX_DEG + 1e-9, 0.01)]), 6)
+
+#: Direction of the field radius from the spider vanes at which kernels are traced, deg. The
+#: vanes' orientation relative to the field radius follows the camera rotator, which scenes do
+#: not model; halfway between along a vane (0) and between two (45) it is off by at most half
+#: the 0.54% the FWHM moves over that range at 1.5 deg.
+VANE_OFFSET_DEG = 22.5
+
+#: Version of the kernels written to the disk cache: a new one ignores older files.
+CACHE_VERSION = 1
+
+
+def cache_dir():
+    """Folder of the traced kernels kept between runs.
+
+    ``$INJECT_CACHE_DIR`` if set, else the user's cache folder (``~/.cache/inject`` on Linux),
+    in a sub-folder per batoid version and kernel version. An empty ``INJECT_CACHE_DIR``
+    keeps kernels in memory only.
+    """
+    root = os.environ.get("INJECT_CACHE_DIR")
+    if root is None:
+        import platformdirs
+
+        root = platformdirs.user_cache_dir("inject", appauthor=False)
+    if not root:
+        return None
+    return os.path.join(root, "kernels", f"v{CACHE_VERSION}-batoid{_batoid().__version__}")
+
+
+def _save(path, kernel):
+    """Write a kernel to ``path`` atomically (a partial file never has the final name)."""
+    import tempfile
+
+    folder = os.path.dirname(path)
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=".npz")
+    try:
+        with os.fdopen(fd, "wb") as stream:
+            np.savez(stream, image=kernel.image.astype(np.float32), scale=kernel.scale,
+                     centroid=np.asarray(kernel.centroid),
+                     radii=np.array([kernel.inner_radius, kernel.outer_radius]),
+                     transmitted=kernel.transmitted, star_throughput=kernel.star_throughput,
+                     n_traced=kernel.n_traced)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def _load(path, band, range_km, field_angle_deg):
+    with np.load(path) as data:
+        return TracedKernel(
+            image=data["image"].astype(float), scale=float(data["scale"]),
+            centroid=tuple(float(v) for v in data["centroid"]),
+            inner_radius=float(data["radii"][0]), outer_radius=float(data["radii"][1]),
+            transmitted=float(data["transmitted"]),
+            star_throughput=float(data["star_throughput"]), band=band, range_km=range_km,
+            field_angle_deg=field_angle_deg, field_position_angle_deg=VANE_OFFSET_DEG,
+            n_traced=int(data["n_traced"]))
+
+
+@functools.lru_cache(maxsize=64)  # images of ~500 x 500 at 350 km: about 130 MB at most
+def _grid_kernel(band, range_index, field_index):
+    """The kernel traced at a grid node, from the disk cache when it holds it."""
+    range_km = RANGE_BIN_FACTOR ** range_index
+    field = float(FIELD_NODES_DEG[field_index])
+    folder = cache_dir()
+    path = None if folder is None else os.path.join(
+        folder, f"{band}_r{range_index}_f{field:.2f}_n{GRID_RAYS}.npz")
+    if path is not None and os.path.exists(path):
+        try:
+            return _load(path, band, range_km, field)
+        except (OSError, ValueError, KeyError):
+            pass  # a damaged file: traced again and rewritten
+    kernel = traced_kernel(band, range_km, field, VANE_OFFSET_DEG, n_rays=GRID_RAYS)
+    if path is not None:
+        try:
+            _save(path, kernel)
+        except OSError:
+            pass  # a read-only cache folder: the kernel is kept in memory only
+    return kernel
+
+
+def _padded(image, n):
+    pad = (n - image.shape[0]) // 2
+    return np.pad(image, pad) if pad else image
+
+
+def kernel(band, range_km, field_angle_deg=0.0):
+    """The traced kernel of a point at ``range_km`` and ``field_angle_deg``, from the grid.
+
+    The kernel traced at the nearest range node (:data:`RANGE_BIN_FACTOR`) scaled as 1/range,
+    mixed linearly between the two field-angle nodes around ``field_angle_deg``
+    (:data:`FIELD_NODES_DEG`); nodes are traced once (:data:`GRID_RAYS` rays, the field radius
+    at :data:`VANE_OFFSET_DEG` from the vanes) and kept in memory and in :func:`cache_dir`.
+
+    Parameters
+    ----------
+    band : str
+    range_km : float
+    field_angle_deg : float
+        Within [0, :data:`FIELD_MAX_DEG`].
+
+    Returns
+    -------
+    TracedKernel
+        Its frame has the field radius at ``field_position_angle_deg`` (= VANE_OFFSET_DEG)
+        from +x.
+    """
+    check_band(band)
+    range_km = positive("range_km", range_km, scalar=True)
+    field = finite("field_angle_deg", field_angle_deg, scalar=True)
+    if not 0 <= field <= FIELD_MAX_DEG:
+        raise InputError("field_angle_deg", field_angle_deg,
+                         f"must be within [0, {FIELD_MAX_DEG}] deg")
+    range_index = int(round(np.log(range_km) / np.log(RANGE_BIN_FACTOR)))
+    low = min(int(np.searchsorted(FIELD_NODES_DEG, field, side="right")) - 1,
+              len(FIELD_NODES_DEG) - 1)
+    weight = 0.0
+    if low + 1 < len(FIELD_NODES_DEG):
+        weight = (field - FIELD_NODES_DEG[low]) / (FIELD_NODES_DEG[low + 1] - FIELD_NODES_DEG[low])
+    weight = 0.0 if weight < 1e-9 else float(weight)
+    nodes = [(_grid_kernel(band, range_index, low), 1.0 - weight)]
+    if weight > 0:
+        nodes.append((_grid_kernel(band, range_index, low + 1), weight))
+    n = max(k.image.shape[0] for k, _ in nodes)
+    image = sum(w * _padded(k.image, n) for k, w in nodes)
+    # 1/range: the node's kernel seen from range_km instead of the node's range.
+    zoom = RANGE_BIN_FACTOR ** range_index / range_km
+    base = nodes[0][0]
+    mixed = {name: sum(w * getattr(k, name) for k, w in nodes)
+             for name in ("transmitted", "star_throughput", "inner_radius", "outer_radius")}
+    centroid = tuple(zoom * sum(w * k.centroid[a] for k, w in nodes) for a in (0, 1))
+    return TracedKernel(image=image / zoom ** 2, scale=base.scale * zoom, centroid=centroid,
+                        inner_radius=zoom * mixed["inner_radius"],
+                        outer_radius=zoom * mixed["outer_radius"],
+                        transmitted=mixed["transmitted"],
+                        star_throughput=mixed["star_throughput"], band=band, range_km=range_km,
+                        field_angle_deg=field, field_position_angle_deg=VANE_OFFSET_DEG,
+                        n_traced=base.n_traced)

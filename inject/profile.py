@@ -85,18 +85,20 @@ def defocus_kernel(range_km, telescope=LSST, gsparams=GSPARAMS):
 
 
 def stationary_profile(shape_profile, range_km, seeing=Seeing(), telescope=LSST,
-                       gsparams=GSPARAMS, drop=()):
-    """Convolve the projected shape, the defocus annulus and the seeing (unit flux).
+                       gsparams=GSPARAMS, drop=(), defocus=None):
+    """Convolve the projected shape, the defocus kernel and the seeing (unit flux).
 
     ``drop`` may name ``"shape"`` and/or ``"defocus"`` to leave them out (a point source, a
     telescope in focus), for components too small to matter (see
-    :meth:`inject.streak.StreakModel.render_profile`).
+    :meth:`inject.streak.StreakModel.render_profile`). ``defocus``, a unit-flux GalSim
+    profile, takes the place of the annulus (the kernel traced through the real optics).
     """
     parts = []
     if "shape" not in drop:
         parts.append(shape_profile.withGSParams(gsparams))
     if "defocus" not in drop:
-        parts.append(defocus_kernel(range_km, telescope, gsparams))
+        parts.append(defocus_kernel(range_km, telescope, gsparams) if defocus is None
+                     else defocus.withGSParams(gsparams))
     atmosphere = seeing.profile(gsparams)
     if atmosphere is not None:
         parts.append(atmosphere)

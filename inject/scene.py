@@ -76,10 +76,13 @@ class SceneResult:
 def streak_models(scene):
     """The :class:`StreakModel` of every satellite of a scene."""
     telescope = LSST
+    field_angle, radius = scene.field or (0.0, 0.0)
     return [StreakModel(height_km=s.height, zenith_deg=scene.zenith, phi_deg=s.phi,
                         shape=s.shape, mag=s.mag, band_name=scene.band,
                         seeing=Seeing(scene.seeing), telescope=telescope,
-                        ref_range_km=s.ref_range)
+                        ref_range_km=s.ref_range, pupil=scene.pupil,
+                        field_angle_deg=field_angle,
+                        field_position_angle_deg=radius - s.track.angle)
             for s in scene.satellites]
 
 
@@ -226,16 +229,16 @@ def _grouped(models, tracks, budgets):
 
 
 _VERTEX_FIELDS = {"height": "height_km", "zenith": "zenith_deg", "phi": "phi_deg", "mag": "mag",
-                  "range": "range_km", "angular_speed": "angular_speed_rad_s"}
+                  "range": "range_km", "angular_speed": "angular_speed_rad_s",
+                  "field_angle": "field_angle_deg", "field_pa": "field_position_angle_deg"}
 
 
 def _render_polyline_track(image, model, track, budget, cache=PROFILE_CACHE):
     """Render a polyline track whose vertices may override the model; return its truth row,
     which describes the part of the track the image receives (:mod:`inject.truth`)."""
-    vertex_models = [replace(model, **{_VERTEX_FIELDS[k]: v for k, v in vertex.items()
-                                       if k in _VERTEX_FIELDS})
-                     for vertex in track.vertices]
     poly = Polyline(tuple(v["x"] for v in track.vertices), tuple(v["y"] for v in track.vertices))
+    vertex_models = [replace(model, **_vertex_fields(model, track, poly, k, vertex))
+                     for k, vertex in enumerate(track.vertices)]
     rendered = render_polyline(image, poly, vertex_models, budget, cache)
     fluxes = np.array([m.flux_per_px for m in vertex_models])
     steps = np.hypot(np.diff(poly.xs), np.diff(poly.ys))
@@ -259,6 +262,19 @@ def _render_polyline_track(image, model, track, budget, cache=PROFILE_CACHE):
     return row
 
 
+def _vertex_fields(model, track, poly, k, vertex):
+    """The model fields vertex ``k`` overrides. With the traced pupil, a vertex without its
+    own ``field_pa`` keeps the field radius's direction on the image and takes its angle from
+    its own piece's direction (the model's is from the first piece's, ``track.angle``)."""
+    fields = {_VERTEX_FIELDS[key]: v for key, v in vertex.items() if key in _VERTEX_FIELDS}
+    if model.pupil != "annulus" and "field_pa" not in vertex and len(poly.xs) > 1:
+        j = min(k, len(poly.xs) - 2)
+        heading = np.degrees(np.arctan2(poly.ys[j + 1] - poly.ys[j], poly.xs[j + 1] - poly.xs[j]))
+        fields["field_position_angle_deg"] = float(
+            model.field_position_angle_deg + track.angle - heading)
+    return fields
+
+
 def _received_part(poly, steps, shape, reach):
     """``((s0, s1), (x0, y0, x1, y1))``: the stretch of a polyline, by length along it, from
     where it first enters the image grown by ``reach`` px to where it last leaves; None if it
@@ -277,7 +293,8 @@ def _received_part(poly, steps, shape, reach):
 
 
 #: Model fields that vary along a polyline, interpolated between its vertices.
-_VARYING = ("height_km", "zenith_deg", "phi_deg", "mag", "range_km", "angular_speed_rad_s")
+_VARYING = ("height_km", "zenith_deg", "phi_deg", "mag", "range_km", "angular_speed_rad_s",
+            "field_angle_deg", "field_position_angle_deg")
 
 
 def _along(poly, steps, models, fluxes, s):
@@ -322,7 +339,11 @@ def _truth_row(model, track, ends, charge, expected, budget):
     elif charge < expected * (1 - 2 * budget.flux_tolerance):
         flags |= FLAG_CLIPPED
     x0, y0, x1, y1, length = ends
-    return {
+    traced = {}
+    if model.pupil != "annulus":
+        traced = {"field_angle_deg": float(model.field_angle_deg),
+                  "field_position_angle_deg": model.summary_pupil()["field_position_angle_deg"]}
+    return traced | {
         "x0": x0, "y0": y0, "x1": x1, "y1": y1, "angle_deg": track.angle, "length_px": length,
         "height_km": g.height_km, "zenith_deg": g.zenith_deg, "phi_deg": g.phi_deg,
         "range_km": g.range_km, "nadir_angle_deg": g.nadir_angle_deg,

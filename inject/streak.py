@@ -10,6 +10,7 @@ from functools import cached_property, lru_cache
 import galsim
 import numpy as np
 
+from inject import optics
 from inject.errors import InputError
 from inject.geometry import Geometry
 from inject.instrument import LSST, Telescope
@@ -17,6 +18,9 @@ from inject.photometry import apparent_magnitude, band, electron_rate
 from inject.profile import Seeing, line_spread, stationary_profile
 from inject.satellite import Box, Shape
 from inject.validate import finite, positive
+
+#: Defocus kernels: the paper's ideal annulus, or traced through Rubin's optics.
+PUPILS = ("annulus", "rubin")
 
 
 @dataclass(frozen=True)
@@ -45,6 +49,17 @@ class StreakModel:
         (:func:`inject.orbits.passes.compute_pass`), in place of the paper's spherical-Earth values
         from (height, zenith, phi): ``t_eff``, the charge per pixel, the defocus and the
         shape's angular size then follow the pass. None (the default): the paper's.
+    pupil : str
+        The defocus kernel: ``"annulus"`` (the paper's ideal annulus, the default) or
+        ``"rubin"`` (a point at the range traced through Rubin's optics for the band,
+        :func:`inject.optics.kernel`).
+    field_angle_deg : float
+        With ``pupil="rubin"``: the streak's angle from the optical axis, deg (0 to 2.1).
+    field_position_angle_deg : float
+        With ``pupil="rubin"``: direction of the outward field radius in the track frame, deg
+        counter-clockwise from the direction of motion (0: the satellite moves outward along
+        the radius; 90: across it). Kept to whole degrees (the FWHM moves by < 0.05% a
+        degree at 1.5 deg).
 
     Raises
     ------
@@ -64,6 +79,9 @@ class StreakModel:
     ref_range_km: float = 550.0
     range_km: float | None = None
     angular_speed_rad_s: float | None = None
+    pupil: str = "annulus"
+    field_angle_deg: float = 0.0
+    field_position_angle_deg: float = 0.0
 
     def __post_init__(self):
         # Wrong types would otherwise fail much later, as an AttributeError or TypeError.
@@ -82,6 +100,13 @@ class StreakModel:
         if not isinstance(self.band_name, str):
             raise InputError("band", self.band_name, "must be a band name such as 'g'")
         band(self.band_name)
+        if not isinstance(self.pupil, str) or self.pupil not in PUPILS:
+            raise InputError("pupil", self.pupil, "choose " + " or ".join(PUPILS))
+        field = finite("field_angle_deg", self.field_angle_deg, scalar=True)
+        if not 0 <= field <= optics.FIELD_MAX_DEG:
+            raise InputError("field_angle_deg", self.field_angle_deg,
+                             f"must be within [0, {optics.FIELD_MAX_DEG}] deg")
+        finite("field_position_angle_deg", self.field_position_angle_deg, scalar=True)
         # Touch the cached geometry: validates height and zenith now rather than on first use.
         _ = self.geometry
 
@@ -97,9 +122,19 @@ class StreakModel:
         """What the stationary profile (and so every table built from it) depends on: the
         geometry, shape, seeing and telescope; not the magnitude or band, which only scale
         the charge; the range override (the defocus) but not the angular speed's. Models
-        with equal keys share swept profiles (:mod:`inject.render`)."""
-        return (self.height_km, self.zenith_deg, self.phi_deg, self.shape, self.seeing,
-                self.telescope, self.range_km)
+        with equal keys share swept profiles (:mod:`inject.render`). With the traced pupil,
+        also the band (its optics), the field angle and the radius's direction."""
+        key = (self.height_km, self.zenith_deg, self.phi_deg, self.shape, self.seeing,
+               self.telescope, self.range_km)
+        if self.pupil == "annulus":
+            return key
+        return key + (self.pupil, self.band_name, float(self.field_angle_deg),
+                      self._radius_direction)
+
+    @property
+    def _radius_direction(self):
+        """The field position angle as used: whole degrees in [0, 360)."""
+        return float(round(self.field_position_angle_deg) % 360)
 
     @property
     def pixel_scale(self):
@@ -118,8 +153,35 @@ class StreakModel:
 
     @cached_property
     def flux_per_px(self):
-        """Charge deposited per pixel of track length, e-: count rate times ``t_eff``."""
-        return float(electron_rate(self.apparent_mag, self.band_name)) * self.geometry.t_eff_s
+        """Charge deposited per pixel of track length, e-: count rate times ``t_eff``, times
+        :attr:`pupil_transmission`."""
+        return (float(electron_rate(self.apparent_mag, self.band_name)) * self.geometry.t_eff_s
+                * self.pupil_transmission)
+
+    @cached_property
+    def traced_kernel(self):
+        """The :class:`inject.optics.TracedKernel` of ``pupil="rubin"`` (None for the annulus)."""
+        if self.pupil == "annulus":
+            return None
+        return optics.kernel(self.band_name, self.geometry.range_km, self.field_angle_deg)
+
+    @property
+    def pupil_transmission(self):
+        """Light the traced optics deliver from the satellite relative to a star at the same
+        field position (what the flat field leaves); 1 for the annulus."""
+        kernel = self.traced_kernel
+        return 1.0 if kernel is None else kernel.transmitted
+
+    def defocus_profile(self):
+        """The unit-flux defocus kernel in the track frame for ``pupil="rubin"``, else None
+        (the annulus of :func:`inject.profile.stationary_profile`)."""
+        kernel = self.traced_kernel
+        if kernel is None:
+            return None
+        # The kernel's frame has the field radius at its field_position_angle_deg from +x;
+        # the track frame has it at ours from the direction of motion (+x).
+        turn = self._radius_direction - kernel.field_position_angle_deg
+        return kernel.profile().withFlux(1.0).rotate(turn * galsim.degrees)
 
     @cached_property
     def profile(self):
@@ -130,7 +192,8 @@ class StreakModel:
     def _profile_without(self, drop):
         g = self.geometry
         shape = self.shape.profile(g.range_km, g.nadir_angle_deg, g.phi_deg)
-        return stationary_profile(shape, g.range_km, self.seeing, self.telescope, drop=drop)
+        return stationary_profile(shape, g.range_km, self.seeing, self.telescope, drop=drop,
+                                  defocus=self.defocus_profile())
 
     def render_profile(self, tolerance):
         """The simplest profile that draws this streak to within ``tolerance`` of its peak.
@@ -220,7 +283,14 @@ class StreakModel:
             "fwhm_pixelated_arcsec": float(self.pixel_lsf.fwhm()),
             "peak_e_per_px": self.peak_e_per_px,
             "pixel_scale_arcsec": self.pixel_scale,
+            **self.summary_pupil(),
         }
+
+    def summary_pupil(self):
+        """The defocus kernel's part of :meth:`summary`."""
+        return {"pupil": self.pupil, "field_angle_deg": float(self.field_angle_deg),
+                "field_position_angle_deg": self._radius_direction,
+                "pupil_transmission": self.pupil_transmission}
 
 
 class _ByProfile:
@@ -244,7 +314,8 @@ def _shared_profile(ref):
     model = ref.model
     g = model.geometry
     shape = model.shape.profile(g.range_km, g.nadir_angle_deg, g.phi_deg)
-    return stationary_profile(shape, g.range_km, model.seeing, model.telescope)
+    return stationary_profile(shape, g.range_km, model.seeing, model.telescope,
+                              defocus=model.defocus_profile())
 
 
 @lru_cache(maxsize=256)  # two arrays of a few thousand samples each

@@ -37,6 +37,10 @@ TRUTH_COLUMNS = {
     "fwhm_arcsec": ("f8", "arcsec", "FWHM of the streak's cross-section at the middle"),
     "peak_e_per_px": ("f8", "electron", "most charge a pixel can get, at the middle"),
     "pixel_scale_arcsec": ("f8", "arcsec", "plate scale used along the track"),
+    "field_angle_deg": ("f8", "deg", "traced pupil: angle from the optical axis at the middle "
+                                     "(NaN with the annulus)"),
+    "field_position_angle_deg": ("f8", "deg", "traced pupil: outward field radius from the "
+                                              "direction of motion (NaN with the annulus)"),
     "charge_in_image_e": ("f8", "electron", "charge the image received from this streak"),
     "n_vertices": ("i4", "", "vertices of the track (2 for a straight track)"),
     "flags": ("i4", "", "TRUTH flag bits (FLAG_* header cards)"),

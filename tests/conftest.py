@@ -1,5 +1,6 @@
 """Fixtures shared by the test files: the command line, file digests and small scenes."""
 import hashlib
+import os
 
 import pytest
 
@@ -10,6 +11,20 @@ from inject.cli.main import main
 def _sha256(path):
     with open(path, "rb") as stream:
         return hashlib.sha256(stream.read()).hexdigest()
+
+
+@pytest.fixture(autouse=True, scope="session")
+def kernel_cache(tmp_path_factory):
+    """Traced kernels (``pupil: rubin``) go to a folder of the test session, not the user's
+    cache: the tests trace the kernels they use (and the commands they run inherit it)."""
+    folder = tmp_path_factory.mktemp("kernel-cache")
+    old = os.environ.get("INJECT_CACHE_DIR")
+    os.environ["INJECT_CACHE_DIR"] = str(folder)
+    yield folder
+    if old is None:
+        os.environ.pop("INJECT_CACHE_DIR", None)
+    else:
+        os.environ["INJECT_CACHE_DIR"] = old
 
 
 @pytest.fixture

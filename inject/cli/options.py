@@ -36,6 +36,15 @@ def add_satellite_options(p):
                    help="range at which --mag is given")
     p.add_argument("--pixel-scale", type=float, default=0.2, metavar="ARCSEC",
                    help="arcsec per pixel")
+    p.add_argument("--pupil", choices=("annulus", "rubin"), default="annulus",
+                   help="defocus kernel: the ideal annulus, or a point at the range traced "
+                        "through Rubin's optics for --band (batoid)")
+    p.add_argument("--field-angle", type=float, default=0.0, metavar="DEG",
+                   help="with --pupil rubin: angle of the streak from the optical axis (0-2.1)")
+    p.add_argument("--field-position-angle", type=float, default=0.0, metavar="DEG",
+                   help="with --pupil rubin: direction of the outward field radius, deg "
+                        "counter-clockwise from the direction of motion (0: moving outward "
+                        "along the radius, 90: across it)")
 
 
 def model_from_args(args, pixel_scale=None, pixel_scale_name="--pixel-scale"):
@@ -44,12 +53,20 @@ def model_from_args(args, pixel_scale=None, pixel_scale_name="--pixel-scale"):
     from inject.profile import Seeing  # GalSim: when a command runs, not for --help
     from inject.streak import StreakModel
 
+    if not 0 <= args.field_angle <= 2.1:  # also NaN
+        raise InputError("--field-angle", args.field_angle,
+                         "must be within [0, 2.1] deg (LSSTCam's CCDs reach 2.05)")
     model = StreakModel(  # its own domain checks first (NaN, <= 0, zenith >= 90, band)
         height_km=args.height, zenith_deg=args.zenith, phi_deg=args.phi,
         shape=shape_from_args(args), mag=args.mag, band_name=args.band,
         seeing=Seeing(args.seeing, args.seeing_model),
         telescope=LSST.with_pixel_scale(pixel_scale or args.pixel_scale),
-        ref_range_km=args.ref_range)
+        ref_range_km=args.ref_range, pupil=args.pupil, field_angle_deg=args.field_angle,
+        field_position_angle_deg=args.field_position_angle)
+    if args.pupil == "annulus" and (args.field_angle != 0 or args.field_position_angle != 0):
+        raise InputError("--field-angle/--field-position-angle",
+                         (args.field_angle, args.field_position_angle),
+                         "only apply to --pupil rubin (the annulus is the same everywhere)")
     for quantity, option in (("height", "--height"), ("zenith", "--zenith"), ("phi", "--phi"),
                              ("mag", "--mag"), ("seeing", "--seeing"),
                              ("ref_range", "--ref-range")):

@@ -46,9 +46,18 @@ _TABLE_ROWS = (
     ("peak_e_per_px", "peak surface brightness", "e-/px", "{:.1f}"),
 )
 
+#: Rows added with the traced pupil.
+_PUPIL_ROWS = (
+    ("field_angle_deg", "field angle", "deg", None),
+    ("field_position_angle_deg", "field radius from motion", "deg", "{:.0f}"),
+    ("pupil_transmission", "light vs a star there", "", "{:.4f}"),
+)
+
 
 def _print_table(result):
-    for key, label, unit, fmt, *scale in _TABLE_ROWS:
+    print(f"{'defocus kernel':<28s} {result['pupil']:>14s}")
+    rows = _TABLE_ROWS + (_PUPIL_ROWS if result["pupil"] != "annulus" else ())
+    for key, label, unit, fmt, *scale in rows:
         value = result[key] * (scale[0] if scale else 1)
         text = repr(float(value)) if fmt is None else fmt.format(value)
         print(f"{label:<28s} {text:>14s}  {unit}")

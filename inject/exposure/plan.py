@@ -20,6 +20,7 @@ import numpy as np
 from inject.camera import layout as fp
 from inject.instrument import LSST
 from inject.maskplanes import FLAG_OFF_IMAGE
+from inject.optics import FIELD_MAX_DEG
 from inject.profile import Seeing
 from inject.render import Budget, swept_profile
 from inject.scene import own_budget, pixel_noise
@@ -35,7 +36,9 @@ def vertex_model(fscene, i, values, pixel_scale=None):
                        phi_deg=values["phi"], shape=spec.shape, mag=values["mag"],
                        band_name=scene.band, seeing=Seeing(scene.seeing), telescope=telescope,
                        ref_range_km=spec.ref_range, range_km=values.get("range"),
-                       angular_speed_rad_s=values.get("angular_speed"))
+                       angular_speed_rad_s=values.get("angular_speed"), pupil=scene.pupil,
+                       field_angle_deg=values.get("field_angle", 0.0),
+                       field_position_angle_deg=values.get("field_pa", 0.0))
 
 
 @lru_cache(maxsize=64)
@@ -245,6 +248,35 @@ def _kept_pieces(fscene, i, sensor_run, run, values, scale):
     return kept
 
 
+def _with_field(ccd, points, straight):
+    """``points`` with the field keys of ``pupil: rubin`` added to their values:
+    ``field_angle`` (deg from the optical axis) and ``field_pa`` (direction of the outward
+    field radius in the CCD's pixels, deg from the track's direction there, unwrapped along
+    the track). A straight track takes them at its middle on the CCD: one kernel per CCD."""
+    xs = np.array([p[0] for p in points])
+    ys = np.array([p[1] for p in points])
+    where_x, where_y = ((xs[[0, -1]].mean(),), (ys[[0, -1]].mean(),)) if straight else (xs, ys)
+    where_x, where_y = np.asarray(where_x), np.asarray(where_y)
+    angle = np.degrees(np.hypot(*fp.field_angle(where_x, where_y)))
+    r = np.hypot(where_x, where_y)
+    safe = np.where(r > 0, r, 1.0)  # on the axis the radius points along +x
+    ux, uy = np.where(r > 0, where_x / safe, 1.0), np.where(r > 0, where_y / safe, 0.0)
+    step = 1.0  # mm outward
+    px0, py0 = ccd.focal_to_pixel(where_x, where_y)
+    px1, py1 = ccd.focal_to_pixel(where_x + step * ux, where_y + step * uy)
+    radius = np.degrees(np.arctan2(py1 - py0, px1 - px0))
+    tx, ty = ccd.focal_to_pixel(xs, ys)
+    heading = np.degrees(np.arctan2(np.diff(ty), np.diff(tx)))
+    heading = np.append(heading, heading[-1])  # the last vertex: its piece's direction
+    if straight:
+        heading = heading[:1]
+    pa = np.degrees(np.unwrap(np.radians(radius - heading)))
+    if straight:
+        angle, pa = np.full(len(points), angle[0]), np.full(len(points), pa[0])
+    return [(x, y, {**v, "field_angle": float(min(a, FIELD_MAX_DEG)), "field_pa": float(q)})
+            for (x, y, v), a, q in zip(points, angle, pa)]
+
+
 def _to_pixels(ccd, points):
     """Pixel ``x`` and ``y`` lists of points in mm."""
     px, py = ccd.focal_to_pixel(np.array([p[0] for p in points]),
@@ -257,6 +289,8 @@ def _ccd_streak(fscene, i, track, run, sensor_run, ccd):
     part on the whole sensor (the same run on a full CCD), from which the streak model comes."""
     points = _run_points(track, sensor_run)
     scale = _midpoint_scale(points)
+    if fscene.scene.pupil != "annulus":
+        points = _with_field(ccd, points, straight=track.kind != "polyline")
     values = tuple(p[2] for p in points)
     px, py = _to_pixels(ccd, points)
     ex, ey = (px, py) if run is sensor_run else _to_pixels(ccd, _run_points(track, run))

@@ -99,6 +99,7 @@ def primary_header(scene, primary_cards=None):
         hdr["ROTPA"] = (rotation, "[deg] sky position angle of the camera")
         hdr["ROTCOORD"] = ("sky", "frame of ROTPA")
     hdr["SEEING"] = (scene.seeing, "[arcsec] atmospheric FWHM (Kolmogorov)")
+    hdr["PUPIL"] = (scene.pupil, "defocus kernel: annulus, or rubin (traced optics)")
     hdr["ZENITH"] = (scene.zenith, "[deg] zenith angle of the line of sight")
     hdr["SEED"] = (scene.seed, "scene random seed")
     hdr["DETTYPE"] = (scene.detector.kind.upper(), "sensor type")
