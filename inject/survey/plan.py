@@ -295,6 +295,17 @@ def crossed_ccds(xs_mm, ys_mm):
     return out
 
 
+def reached_ccds(xs_mm, ys_mm, margin_px):
+    """The CCDs whose pixel area grown by ``margin_px`` a polyline (mm) comes into, in
+    detector-id order (:func:`inject.camera.layout.ccds_reached`, the CCDs far from the
+    polyline's box left out first)."""
+    xs, ys = np.asarray(xs_mm, float), np.asarray(ys_mm, float)
+    m = margin_px * fp.PIXEL_MM
+    near = np.flatnonzero((_BOUNDS[:, 0] - m <= xs.max()) & (_BOUNDS[:, 1] + m >= xs.min())
+                          & (_BOUNDS[:, 2] - m <= ys.max()) & (_BOUNDS[:, 3] + m >= ys.min()))
+    return fp.ccds_reached(xs, ys, margin_px, tuple(fp.CCDS[i] for i in near))
+
+
 def _angular_length_deg(xs_mm, ys_mm, pieces_by_ccd):
     """Sky length (deg) of a polyline's parts on CCDs: the clipped pieces' ends through the
     distortion to field angles."""
@@ -382,7 +393,7 @@ def plan_visit(visit, constellation, site=RUBIN):
         streak, widths = _streak(orbit.name, p, crossings, spec, visit, seeing, sigmas)
         mine = {}
         for piece, _, _ in crossings:
-            for ccd in fp.ccds_reached(xd[piece], yd[piece], margin_px=max(widths.values())):
+            for ccd in reached_ccds(xd[piece], yd[piece], max(widths.values())):
                 mine.setdefault(ccd.name, []).extend(
                     run_spans(xd[piece], yd[piece], widths[ccd.vendor], ccd))
         streak.pixels_lost = sum(union_pixels(spans) for spans in mine.values())
