@@ -112,7 +112,7 @@ def _plan(visits, constellation, args, first):
                 warnings.simplefilter("ignore", OrbitWarning)
                 return plan_visits(visits, constellation, progress=progress.step)
         chunks = [visits[k:k + CHUNK_VISITS] for k in range(0, len(visits), CHUNK_VISITS)]
-        epoch = first.start.utc.isot
+        epoch = first.start.utc  # the Time itself: its ISO text would round it to 1 ms
         path = os.path.abspath(args.constellation)
         if args.scheduler:
             from inject.exposure.runner import dask_executor

@@ -470,12 +470,14 @@ _CONSTELLATIONS = {}
 
 def plan_chunk(constellation_path, epoch, visits):
     """Plan ``visits`` in a worker process, reading the constellation file once per process
-    (SGP4's element sets do not pickle). Returns a list of :class:`VisitPlan`."""
+    (SGP4's element sets do not pickle). ``epoch`` (an astropy Time) is the shells' default
+    epoch, exactly as the caller read it. Returns a list of :class:`VisitPlan`."""
     import os
 
     from inject.survey.constellation import read_constellation
 
-    key = (os.path.abspath(constellation_path), epoch, os.path.getmtime(constellation_path))
+    key = (os.path.abspath(constellation_path), float(epoch.utc.jd1), float(epoch.utc.jd2),
+           os.path.getmtime(constellation_path))
     if key not in _CONSTELLATIONS:
         _CONSTELLATIONS.clear()
         with warnings.catch_warnings():
