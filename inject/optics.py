@@ -5,7 +5,9 @@
 hundred kilometres away is what the three mirrors, the camera's lenses and filter, the spider
 vanes and the baffles make of it. :func:`traced_kernel` traces a point source at the range and
 field position through batoid's LSST model of the band and returns the image it makes, in
-arcsec on the sky, relative to a star at the same field position.
+arcsec on the sky, relative to a star at the same field position. Scenes (``pupil: rubin``)
+take it from :func:`kernel`: a grid of traced kernels over range and field angle, kept in
+memory and in a cache folder between runs.
 
 The model is batoid's baffled telescope (``LSST_r_baffles.yaml``: the centre cap, the spider
 vanes, the top-end-assembly, M1, M2 and M1/M3 baffles) with the camera (L1, L2, filter, L3,
@@ -354,7 +356,7 @@ def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=
 # The kernel grid: what scenes use
 
 #: Rays per traced kernel on the grid: the FWHM and peak of the streak's cross-section with
-#: 0.67" seeing agree with 4 times as many to 0.03% (docs/explanation/physics.md).
+#: 0.67" seeing agree with 16 times as many to 0.011% (1000 km, 1.5 deg).
 GRID_RAYS = 250_000
 
 #: Ranges are traced at the centres of bins a factor 1.02 wide (log-spaced) and the kernel
@@ -363,11 +365,12 @@ GRID_RAYS = 250_000
 RANGE_BIN_FACTOR = 1.02
 
 #: Field angles at which kernels are traced, deg; between two, their kernels are mixed
-#: linearly. Every 0.05 deg to 1.6 deg (the mixture's FWHM and peak within 0.05% of the
-#: kernel traced halfway), every 0.01 deg beyond, where the baffles start to cut the beam
-#: (0.05 deg would be 0.6% off at 1.7 deg).
+#: linearly. Every 0.05 deg to 1.6 deg, 0.01 deg to 1.9, 0.002 deg beyond, where the baffles
+#: cut the beam more and more (at 2.005 deg nodes 0.01 deg apart were 2.4% off in FWHM, 0.004
+#: deg apart 0.27%). The error budget is measured in docs/explanation/physics.md.
 FIELD_NODES_DEG = np.round(np.concatenate([np.arange(0.0, 1.6, 0.05),
-                                           np.arange(1.6, FIELD_MAX_DEG + 1e-9, 0.01)]), 6)
+                                           np.arange(1.6, 1.9, 0.01),
+                                           np.arange(1.9, FIELD_MAX_DEG + 1e-9, 0.002)]), 6)
 
 #: Direction of the field radius from the spider vanes at which kernels are traced, deg. The
 #: vanes' orientation relative to the field radius follows the camera rotator, which scenes do
@@ -436,7 +439,7 @@ def _grid_kernel(band, range_index, field_index):
     field = float(FIELD_NODES_DEG[field_index])
     folder = cache_dir()
     path = None if folder is None else os.path.join(
-        folder, f"{band}_r{range_index}_f{field:.2f}_n{GRID_RAYS}.npz")
+        folder, f"{band}_r{range_index}_f{field:.3f}_n{GRID_RAYS}.npz")
     if path is not None and os.path.exists(path):
         try:
             return _load(path, band, range_km, field)
