@@ -251,3 +251,27 @@ def test_every_band_has_its_camera_and_a_kernel_near_the_annulus(band):
     assert inner + 0.05 < k.inner_radius < inner + 0.3
     assert outer - 0.15 < k.outer_radius < outer - 0.02
     assert k.transmitted == pytest.approx(1.0, abs=2e-3)
+
+
+def test_a_polyline_takes_the_field_at_each_vertex():
+    """Per vertex of a bending track: the layout's field angle at the vertex's place, and the
+    radius's direction from the direction of the piece that starts there."""
+    fscene = _focal({"vertices": [{"x_mm": -150.0, "y_mm": -60.0}, {"x_mm": 10.0, "y_mm": 5.0},
+                                  {"x_mm": 150.0, "y_mm": 120.0}]})
+    plan = make_plan(fscene)
+    checked = 0
+    for ccd in plan.streak_ccds():
+        for s in plan.streaks(ccd):
+            vertices = s.track.vertices
+            xs = np.array([v["x"] for v in vertices])
+            ys = np.array([v["y"] for v in vertices])
+            xm, ym = ccd.pixel_to_focal(xs, ys)
+            for k, v in enumerate(vertices):
+                assert v["field_angle"] == pytest.approx(
+                    np.degrees(np.hypot(*fp.field_angle(xm[k], ym[k]))), abs=1e-6)
+                j = min(k, len(xs) - 2)
+                heading = np.degrees(np.arctan2(ym[j + 1] - ym[j], xm[j + 1] - xm[j]))
+                expected = _wrapped(np.degrees(np.arctan2(ym[k], xm[k])) - heading)
+                assert abs(_wrapped(v["field_pa"])) == pytest.approx(abs(expected), abs=0.3)
+                checked += 1
+    assert checked >= 6
