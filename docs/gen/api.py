@@ -18,7 +18,7 @@ PAGES = [
     ("physics", "Physics",
      "From an orbit, a line of sight and a satellite to the streak's profile and charge.",
      ["inject.instrument", "inject.geometry", "inject.satellite",
-      "inject.photometry", "inject.profile", "inject.streak"]),
+      "inject.photometry", "inject.profile", "inject.optics", "inject.streak"]),
     ("rendering", "Rendering",
      "Tracks on the pixel grid and the renderer that sweeps a profile along them, with the "
      "brute-force reference and the baselines it is measured against.",
@@ -54,13 +54,19 @@ PAGES = [
      ["inject.masking", "inject.masking.run", "inject.masking.detect",
       "inject.masking.measure", "inject.masking.mask",
       "inject.masking.geometry", "inject.masking.evaluate",
-      "inject.masking.external", "inject.masking.baseline"]),
+      "inject.masking.external", "inject.masking.baseline",
+      "inject.masking.synthetic"]),
+    ("survey", "Survey night",
+     "A night of visits against a constellation: the visits, the satellites, the plan of "
+     "which visit each satellite streaks and what its masks cost, and the outputs.",
+     ["inject.survey", "inject.survey.visits", "inject.survey.constellation",
+      "inject.survey.plan", "inject.survey.outputs"]),
     ("cli", "Command line",
      "The parser and entry point of the `inject` command, and one module per command; every "
      "command's options are in [Command line](../cli.md).",
      ["inject.cli.main", "inject.cli.options", "inject.cli.profile", "inject.cli.simulate",
       "inject.cli.add_streak", "inject.cli.focalplane", "inject.cli.satellite_pass",
-      "inject.cli.mask", "inject.cli.evaluate"]),
+      "inject.cli.mask", "inject.cli.evaluate", "inject.cli.survey"]),
     ("foundations", "Foundations",
      "Errors, the input ranges, the scene-schema helpers every parser uses, clean stops on "
      "signals, and the mask planes: the modules every other part builds on.",
