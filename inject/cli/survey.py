@@ -1,5 +1,6 @@
 """``inject survey``: which visits of a night a constellation streaks, and the pixels their
-masks cost (the plan: no pixel is rendered)."""
+masks cost (the plan); with ``--render``, the streaked CCDs rendered, masked and measured
+(:mod:`inject.survey.render`)."""
 import contextlib
 import json
 import os
@@ -31,9 +32,21 @@ def add_survey_parser(sub):
                    help="the satellites' model (shape, mag, ref_range or lumos) and their "
                         "orbits (shells and/or tle)")
     p.add_argument("--render", action="store_true",
-                   help="render the streaked CCDs and mask them (not yet supported)")
+                   help="render the streaked CCDs (OUTDIR/visits/<observationId>/<CCD>.fits), "
+                        "mask them with the masker and add the measured FWHM, mask width "
+                        "and pixels lost to streaks.csv")
+    p.add_argument("--cutouts", action="store_true",
+                   help="with --render: render only a square cut-out around each CCD's "
+                        "streaks")
+    p.add_argument("--cutout-size", type=int, default=None, metavar="PX",
+                   help="side of the cut-outs, px (default 1024)")
+    p.add_argument("--compression", choices=("lossless", "lossy", "none"), default=None,
+                   help="with --render: the CCD files' tile compression (default lossless: "
+                        "GZIP; lossy: IMAGE and VARIANCE quantised to a tenth of the noise "
+                        "with dithering, adding 0.029 of it)")
     p.add_argument("--workers", type=int, metavar="N",
-                   help="worker processes over the visits (default 1: this process)")
+                   help="worker processes over the visits (default 1: this process); with "
+                        "--render, over the CCDs (default: the machine's cores)")
     p.add_argument("--scheduler", metavar="ADDRESS|local",
                    help="a Dask scheduler address, or 'local' for a Dask LocalCluster of "
                         "--workers processes (default: a process pool)")
@@ -54,11 +67,9 @@ def run_survey(args):
     from inject.exposure.runner import check_outdir
     from inject.survey.outputs import output_paths
 
-    if args.render:
-        raise InputError("--render", True, "not yet supported: this version plans (no "
-                                           "pixels); run without --render")
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers", args.workers, "must be >= 1")
+    options = _render_options(args)
     from inject.survey.visits import read_visits, select_visits
 
     night = read_visits(args.visits)
@@ -83,12 +94,72 @@ def run_survey(args):
         started = time.perf_counter()
         plans = _plan(visits, constellation, args, night[0])
         elapsed = time.perf_counter() - started
-        _write(args, paths, plans, night, visits, constellation, elapsed)
+        rendered = None
+        if options is not None:
+            rendered = _render(plans, constellation, args, night[0], options)
+        _write(args, paths, plans, night, visits, constellation, elapsed, rendered)
     except BaseException:
         if made:  # the folder this run made, if nothing else was put there meanwhile
             with contextlib.suppress(OSError):
                 os.rmdir(args.output)
         raise
+
+
+def _render_options(args):
+    """The :class:`~inject.survey.render.RenderOptions` of ``--render`` (None without it);
+    the render options refused without it."""
+    if not args.render:
+        for name, value in (("--cutouts", args.cutouts), ("--cutout-size", args.cutout_size),
+                            ("--compression", args.compression)):
+            if value:
+                raise InputError(name, value, "only with --render")
+        return None
+    from inject.survey.render import DEFAULT_CUTOUT_PX, RenderOptions
+
+    if args.cutout_size is not None:
+        if not args.cutouts:
+            raise InputError("--cutout-size", args.cutout_size, "only with --cutouts")
+        if args.cutout_size < 16:
+            raise InputError("--cutout-size", args.cutout_size, "must be >= 16 (px)")
+    cutout = (args.cutout_size or DEFAULT_CUTOUT_PX) if args.cutouts else None
+    compression = args.compression or "lossless"
+    return RenderOptions(cutout=cutout, compression=None if compression == "none"
+                         else compression)
+
+
+def _render(plans, constellation, args, first, options):
+    """Render, mask and measure the streaked CCDs (:mod:`inject.survey.render`) on a process
+    pool (``--workers``, default the machine's cores) or Dask (``--scheduler``)."""
+    from inject.survey.render import Progress, model_keys, prepare, render_visits
+
+    model = model_keys(args.constellation)
+    jobs = prepare(plans, constellation, model, args.output, options, args.overwrite)
+    total = sum(len(todo) for _, todo, _ in jobs)
+    epoch = first.start.utc
+    path = os.path.abspath(args.constellation)
+    progress = Progress(total)
+    workers = max(1, min(args.workers or os.cpu_count() or 1, max(total, 1)))
+    if args.scheduler:
+        from inject.exposure.runner import dask_executor
+
+        with dask_executor(args.scheduler, args.workers) as executor:
+            result = render_visits(jobs, path, epoch, model, options, executor,
+                                   progress=progress)
+    else:
+        from inject.exposure.runner import process_pool, stop_fork_server
+
+        pool = process_pool(workers)
+        try:
+            result = render_visits(jobs, path, epoch, model, options, pool, progress=progress)
+        except BaseException:
+            pool.shutdown(wait=False, cancel_futures=True)
+            stop_fork_server()
+            raise
+        pool.shutdown()
+    print(f"inject survey --render: {len(result.rendered)} CCDs rendered, "
+          f"{len(result.skipped)} already done, {len(result.failed)} failed "
+          f"({result.seconds:.1f} s)", file=sys.stderr)
+    return result
 
 
 def _constellation(path, night):
@@ -145,7 +216,7 @@ def _gather(executor, function, path, epoch, chunks, progress):
     return [plan for chunk in out for plan in chunk]
 
 
-def _write(args, paths, plans, night, visits, constellation, elapsed):
+def _write(args, paths, plans, night, visits, constellation, elapsed, rendered=None):
     from inject.orbits.passes import RUBIN
     from inject.survey.outputs import summary, write_outputs
 
@@ -155,8 +226,15 @@ def _write(args, paths, plans, night, visits, constellation, elapsed):
              "job": args.job, "njobs": args.njobs,
              "site_lon_deg": RUBIN.lon_deg, "plan_seconds": round(elapsed, 3),
              "plan_seconds_per_visit": round(elapsed / len(visits), 4)}
+    measured = None
+    if rendered is not None:
+        from inject.survey.render import measured_columns, render_summary
+
+        measured = measured_columns(plans, rendered.measured)
+        about["render"] = render_summary(plans, measured, rendered, _render_options(args))
     result = summary(plans, about, RUBIN.lon_deg)
-    written = write_outputs(paths, plans, result, args.overwrite, plots=not args.no_plots)
+    written = write_outputs(paths, plans, result, args.overwrite, plots=not args.no_plots,
+                            measured=measured)
     if args.json:
         json.dump(result, sys.stdout)
         sys.stdout.write("\n")
@@ -164,6 +242,26 @@ def _write(args, paths, plans, night, visits, constellation, elapsed):
           f"{result['streaks']} streaks, pixel fraction lost "
           f"{result['pixel_fraction_lost_total']:.3g} ({elapsed / len(visits):.3f} s a visit); "
           f"wrote {', '.join(written.values())}", file=sys.stderr)
+    if rendered is not None:
+        error = _failed(rendered, args.output)
+        if error is not None:
+            raise error
+
+
+def _failed(rendered, outdir):
+    """A :class:`~inject.errors.RunError` naming the CCDs that failed (None if none did): the
+    tables are written first, with the CCDs that were measured."""
+    if not rendered.failed:
+        return None
+    from inject.errors import RunError
+
+    rows = rendered.failed
+    first = rows[0]
+    return RunError(f"{len(rows)} of {len(rows) + len(rendered.rendered) + len(rendered.skipped)}"
+                    f" CCDs failed (visit {first['visit']} {first['detector']}: "
+                    f"{first['error']}); each one's error is in its visit's manifest.csv under "
+                    f"{os.path.join(outdir, 'visits')}; a rerun redoes only the failed ones",
+                    [(f"{r['visit']}/{r['detector']}", r["error"]) for r in rows])
 
 
 class _Progress:

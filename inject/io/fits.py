@@ -275,8 +275,44 @@ def _write_hdus(stream, hdus, planes):
             stream.write(buffer.getbuffer()[len(fits.PrimaryHDU().header.tostring()):])
 
 
+#: Tile compression of a CCD file's image planes (:func:`write_exposure`'s ``compression``).
+#: ``lossless``: GZIP with byte shuffling (``GZIP_2``) on every plane, as the ``lossless`` FITS
+#: recipe of LSST's butler writes them; floats are not quantised. ``lossy``: IMAGE and
+#: VARIANCE quantised as LSST's lossy recipe does (``RICE_1``, a step of a tenth of each
+#: tile's noise, ``quantize_level`` 10) with subtractive dithering that keeps zeros exact
+#: (``SUBTRACTIVE_DITHER_2``, seeded from the tile's checksum, so the bytes are reproducible):
+#: a uniform error of that step adds ``1 / (10 sqrt(12)) = 0.029`` of the noise in
+#: quadrature. MASK, STREAK_MODEL and RAW stay lossless in both.
+COMPRESSIONS = ("lossless", "lossy")
+#: Quantisation step of ``lossy``, as a fraction of a tile's noise: ``1 / LOSSY_LEVEL``.
+LOSSY_LEVEL = 10.0
+#: The rms a ``lossy`` write adds, in units of the noise: a uniform error over a step.
+LOSSY_NOISE = 1.0 / (LOSSY_LEVEL * 12 ** 0.5)
+
+
+def _compressed_hdu(array, dtype, header, name, compression):
+    """A tile-compressed image HDU (one row of the image per tile, as cfitsio's default)."""
+    lossy = compression == "lossy" and name in ("IMAGE", "VARIANCE")
+    if lossy:
+        options = {"compression_type": "RICE_1", "quantize_level": LOSSY_LEVEL,
+                   "quantize_method": 2, "dither_seed": -1}
+    else:
+        options = {"compression_type": "GZIP_2", "quantize_level": 0.0}
+    data = np.ascontiguousarray(array, dtype=dtype)
+    return fits.CompImageHDU(data, header=header, name=name, **options)
+
+
+def check_compression(compression):
+    """``compression`` checked: None (no compression) or one of :data:`COMPRESSIONS`."""
+    if compression is not None and compression not in COMPRESSIONS:
+        from inject.errors import InputError
+
+        raise InputError("--compression", compression, f"choose {' or '.join(COMPRESSIONS)}")
+    return compression
+
+
 def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
-                   primary_cards=None, xy0=(0, 0)):
+                   primary_cards=None, xy0=(0, 0), compression=None):
     """Write a simulated CCD to ``path`` atomically (afw's MaskedImage layout, see above).
 
     The planes' data are streamed (see :func:`_write_image_data`); the bytes are those of
@@ -299,12 +335,16 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
         Extra primary-header cards (see :func:`primary_header`).
     xy0 : tuple of int
         LSST parent pixel of the array's first pixel (``LTV1/2`` and the "A" WCS).
+    compression : str, optional
+        ``lossless`` or ``lossy`` (:data:`COMPRESSIONS`): the image planes tile-compressed
+        (``.fits`` still: readers see through the compression); None writes them plain.
 
     Returns
     -------
     str
         SHA-256 of the file's bytes (hex), computed as they were written.
     """
+    check_compression(compression)
     image_hdr = plane_header("IMAGE", xy0, wcs_header)
     image_hdr["BUNIT"] = (scene.units, "pixel values")
     image_hdr["GAIN"] = (gain, "[e-/ADU] detector gain")
@@ -324,9 +364,32 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
         data[len(hdus)] = result.raw
         hdus.append(fits.ImageHDU(_stand_in(result.raw, np.float32), name="RAW"))
         hdus["RAW"].header.extend(raw_header(result.raw_sections, scene.detector.bias))
+    if compression is not None:
+        return _write_compressed(path, hdus, data, overwrite, compression)
     with atomic_path(path, overwrite) as tmp:
         with open(tmp, "wb") as out:
             stream = _DigestStream(out)
             _write_hdus(stream, hdus, data)
             out.truncate()  # a hole at the very end still counts in the file's size
     return stream.digest.hexdigest()
+
+
+def _write_compressed(path, hdus, data, overwrite, compression):
+    """Write ``hdus`` with the image planes in ``data`` tile-compressed; the file's SHA-256."""
+    out = fits.HDUList([hdus[0]])
+    for index, hdu in enumerate(hdus):
+        if index in data:
+            header = hdu.header.copy()
+            for key in ("XTENSION", "BITPIX", "NAXIS", "NAXIS1", "NAXIS2", "PCOUNT", "GCOUNT",
+                        "EXTNAME"):
+                header.remove(key, ignore_missing=True)
+            out.append(_compressed_hdu(data[index], hdu.data.dtype, header, hdu.name,
+                                       compression))
+        elif index:
+            out.append(hdu)
+    buffer = io.BytesIO()
+    out.writeto(buffer)
+    with atomic_path(path, overwrite) as tmp:
+        with open(tmp, "wb") as stream:
+            stream.write(buffer.getbuffer())
+    return hashlib.sha256(buffer.getbuffer()).hexdigest()

@@ -112,8 +112,11 @@ def summary(plans, about, site_lon_deg):
     return out
 
 
-def write_outputs(paths, plans, summary_map, overwrite=False, plots=True):
+def write_outputs(paths, plans, summary_map, overwrite=False, plots=True, measured=None):
     """Write every file of :func:`output_paths` together (or none: an output group).
+
+    ``measured`` (``--render``): ``{(observationId, satellite): {column: value}}`` of the
+    columns :data:`inject.survey.render.MEASURED_FIELDS`, added after the planned ones.
 
     Raises
     ------
@@ -121,11 +124,19 @@ def write_outputs(paths, plans, summary_map, overwrite=False, plots=True):
         A file exists without ``overwrite``, or cannot be written.
     """
     rows = [row for p in plans for row in p.streak_rows()]
+    fields = STREAK_FIELDS
+    if measured is not None:
+        from inject.survey.render import MEASURED_FIELDS as extra
+
+        fields = STREAK_FIELDS + extra
+        rows = [{**row, **dict.fromkeys(extra),
+                 **measured.get((row["observationId"], row["satellite"]), {})}
+                for row in rows]
     visits = [p.visit_row() for p in plans]
     wanted = paths if plots else {k: v for k, v in paths.items()
                                   if k in ("streaks", "visits", "summary")}
     with output_group(list(wanted.values()), overwrite):
-        _write_text(paths["streaks"], csv_text(rows, STREAK_FIELDS), overwrite)
+        _write_text(paths["streaks"], csv_text(rows, fields), overwrite)
         _write_text(paths["visits"], csv_text(visits, VISIT_FIELDS), overwrite)
         _write_text(paths["summary"], json.dumps(summary_map, indent=1) + "\n", overwrite)
         if plots:
