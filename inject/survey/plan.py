@@ -3,11 +3,13 @@ their masks take. No pixel is rendered.
 
 For each visit (:func:`plan_visit`):
 
-1. Candidates: :func:`inject.orbits.passes.crossing_candidates` (every satellite, SGP4 every
-   5 s, a margin of 1 deg around the field).
+1. Candidates: :class:`inject.survey.prefilter.NightPrefilter` (the constellation propagated
+   once per 300 s node of the night and interpolated; the satellites whose coarse track comes
+   within the field's 2.1 deg and a margin of 0.05-0.1 deg of the boresight).
 2. Exact passes of the candidates: :func:`inject.orbits.passes.compute_pass` every
    :data:`~inject.orbits.passes.TRACK_STEP_S` (light time, the stars' aberration, the
-   penumbra), all sharing one :class:`~inject.orbits.passes.FieldFrame` of the visit's times.
+   penumbra), all sharing one :class:`~inject.orbits.passes.FieldFrame` of the visit's times
+   (:func:`visit_frame`: astropy every 5 s, interpolated between).
 3. Sunlit runs: :func:`inject.orbits.tracks.sunlit_runs`, the track's sunlit parts as
    focal-plane polylines with the model's values at each vertex (a vertex at least every second
    and wherever the path bends by 0.05 px). A visit of several snaps has no streak during the
@@ -23,7 +25,8 @@ For each visit (:func:`plan_visit`):
    it along a measured line), rasterised on each CCD it reaches (pixel centres inside), and
    the streaks of a visit merged on each CCD so that their overlaps count once.
 
-Every number is per visit; nothing is kept between visits but the constellation.
+Every number is per visit; nothing is kept between visits but the constellation and its
+positions at the night's nodes.
 """
 import math
 import warnings
@@ -44,12 +47,12 @@ from inject.orbits.passes import (
     Exposure,
     FieldFrame,
     compute_pass,
-    crossing_candidates,
 )
 from inject.orbits.tracks import sunlit_runs
 from inject.photometry import sky_per_pixel
 from inject.profile import Seeing
 from inject.streak import StreakModel
+from inject.survey.prefilter import NightPrefilter
 from inject.trajectory import clip_path
 
 #: Pixels of the 189 science CCDs.
@@ -336,7 +339,51 @@ def _split_snaps(run, t_s):
     return [part for part in np.split(run, cuts) if len(part) >= 2]
 
 
-def plan_visit(visit, constellation, site=RUBIN):
+#: Largest step (s) between the nodes a visit's dense frame is interpolated from.
+FRAME_NODE_STEP_S = 5.0
+
+
+def visit_frame(start, ts, pointing, site=RUBIN, node_step_s=FRAME_NODE_STEP_S):
+    """The :class:`~inject.orbits.passes.FieldFrame` of a visit at the times ``ts`` (s from
+    ``start``), built by astropy at nodes at most ``node_step_s`` apart and interpolated.
+
+    Every quantity of the frame (the boresight's apparent direction and its East and North,
+    the TEME -> ITRS rotation, the Sun, the differential aberration) turns smoothly with the
+    Earth (1e-4 rad in 1 s): the polynomial through the nodes (degree = nodes - 1, 7 nodes
+    for 30 s) is within 1e-6" of astropy at every sample (tests/test_survey.py). It costs
+    the astropy calls of the nodes instead of the 300 samples (0.05 s instead of 0.17 s).
+    """
+    from astropy import units as u
+
+    ts = np.asarray(ts, float)
+    span = float(ts[-1] - ts[0])
+    n = max(3, int(math.ceil(span / node_step_s)) + 1)
+    if n >= len(ts):
+        return FieldFrame.build(start + ts * u.s, pointing, site)
+    nodes = np.linspace(ts[0], ts[-1], n)
+    coarse = FieldFrame.build(start + nodes * u.s, pointing, site)
+    # Chebyshev basis on [-1, 1]: the interpolating polynomial, well conditioned.
+    x_nodes = 2.0 * (nodes - ts[0]) / span - 1.0
+    x = 2.0 * (ts - ts[0]) / span - 1.0
+    basis = np.polynomial.chebyshev.chebvander(x, n - 1) @ np.linalg.inv(
+        np.polynomial.chebyshev.chebvander(x_nodes, n - 1))  # (len(ts), n)
+
+    def interp(values):
+        values = np.asarray(values, float)
+        flat = values.reshape(n, -1)
+        return (basis @ flat).reshape((len(ts),) + values.shape[1:])
+
+    def unit(v):
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    az = np.degrees(np.unwrap(np.radians(coarse.az_deg)))
+    return FieldFrame(start + ts * u.s, site, pointing, unit(interp(coarse.centre)),
+                      unit(interp(coarse.east)), unit(interp(coarse.north)),
+                      interp(coarse.alt_deg), interp(az) % 360.0, interp(coarse.teme_to_itrs),
+                      coarse.itrs_to_altaz, interp(coarse.sun_itrs), interp(coarse.to_icrs))
+
+
+def plan_visit(visit, constellation, site=RUBIN, prefilter=None):
     """The :class:`VisitPlan` of one visit.
 
     Parameters
@@ -344,23 +391,25 @@ def plan_visit(visit, constellation, site=RUBIN):
     visit : inject.survey.visits.Visit
     constellation : inject.survey.constellation.Constellation
     site : inject.orbits.passes.Site
+    prefilter : inject.survey.prefilter.NightPrefilter, optional
+        The night's prefilter (built for this visit alone if not given).
 
     Returns
     -------
     VisitPlan
     """
-    from astropy import units as u
-
     plan = VisitPlan(visit)
     pointing = Pointing(visit.ra_deg, visit.dec_deg, visit.rotation_deg)
     ts = visit_times(visit)
     exposure = Exposure(visit.start, float(ts[-1]))
     orbits = constellation.orbits
-    idx = crossing_candidates(orbits, exposure, pointing, site)
+    if prefilter is None:
+        prefilter = NightPrefilter(orbits, [visit], site)
+    idx = prefilter.candidates(visit)
     plan.n_candidates = int(len(idx))
     if not len(idx):
         return plan
-    frame = FieldFrame.build(exposure.start + ts * u.s, pointing, site)
+    frame = visit_frame(exposure.start, ts, pointing, site)
     i_mid = int(np.argmin(np.abs(ts - 0.5 * ts[-1])))
     plan.alt_deg = float(frame.alt_deg[i_mid])
     sigmas = {}
@@ -454,10 +503,12 @@ def _inside(ccd, x, y):
 # --- many visits ----------------------------------------------------------------------------
 
 def plan_visits(visits, constellation, site=RUBIN, progress=None):
-    """:func:`plan_visit` for each visit, in order (``progress()`` called after each)."""
+    """:func:`plan_visit` for each visit, in order (``progress()`` called after each), with
+    one :class:`~inject.survey.prefilter.NightPrefilter` for them all."""
     out = []
+    prefilter = NightPrefilter(constellation.orbits, visits, site) if len(visits) else None
     for visit in visits:
-        out.append(plan_visit(visit, constellation, site))
+        out.append(plan_visit(visit, constellation, site, prefilter))
         if progress is not None:
             progress()
     return out
