@@ -1,0 +1,253 @@
+"""``inject survey --render`` on a sample of a night's streaked visits: planned against
+measured, throughput on a process pool and on a Dask LocalCluster, and the CCD files'
+compression.
+
+For each constellation: the night is planned once (``inject survey``); its streaked visits go
+to a smaller database (the constellation's epoch pinned to the night's first visit, so the
+plan of the sample is the night's), which is rendered with ``--render --cutouts`` on a
+process pool and again on a Dask LocalCluster (``--scheduler local``), both with
+``--workers``. It prints, per streak, the planned and measured FWHM, mask width and pixels
+(on the rendered cut-outs), the medians of their ratios, and the CCDs per second of each
+executor. ``--full`` also renders whole CCDs of the first streaked visit (the throughput of
+full CCDs), and ``--compression`` writes one full CCD plain, lossless and lossy: sizes, write
+times, the noise the lossy file adds (rms difference over the sky's sigma) and, with a
+Python >= 3.12 lsst-images venv (``scripts/check_lsst.py`` builds one), lsst-images'
+``MaskedImage.read_legacy`` reading the compressed files.
+
+Run::
+
+    python scripts/make_opsim_night.py -o out/night.db
+    python scripts/bench_survey_render.py out/night.db --workers 2 --full --compression
+"""
+import argparse
+import csv
+import json
+import os
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+CONSTELLATIONS = ("sample_fields/constellation_550km.yaml",
+                  "sample_fields/constellation_350km.yaml")
+
+
+def survey(*argv):
+    """``inject survey`` in a child process (its own fork server and pools); seconds."""
+    started = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "inject", "survey", *map(str, argv)],
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"inject survey {' '.join(map(str, argv))}: {done.stderr}")
+    return time.perf_counter() - started
+
+
+def read_csv(path):
+    with open(path, newline="") as stream:
+        return list(csv.DictReader(stream))
+
+
+def pinned(constellation, epoch, folder):
+    """A copy of a constellation file with ``epoch`` set (shells only: a relative ``tle``
+    path would not follow it)."""
+    text = Path(constellation).read_text()
+    path = Path(folder) / Path(constellation).name
+    path.write_text(text + f"\nepoch: {epoch}\n")
+    return path
+
+
+def sample_database(db, ids, path):
+    """The visits ``ids`` of an opsim database, in a database of their own."""
+    src = sqlite3.connect(db)
+    columns = [r[1] for r in src.execute("PRAGMA table_info(observations)")]
+    marks = ",".join("?" * len(ids))
+    rows = src.execute(f"SELECT * FROM observations WHERE observationId IN ({marks})",
+                       [int(i) for i in ids]).fetchall()
+    src.close()
+    dst = sqlite3.connect(path)
+    types = {r: "REAL" for r in columns}
+    dst.execute(f"CREATE TABLE observations ({', '.join(f'{c} {types[c]}' for c in columns)})")
+    dst.executemany(f"INSERT INTO observations VALUES ({','.join('?' * len(columns))})", rows)
+    dst.commit()
+    dst.close()
+    return path
+
+
+def _f(value):
+    return float(value) if value not in ("", None) else float("nan")
+
+
+def compare(rows):
+    """Per-streak planned vs measured lines and the medians of the ratios."""
+    lines, ratios = [], {"fwhm": [], "width": [], "pixels": []}
+    for r in rows:
+        pairs = (("fwhm", _f(r["fwhm_arcsec"]), _f(r["measured_fwhm_arcsec"])),
+                 ("width", _f(r["mask_width_px"]), _f(r["measured_mask_width_px"])),
+                 ("pixels", _f(r["planned_pixels_rendered"]), _f(r["measured_pixels_lost"])))
+        for key, a, b in pairs:
+            if np.isfinite(a) and np.isfinite(b) and a > 0:
+                ratios[key].append(b / a)
+        lines.append(f"| {r['observationId']} | {r['satellite']} | {r['found_ccds']}/"
+                     f"{r['rendered_ccds']} | {_f(r['fwhm_arcsec']):.2f} | "
+                     f"{_f(r['measured_fwhm_arcsec']):.2f} | {_f(r['mask_width_px']):.1f} | "
+                     f"{_f(r['measured_mask_width_px']):.1f} | "
+                     f"{_f(r['planned_pixels_rendered']):.0f} | "
+                     f"{_f(r['measured_pixels_lost']):.0f} |")
+    return lines, ratios
+
+
+def summarise(ratios):
+    out = []
+    for key, values in ratios.items():
+        if values:
+            q = np.percentile(values, [0, 50, 100])
+            out.append(f"{key} measured/planned: median {q[1]:.3f} (range {q[0]:.3f}-{q[2]:.3f},"
+                       f" {len(values)} streaks)")
+    return out
+
+
+def compression_check(folder, lsst_venv):
+    """One full CCD of a streak written plain, lossless and lossy."""
+    from astropy.io import fits
+
+    from inject.config import parse_scene
+    from inject.io.fits import write_exposure
+    from inject.scene import simulate
+
+    scene = parse_scene({"seed": 3, "band": "r", "detector": {"type": "e2v"}, "pointing": {
+        "ra": 150.0, "dec": -30.0, "rotation": 0.0}, "satellites": [{
+            "height": 550.0, "phi": 90.0, "shape": {"type": "box", "length": 7.25,
+                                                    "width": 2.65},
+            "mag": 5.0, "ref_range": 550.0, "track": {"x0": 300.0, "y0": 200.0,
+                                                      "angle": 33.0}}]})
+    result = simulate(scene)
+    sizes, times = {}, {}
+    for comp in (None, "lossless", "lossy"):
+        path = Path(folder) / f"ccd-{comp or 'plain'}.fits"
+        started = time.perf_counter()
+        write_exposure(path, scene, result, scene.detector.gain, overwrite=True,
+                       compression=comp)
+        times[comp] = time.perf_counter() - started
+        sizes[comp] = os.path.getsize(path)
+    with fits.open(Path(folder) / "ccd-lossy.fits") as hdus:
+        image = np.asarray(hdus["IMAGE"].data)
+    with fits.open(Path(folder) / "ccd-lossless.fits") as hdus:
+        same = all(np.array_equal(np.asarray(hdus[n].data), getattr(result, a))
+                   for n, a in (("IMAGE", "image"), ("MASK", "mask"),
+                                ("VARIANCE", "variance")))
+    sky = np.asarray(result.streak_model) == 0
+    sigma = float(np.sqrt(np.median(result.variance)))
+    noise = float(np.sqrt(np.mean((image - result.image)[sky] ** 2)) / sigma)
+    print(f"\nCompression of one full e2v CCD (4096 x 4004, a streak, stars), astropy "
+          f"{fits.__name__}:")
+    print("| file | bytes | ratio to plain | write s |")
+    print("|---|---|---|---|")
+    for comp in (None, "lossless", "lossy"):
+        print(f"| {comp or 'plain'} | {sizes[comp]:,} | {sizes[comp] / sizes[None]:.3f} | "
+              f"{times[comp]:.2f} |")
+    print(f"lossless reads back equal in astropy: {same}; lossy adds rms {noise:.4f} sigma "
+          f"(1/(10 sqrt 12) = {1 / (10 * 12 ** 0.5):.4f})")
+    exe = Path(lsst_venv) / "bin" / "python"
+    if exe.exists():
+        sys.path.insert(0, str(ROOT / "scripts"))
+        from check_lsst import READER
+
+        paths = [str(Path(folder) / f"ccd-{c}.fits") for c in ("lossless", "lossy")]
+        done = subprocess.run([str(exe), "-c", READER, paths[0], "none", paths[1], "none"],
+                              capture_output=True, text=True)
+        if done.returncode != 0:
+            print(f"lsst-images: failed: {done.stderr.strip().splitlines()[-1:]}")
+        else:
+            for path, res in json.loads(done.stdout).items():
+                print(f"lsst-images read_legacy {Path(path).name}: image equal to astropy's "
+                      f"{res['image_equal']}, variance {res['variance_equal']}, planes "
+                      f"{len(res['planes'])}, WCS within {res['wcs_max_sep_deg']:.1e} deg")
+    else:
+        print(f"lsst-images: no venv at {lsst_venv} (scripts/check_lsst.py builds one)")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("visits", help="opsim database of the night")
+    parser.add_argument("--constellations", nargs="+", default=list(CONSTELLATIONS))
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--cutout", type=int, default=1024)
+    parser.add_argument("--max-visits", type=int, default=None,
+                        help="render only the first N streaked visits of each")
+    parser.add_argument("--no-dask", action="store_true")
+    parser.add_argument("--full", action="store_true",
+                        help="also render the whole CCDs of the first constellation's first "
+                             "streaked visit")
+    parser.add_argument("--compression", action="store_true",
+                        help="the compression of one full CCD (sizes, times, noise, readers)")
+    parser.add_argument("--lsst-venv", default=os.environ.get(
+        "INJECT_LSST_VENV", str(Path.home() / ".cache" / "inject" / "lsst-images-venv")))
+    parser.add_argument("--workdir", default=None)
+    args = parser.parse_args()
+    work = Path(args.workdir or tempfile.mkdtemp(prefix="bench-survey-render-"))
+    work.mkdir(parents=True, exist_ok=True)
+    from inject.survey.visits import read_visits
+
+    epoch = read_visits(args.visits)[0].start.utc.isot
+    print(f"{args.visits}; --workers {args.workers}, cut-outs {args.cutout} px; in {work}")
+    for constellation in args.constellations:
+        name = Path(constellation).stem
+        folder = work / name
+        folder.mkdir(exist_ok=True)
+        const = pinned(ROOT / constellation, epoch, folder)
+        plan_dir = folder / "plan"
+        if not (plan_dir / "streaks.csv").exists():
+            survey(args.visits, "-o", plan_dir, "--constellation", const, "--no-plots")
+        ids = list(dict.fromkeys(r["observationId"] for r in read_csv(plan_dir / "streaks.csv")))
+        ids = ids[:args.max_visits] if args.max_visits else ids
+        db = sample_database(args.visits, ids, folder / "sample.db")
+        results = {}
+        executors = [("process pool", [])] + ([] if args.no_dask else
+                                             [("Dask LocalCluster", ["--scheduler", "local"])])
+        for label, extra in executors:
+            out = folder / ("pool" if not extra else "dask")
+            seconds = survey(db, "-o", out, "--constellation", const, "--no-plots",
+                             "--render", "--cutouts", "--cutout-size", args.cutout,
+                             "--workers", args.workers, "--overwrite", *extra)
+            render = json.loads((out / "summary.json").read_text())["render"]
+            results[label] = (seconds, render, read_csv(out / "streaks.csv"))
+        seconds, render, rows = results["process pool"]
+        print(f"\n## {name}: {len(ids)} streaked visits, {len(rows)} streaks, "
+              f"{render['ccds']} CCDs ({args.cutout} px cut-outs)")
+        print("| visit | satellite | found/CCDs | FWHM planned | measured | mask width planned |"
+              " measured | pixels planned (rendered) | measured |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        lines, ratios = compare(rows)
+        print("\n".join(lines))
+        print("\n".join(summarise(ratios)))
+        for label, (seconds, render, _) in results.items():
+            print(f"{label}: {render['ccds_rendered']} CCDs in {render['seconds']:.1f} s of "
+                  f"rendering ({render['ccds_per_second']:.3f} CCDs/s; the command "
+                  f"{seconds:.1f} s), files {render['size_ratio']:.3f} of plain")
+        if args.full and name == Path(args.constellations[0]).stem:
+            first = sample_database(args.visits, ids[:1], folder / "first.db")
+            out = folder / "full"
+            seconds = survey(first, "-o", out, "--constellation", const, "--no-plots",
+                             "--render", "--workers", args.workers, "--overwrite")
+            render = json.loads((out / "summary.json").read_text())["render"]
+            records = [json.loads(p.read_text()) for p in (out / "visits").glob("*/*.json")]
+            parts = {k: np.median([r["seconds"][k] for r in records])
+                     for k in ("simulate", "write", "mask")}
+            print(f"whole CCDs (visit {ids[0]}, process pool): {render['ccds_rendered']} CCDs "
+                  f"in {render['seconds']:.1f} s ({render['ccds_per_second']:.3f} CCDs/s); "
+                  f"median per CCD: simulate {parts['simulate']:.1f} s, write "
+                  f"{parts['write']:.1f} s, mask {parts['mask']:.1f} s; files "
+                  f"{render['size_ratio']:.3f} of plain")
+            lines, ratios = compare(read_csv(out / "streaks.csv"))
+            print("\n".join(lines))
+    if args.compression:
+        compression_check(work, args.lsst_venv)
+
+
+if __name__ == "__main__":
+    main()
