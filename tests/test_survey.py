@@ -620,7 +620,8 @@ def test_the_night_prefilter_keeps_every_satellite_an_exact_pass_puts_in_the_fie
     second, astropy's frames, light time, aberration): each one whose track enters the
     2.1 deg field is a candidate of :class:`NightPrefilter`, and for every satellite within
     10 deg the prefilter's closest approach is within half its margin of the exact one (the
-    margin is twice the error bound of the module notes)."""
+    margin is twice the error bound of the module notes). No satellite its umbra test calls
+    dark has a sunlit sample (the penumbra included) in the exact pass."""
     from astropy import units as u
 
     from inject.camera.wcs import Pointing
@@ -634,19 +635,28 @@ def test_the_night_prefilter_keeps_every_satellite_an_exact_pass_puts_in_the_fie
     assert night.margin_deg == pytest.approx(prefilter_margin_deg(350.0), rel=0.02)
     assert 0.09 < night.margin_deg < 0.12
     in_field, near, worst = 0, 0, 0.0
-    edge = 0
+    edge = n_dark = n_lit = 0
     for visit in visits:
         end = float(visit_times(visit)[-1])
         ts = np.linspace(0.0, end, int(end) + 1)
         pointing = Pointing(visit.ra_deg, visit.dec_deg, visit.rotation_deg)
         exposure = Exposure(visit.start, end)
         frame = FieldFrame.build(visit.start + ts * u.s, pointing)
-        exact = np.array([_exact_closest(compute_pass(o, exposure, pointing, t_s=ts,
-                                                      frame=frame, check_epoch=False))
-                          for o in orbits])
+        passes = [compute_pass(o, exposure, pointing, t_s=ts, frame=frame, check_epoch=False)
+                  for o in orbits]
+        exact = np.array([_exact_closest(p) for p in passes])
+        lit = np.array([p.sun_fraction.max() > 0 for p in passes])
         kept = set(night.candidates(visit).tolist())
         entered = set(np.flatnonzero(exact <= 2.1).tolist())
         assert entered <= kept, (visit.observation_id, entered - kept)
+        # The umbra test: a satellite it calls dark has no sunlit sample in the exact pass.
+        k = night._index[visit.observation_id]
+        dark = night._dark(k, night.positions(night._samples[k])[0])
+        assert not (dark & lit).any()
+        n_dark += int(dark.sum())
+        n_lit += int(lit.sum())
+        assert entered & set(np.flatnonzero(lit).tolist()) <= set(
+            night.candidates(visit, sunlit=True).tolist())
         close = np.flatnonzero(exact < 10.0)
         mine = night.closest_deg(visit, close)
         worst = max(worst, float(np.max(np.abs(mine - exact[close]), initial=0.0)))
@@ -654,9 +664,10 @@ def test_the_night_prefilter_keeps_every_satellite_an_exact_pass_puts_in_the_fie
         near += len(close)
         edge += int(np.sum(np.abs(exact - 2.1) < 0.2))
     print(f"worst {worst:.4f} deg, in field {in_field}, within 10 deg {near}, "
-          f"within 0.2 deg of the edge {edge}")
+          f"within 0.2 deg of the edge {edge}, dark {n_dark}, sunlit {n_lit}")
     assert worst < 0.5 * night.margin_deg  # measured 0.0144 deg (margin 0.104)
     assert in_field >= 4 and near >= 12 and edge >= 6  # the edge is exercised (5, 13, 7)
+    assert n_dark > 500 and n_lit > 500  # both sides of the shadow (1058 and 2534 of 3600)
 
 
 def test_the_night_grid_interpolates_sgp4_within_its_bound(prefilter_night):
@@ -685,9 +696,10 @@ def test_the_night_grid_interpolates_sgp4_within_its_bound(prefilter_night):
 
 
 def test_the_visit_frame_from_nodes_is_astropys_at_every_sample():
-    """:func:`visit_frame` (astropy every 5 s, a polynomial between) against astropy at all
-    301 samples of a 30 s visit and 321 of two snaps: directions within 1e-5", the Sun within
-    1 m, the TEME -> ITRS rotation within 1e-12."""
+    """:func:`visit_frame` (astropy every 15 s, a polynomial between) against astropy at all
+    301 samples of a 30 s visit and 321 of two snaps: directions within 1e-4" (measured
+    2e-5"), the Sun within 0.05 km (12 m), the TEME -> ITRS rotation within 1e-9 (7 mm at
+    7000 km)."""
     from astropy import units as u
 
     from inject.camera.wcs import Pointing
@@ -703,9 +715,9 @@ def test_the_visit_frame_from_nodes_is_astropys_at_every_sample():
         fast = visit_frame(visit.start, ts, pointing)
         for name in ("centre", "east", "north"):
             dev = np.linalg.norm(getattr(fast, name) - getattr(exact, name), axis=-1)
-            assert np.degrees(dev.max()) * 3600 < 1e-5
-        assert np.abs(fast.sun_itrs - exact.sun_itrs).max() < 1e-3
-        assert np.abs(fast.teme_to_itrs - exact.teme_to_itrs).max() < 1e-12
+            assert np.degrees(dev.max()) * 3600 < 1e-4
+        assert np.abs(fast.sun_itrs - exact.sun_itrs).max() < 0.05
+        assert np.abs(fast.teme_to_itrs - exact.teme_to_itrs).max() < 1e-9
         assert np.abs(fast.to_icrs - exact.to_icrs).max() < 1e-8  # 1e-4" at 2.1 deg
-        assert np.abs(fast.alt_deg - exact.alt_deg).max() * 3600 < 1e-5
+        assert np.abs(fast.alt_deg - exact.alt_deg).max() * 3600 < 1e-3
         assert np.all(fast.t_from(visit.start.utc) == pytest.approx(ts, abs=1e-6))

@@ -9,7 +9,7 @@ For each visit (:func:`plan_visit`):
 2. Exact passes of the candidates: :func:`inject.orbits.passes.compute_pass` every
    :data:`~inject.orbits.passes.TRACK_STEP_S` (light time, the stars' aberration, the
    penumbra), all sharing one :class:`~inject.orbits.passes.FieldFrame` of the visit's times
-   (:func:`visit_frame`: astropy every 5 s, interpolated between).
+   (:func:`visit_frame`: astropy every 15 s, interpolated between).
 3. Sunlit runs: :func:`inject.orbits.tracks.sunlit_runs`, the track's sunlit parts as
    focal-plane polylines with the model's values at each vertex (a vertex at least every second
    and wherever the path bends by 0.05 px). A visit of several snaps has no streak during the
@@ -340,7 +340,7 @@ def _split_snaps(run, t_s):
 
 
 #: Largest step (s) between the nodes a visit's dense frame is interpolated from.
-FRAME_NODE_STEP_S = 5.0
+FRAME_NODE_STEP_S = 15.0
 
 
 def visit_frame(start, ts, pointing, site=RUBIN, node_step_s=FRAME_NODE_STEP_S):
@@ -349,9 +349,9 @@ def visit_frame(start, ts, pointing, site=RUBIN, node_step_s=FRAME_NODE_STEP_S):
 
     Every quantity of the frame (the boresight's apparent direction and its East and North,
     the TEME -> ITRS rotation, the Sun, the differential aberration) turns smoothly with the
-    Earth (1e-4 rad in 1 s): the polynomial through the nodes (degree = nodes - 1, 7 nodes
-    for 30 s) is within 1e-6" of astropy at every sample (tests/test_survey.py). It costs
-    the astropy calls of the nodes instead of the 300 samples (0.05 s instead of 0.17 s).
+    Earth (7e-5 rad in 1 s): the polynomial through the nodes (degree = nodes - 1: 3 nodes
+    for 30 s) is within 2e-5" of astropy in direction and 12 m in the Sun's position at every
+    sample (tests/test_survey.py). It costs the astropy calls of 3 times instead of 301.
     """
     from astropy import units as u
 
@@ -405,7 +405,7 @@ def plan_visit(visit, constellation, site=RUBIN, prefilter=None):
     orbits = constellation.orbits
     if prefilter is None:
         prefilter = NightPrefilter(orbits, [visit], site)
-    idx = prefilter.candidates(visit)
+    idx = prefilter.candidates(visit, sunlit=True)
     plan.n_candidates = int(len(idx))
     if not len(idx):
         return plan

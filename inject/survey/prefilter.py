@@ -31,6 +31,12 @@ bounded by the lowest perigee of the constellation (the nearest a satellite can 
 These add to 0.05 deg at 350 km; the margin is twice the sum, floored at 0.05 deg. A test
 checks on hundreds of satellites that no satellite whose exact pass enters the field is left
 out.
+
+With ``sunlit=True`` a candidate must also leave the Earth's umbra at some time of the visit:
+a satellite that stays, at every coarse sample, inside the umbra of the sphere of the
+Earth's polar radius (inside the ellipsoid's umbra: no part of the Sun is seen past it),
+shrunk by :data:`UMBRA_SLACK_KM`, stays in the umbra between them too (the umbra is a convex
+cone and the track leaves its chord by 0.03 km), so no sunlit part of its track is lost.
 """
 import math
 
@@ -54,6 +60,15 @@ FIXED_ERRORS_DEG = (5.3 + 20.8 + 2.0) / 3600.0
 #: The circular orbit's bound raised for the Earth's flattening and SGP4's short-period terms
 #: (measured 1.008 at 350 km).
 INTERP_SLACK = 1.05
+#: The Earth's polar radius (WGS84), km: the sphere inside the ellipsoid, whose umbra lies
+#: inside the ellipsoid's.
+R_POLAR_KM = 6356.752
+#: The umbra's narrowing per km behind the Earth, (R_sun - R_polar) / (Sun's distance) at
+#: perihelion (0.00454 at aphelion).
+UMBRA_TAPER = 0.0047
+#: Slack of the umbra test, km: the interpolation (0.26), the Sun's aberration and parallax
+#: as seen from the satellite (1), the chord between samples (0.03).
+UMBRA_SLACK_KM = 5.0
 #: Nodes kept in memory (a visit needs two; the next visits usually the same).
 CACHED_NODES = 4
 
@@ -153,6 +168,10 @@ class NightPrefilter:
             c, sn = np.cos(angle), np.sin(angle)
             self._site.append(np.stack([c * r[0] - sn * r[1], sn * r[0] + c * r[1],
                                         np.full(len(s), r[2])], axis=-1))
+        from astropy.coordinates import get_sun
+
+        sun = get_sun(middles).transform_to(TEME(obstime=middles)).cartesian.xyz.value.T
+        self._sun = sun / np.linalg.norm(sun, axis=1, keepdims=True)
         aim = SkyCoord([v.ra_deg for v in visits] * u.deg, [v.dec_deg for v in visits] * u.deg,
                        frame="icrs").transform_to(TEME(obstime=middles))
         b = aim.cartesian.xyz.value.T
@@ -198,8 +217,9 @@ class NightPrefilter:
             v_out[:, cols] = (dh00 * a + dh10 * b_ + dh01 * c + dh11 * d) / h
         return r_out, v_out
 
-    def candidates(self, visit):
-        """Indices (into ``orbits``) of the satellites that may cross ``visit``'s field."""
+    def candidates(self, visit, sunlit=False):
+        """Indices (into ``orbits``) of the satellites that may cross ``visit``'s field (and,
+        with ``sunlit``, leave the Earth's umbra during it: module notes)."""
         k = self._index[visit.observation_id]
         ts, site, b = self._samples[k], self._site[k], self._b[k]
         mid = 0.5 * (ts[0] + ts[-1])
@@ -213,18 +233,35 @@ class NightPrefilter:
         near = np.flatnonzero(d <= z * self._tan + (reach + 0.1) / self._cos)
         if not len(near):
             return near
-        return near[self.closest_deg(visit, near) <= self.radius]
+        r, _ = self.positions(ts, near)
+        keep = self._closest(k, r) <= self.radius
+        if sunlit:
+            keep &= ~self._dark(k, r)
+        return near[keep]
+
+    def _dark(self, k, r):
+        """Per satellite (positions ``r``, (n, len(samples), 3) km): inside the shrunk umbra
+        at every sample of visit ``k``."""
+        s = self._sun[k]
+        behind = -(r @ s)
+        off = np.linalg.norm(r + behind[..., None] * s, axis=-1)
+        umbra = R_POLAR_KM - UMBRA_TAPER * behind - UMBRA_SLACK_KM
+        return ((behind > 0) & (off < umbra)).all(axis=1)
 
     def closest_deg(self, visit, which=None):
         """The closest approach (deg, gnomonic) to ``visit``'s boresight of the coarse tracks
         of the orbits ``which`` (indices; all by default): of a sample, or of a chord between
         two samples both in front of the observer; inf if none is."""
         k = self._index[visit.observation_id]
-        ts, site, b = self._samples[k], self._site[k], self._b[k]
         which = np.arange(len(self.orbits)) if which is None else np.asarray(which)
-        r, _ = self.positions(ts, which)
-        los = r - site[None]
-        cz = los @ b
+        r, _ = self.positions(self._samples[k], which)
+        return self._closest(k, r)
+
+    def _closest(self, k, r):
+        """:meth:`closest_deg` of the positions ``r`` ((n, len(samples), 3) km) at visit
+        ``k``'s samples."""
+        los = r - self._site[k][None]
+        cz = los @ self._b[k]
         front = cz > 0.05 * np.linalg.norm(los, axis=-1)
         safe = np.where(front, cz, 1.0)
         xi = np.degrees(los @ self._e1[k] / safe)
