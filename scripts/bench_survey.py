@@ -67,7 +67,8 @@ class BeforePrefilter:
     def __init__(self, orbits, visits, site=None):
         self.orbits = orbits
 
-    def candidates(self, visit):
+    def candidates(self, visit, sunlit=False):
+        """Every satellite near the field, sunlit or not (no umbra test then)."""
         from inject.camera.wcs import Pointing
         from inject.orbits.passes import Exposure, crossing_candidates
         from inject.survey.plan import visit_times
