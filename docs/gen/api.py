@@ -60,7 +60,8 @@ PAGES = [
      "A night of visits against a constellation: the visits, the satellites, the plan of "
      "which visit each satellite streaks and what its masks cost, and the outputs.",
      ["inject.survey", "inject.survey.visits", "inject.survey.constellation",
-      "inject.survey.plan", "inject.survey.outputs"]),
+      "inject.survey.prefilter", "inject.survey.plan", "inject.survey.render",
+      "inject.survey.outputs"]),
     ("cli", "Command line",
      "The parser and entry point of the `inject` command, and one module per command; every "
      "command's options are in [Command line](../cli.md).",
