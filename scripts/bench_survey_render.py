@@ -20,6 +20,7 @@ Run::
     python scripts/bench_survey_render.py out/night.db --workers 2 --full --compression
 """
 import argparse
+import contextlib
 import csv
 import json
 import os
@@ -69,6 +70,8 @@ def sample_database(db, ids, path):
     rows = src.execute(f"SELECT * FROM observations WHERE observationId IN ({marks})",
                        [int(i) for i in ids]).fetchall()
     src.close()
+    with contextlib.suppress(FileNotFoundError):
+        os.remove(path)
     dst = sqlite3.connect(path)
     types = {r: "REAL" for r in columns}
     dst.execute(f"CREATE TABLE observations ({', '.join(f'{c} {types[c]}' for c in columns)})")
@@ -120,18 +123,22 @@ def compression_check(folder, lsst_venv):
     from inject.scene import simulate
 
     scene = parse_scene({"seed": 3, "band": "r", "detector": {"type": "e2v"}, "pointing": {
-        "ra": 150.0, "dec": -30.0, "rotation": 0.0}, "satellites": [{
+        "ra": 52.5, "dec": -28.1, "rotation": 20.0}, "satellites": [{
             "height": 550.0, "phi": 90.0, "shape": {"type": "box", "length": 7.25,
                                                     "width": 2.65},
             "mag": 5.0, "ref_range": 550.0, "track": {"x0": 300.0, "y0": 200.0,
                                                       "angle": 33.0}}]})
+    from inject.camera import layout as fp
+    from inject.camera.wcs import ccd_wcs
+
     result = simulate(scene)
+    header = ccd_wcs(fp.ccd("R22_S11"), scene.pointing).to_header(relax=True)
     sizes, times = {}, {}
     for comp in (None, "lossless", "lossy"):
         path = Path(folder) / f"ccd-{comp or 'plain'}.fits"
         started = time.perf_counter()
-        write_exposure(path, scene, result, scene.detector.gain, overwrite=True,
-                       compression=comp)
+        write_exposure(path, scene, result, scene.detector.gain, wcs_header=header,
+                       overwrite=True, compression=comp)
         times[comp] = time.perf_counter() - started
         sizes[comp] = os.path.getsize(path)
     with fits.open(Path(folder) / "ccd-lossy.fits") as hdus:
