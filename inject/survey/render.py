@@ -115,11 +115,11 @@ def _orbits_by_name(constellation):
 
 def model_keys(path):
     """The satellites' model keys of a constellation file (``shape``, ``mag``,
-    ``ref_range``, ``lumos``): a scene satellite's."""
+    ``ref_range``, ``lumos``: a scene satellite's) and its ``pupil`` (the scene's)."""
     from inject.schema import load_scene_file
 
     raw = load_scene_file(path)
-    return {k: raw[k] for k in ("shape", "mag", "ref_range", "lumos") if k in raw}
+    return {k: raw[k] for k in ("shape", "mag", "ref_range", "lumos", "pupil") if k in raw}
 
 
 # --- the visit's scene (a worker) -----------------------------------------------------------
@@ -220,10 +220,12 @@ def visit_scene(constellation_path, epoch, model, job, options):
            "zenith": 90.0 - job.alt_deg, "sky": {"level": job.sky},
            "stars": _stars(visit) if options.stars else False,
            "noise": True, "time": visit.start.utc.isot,
+           "pupil": model.get("pupil", "annulus"),
            "pointing": {"ra": visit.ra_deg, "dec": visit.dec_deg,
                         "rotation": visit.rotation_deg},
            "detectors": list(job.ccds),
-           "satellites": [{**model, "orbit": {"tle": list(by_name[n].tle_lines())}}
+           "satellites": [{**{k: v for k, v in model.items() if k != "pupil"},
+                           "orbit": {"tle": list(by_name[n].tle_lines())}}
                           for n in job.names]}
 
     def orbit_track(where, *_):
