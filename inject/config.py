@@ -16,6 +16,7 @@ from inject.camera.detector import DETECTORS, Detector, detector_from_spec
 from inject.camera.wcs import Pointing
 from inject.errors import InjectError, InputError, SceneError
 from inject.instrument import LSST
+from inject.optics import FIELD_MAX_DEG
 from inject.photometry import band, electron_rate, sky_per_pixel
 from inject.satellite import Shape, shape_from_dict
 from inject.schema import check_keys, number, ranged
@@ -249,7 +250,7 @@ def parse_common(raw):
 def parse_field(value):
     """A CCD scene's ``field: {angle, position_angle}`` as ``(angle, position_angle)`` deg.
 
-    ``angle`` is the CCD's (the streak's) angle from the optical axis, 0 to 2.1 deg;
+    ``angle`` is the CCD's (the streak's) angle from the optical axis, 0 to 2.05 deg;
     ``position_angle`` the direction of the outward field radius on the image, deg
     counter-clockwise from the pixel rows' +x (default 0). None when absent.
     """
@@ -257,9 +258,9 @@ def parse_field(value):
         return None
     check_keys("field", value, {"angle", "position_angle"}, {"angle"})
     angle = number("field.angle", value["angle"])
-    if not 0 <= angle <= 2.1:
-        raise SceneError(f"field.angle={angle}: must be within [0, 2.1] deg "
-                         "(LSSTCam's CCDs reach 2.05)")
+    if not 0 <= angle <= FIELD_MAX_DEG:
+        raise SceneError(f"field.angle={angle}: must be within [0, {FIELD_MAX_DEG}] deg "
+                         "(LSSTCam's CCDs reach 2.048)")
     return (angle, number("field.position_angle", value.get("position_angle", 0.0)))
 
 

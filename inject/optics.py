@@ -38,8 +38,9 @@ from inject.validate import finite, positive
 #: v1.9 with the fiducial atmosphere at airmass 1.2, as Rubin's wavefront code (ts_wep) uses.
 BAND_WAVELENGTH_NM = {"u": 370.9, "g": 476.7, "r": 619.4, "i": 753.9, "z": 866.8, "y": 973.9}
 
-#: Largest field angle traced, deg: the science CCDs' outer corners are at 2.05 deg.
-FIELD_MAX_DEG = 2.1
+#: Largest field angle traced, deg: the science CCDs' outer corners are at 2.048 deg, where the
+#: baffles leave a star 1% of its light (none reaches the detector from 2.06 deg).
+FIELD_MAX_DEG = 2.05
 
 #: Default number of rays over the pupil's square (about 45% of them enter M1's clear annulus,
 #: the rest are not traced). The kernel's FWHM with 0.67" seeing moves
@@ -368,7 +369,7 @@ GRID_RAYS = 250_000
 RANGE_BIN_FACTOR = 1.02
 
 #: Field angles at which kernels are traced, deg; between two, their kernels are mixed
-#: linearly. Every 0.05 deg to 1.6 deg, 0.01 deg to 1.9, 0.002 deg beyond, where the baffles
+#: linearly. Every 0.05 deg to 1.6 deg, 0.01 deg to 1.9, 0.002 deg to 2.05, where the baffles
 #: cut the beam more and more (at 2.005 deg nodes 0.01 deg apart were 2.4% off in FWHM, 0.004
 #: deg apart 0.27%). The error budget is measured in docs/explanation/physics.md.
 FIELD_NODES_DEG = np.round(np.concatenate([np.arange(0.0, 1.6, 0.05),

@@ -54,7 +54,7 @@ class StreakModel:
         ``"rubin"`` (a point at the range traced through Rubin's optics for the band,
         :func:`inject.optics.kernel`).
     field_angle_deg : float
-        With ``pupil="rubin"``: the streak's angle from the optical axis, deg (0 to 2.1).
+        With ``pupil="rubin"``: the streak's angle from the optical axis, deg (0 to 2.05).
     field_position_angle_deg : float
         With ``pupil="rubin"``: direction of the outward field radius in the track frame, deg
         counter-clockwise from the direction of motion (0: the satellite moves outward along

@@ -529,13 +529,6 @@ def test_a_shell_that_cannot_exist_is_one_line(cli, tmp_path, shell, words):
     assert not out.exists()
 
 
-def test_render_is_not_yet_supported(cli, tmp_path):
-    db = write_opsim(str(tmp_path / "night.db"), [_row()])
-    status, err, out = _survey(cli, tmp_path, db, _shell_file(tmp_path), "--render")
-    assert status == 2 and "--render" in err and "not yet supported" in err
-    assert not out.exists()
-
-
 def test_outputs_appear_together_and_are_not_replaced(cli, tmp_path, digest):
     db = write_opsim(str(tmp_path / "night.db"), [_row(0), _row(1)])
     const = _shell_file(tmp_path)
@@ -721,3 +714,25 @@ def test_the_visit_frame_from_nodes_is_astropys_at_every_sample():
         assert np.abs(fast.to_icrs - exact.to_icrs).max() < 1e-8  # 1e-4" at 2.1 deg
         assert np.abs(fast.alt_deg - exact.alt_deg).max() * 3600 < 1e-3
         assert np.all(fast.t_from(visit.start.utc) == pytest.approx(ts, abs=1e-6))
+
+
+def test_the_constellation_may_ask_for_the_traced_pupil():
+    from inject.errors import SceneError
+    from inject.survey.constellation import parse_constellation
+    from inject.survey.plan import _field
+
+    raw = {"shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0,
+           "shells": [dict(SHELL, planes=2, per_plane=2)]}
+    assert parse_constellation(raw, "2026-06-15T00:00:00").pupil == "annulus"
+    assert parse_constellation(dict(raw, pupil="rubin"), "2026-06-15T00:00:00").pupil == "rubin"
+    with pytest.raises(SceneError, match="pupil='ideal'"):
+        parse_constellation(dict(raw, pupil="ideal"), "2026-06-15T00:00:00")
+    # Samples moving outward along the radius at 45 deg, then across it at x = 200 mm.
+    t = np.linspace(50.0, 250.0, 21)
+    out = _field(t, t, np.arange(21), 10)
+    assert out["field_angle_deg"] == pytest.approx(
+        math.degrees(math.hypot(*fp.field_angle(150.0, 150.0))), rel=1e-12)
+    assert out["field_position_angle_deg"] == pytest.approx(0.0, abs=1e-9)
+    y = np.linspace(-100.0, 100.0, 21)
+    across = _field(np.full(21, 200.0), y, np.arange(21), 10)  # at (200, 0), moving +y
+    assert across["field_position_angle_deg"] == pytest.approx(-90.0, abs=1e-9)

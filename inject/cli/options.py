@@ -40,7 +40,7 @@ def add_satellite_options(p):
                    help="defocus kernel: the ideal annulus, or a point at the range traced "
                         "through Rubin's optics for --band (batoid)")
     p.add_argument("--field-angle", type=float, default=0.0, metavar="DEG",
-                   help="with --pupil rubin: angle of the streak from the optical axis (0-2.1)")
+                   help="with --pupil rubin: angle of the streak from the optical axis (0-2.05)")
     p.add_argument("--field-position-angle", type=float, default=0.0, metavar="DEG",
                    help="with --pupil rubin: direction of the outward field radius, deg "
                         "counter-clockwise from the direction of motion (0: moving outward "
@@ -53,9 +53,9 @@ def model_from_args(args, pixel_scale=None, pixel_scale_name="--pixel-scale"):
     from inject.profile import Seeing  # GalSim: when a command runs, not for --help
     from inject.streak import StreakModel
 
-    if not 0 <= args.field_angle <= 2.1:  # also NaN
+    if not 0 <= args.field_angle <= 2.05:  # also NaN
         raise InputError("--field-angle", args.field_angle,
-                         "must be within [0, 2.1] deg (LSSTCam's CCDs reach 2.05)")
+                         "must be within [0, 2.05] deg (LSSTCam's CCDs reach 2.048)")
     model = StreakModel(  # its own domain checks first (NaN, <= 0, zenith >= 90, band)
         height_km=args.height, zenith_deg=args.zenith, phi_deg=args.phi,
         shape=shape_from_args(args), mag=args.mag, band_name=args.band,

@@ -4,8 +4,12 @@
   ``observations``) or a CSV with its columns.
 - :mod:`~inject.survey.constellation`: the constellation file (the satellites' model, Walker
   shells and TLE files).
+- :mod:`~inject.survey.prefilter`: the constellation propagated once over the night, and per
+  visit the satellites that may cross the field sunlit.
 - :mod:`~inject.survey.plan`: per visit, the sunlit crossings of the science CCDs, each with its
   length, magnitude, FWHM, peak surface brightness, mask width and the pixels its mask takes.
+- :mod:`~inject.survey.render`: ``--render``: the streaked CCDs of each visit rendered as a
+  focal-plane scene of the visit, masked, and the measurements matched to the plan.
 - :mod:`~inject.survey.outputs`: ``streaks.csv``, ``visits.csv``, ``summary.json`` and the
   plots, written together (:func:`inject.io.atomic.output_group`).
 

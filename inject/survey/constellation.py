@@ -26,10 +26,11 @@ from inject.config import ORBIT_SATELLITE_KEYS, parse_satellite
 from inject.errors import InjectError, OrbitError, OrbitWarning, SceneError
 from inject.orbits.passes import EPOCH_REFUSE_DAYS, EPOCH_WARN_DAYS, Orbit, walker_shell
 from inject.schema import check_keys, load_scene_file, number
+from inject.streak import PUPILS
 from inject.validate import parse_time
 
 #: Keys of a constellation file.
-CONSTELLATION_KEYS = (ORBIT_SATELLITE_KEYS - {"orbit"}) | {"shells", "tle", "epoch"}
+CONSTELLATION_KEYS = (ORBIT_SATELLITE_KEYS - {"orbit"}) | {"shells", "tle", "epoch", "pupil"}
 #: Keys of a shell (``raan0`` and ``name`` optional).
 SHELL_KEYS = ("height", "inclination", "planes", "per_plane", "phasing", "raan0", "name")
 #: The lowest shell, km: below ~150 km a satellite re-enters within days (the atmosphere's
@@ -51,12 +52,16 @@ class Constellation:
         Every satellite, shells first, then the TLEs in file order.
     source : str
         The file, for messages.
+    pupil : str
+        The defocus kernel of the streaks' models, ``annulus`` or ``rubin``
+        (:data:`inject.streak.PUPILS`).
     """
 
     satellite: object
     lumos: dict | None
     orbits: tuple = field(repr=False)
     source: str = "constellation"
+    pupil: str = "annulus"
 
     def __len__(self):
         return len(self.orbits)
@@ -114,6 +119,9 @@ def parse_constellation(raw, default_epoch, folder=".", source="constellation"):
     if "shells" not in raw and "tle" not in raw:
         raise SceneError(f"{source}: give shells, tle or both (the satellites)")
     satellite = parse_satellite("satellite", raw, height_from_orbit=True)
+    pupil = raw.get("pupil", "annulus")
+    if not isinstance(pupil, str) or pupil not in PUPILS:
+        raise SceneError(f"{source}: pupil={pupil!r}: choose " + " or ".join(PUPILS))
     lumos = raw.get("lumos")
     if lumos is not None:
         from inject.orbits.lumos import surfaces
@@ -134,7 +142,7 @@ def parse_constellation(raw, default_epoch, folder=".", source="constellation"):
         if not isinstance(tle, str) or not tle.strip():
             raise SceneError(f"tle={tle!r}: must be a file name")
         orbits += read_tles(tle if os.path.isabs(tle) else os.path.join(folder, tle))
-    return Constellation(satellite, lumos, tuple(orbits), source)
+    return Constellation(satellite, lumos, tuple(orbits), source, pupil)
 
 
 def _shell(where, spec, epoch):

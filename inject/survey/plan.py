@@ -41,6 +41,7 @@ from inject.instrument import LSST
 from inject.masking.geometry import Line, rectangle_spans
 from inject.masking.mask import MIN_FWHM
 from inject.maskplanes import STREAK_MASK_SIGMA
+from inject.optics import FIELD_MAX_DEG
 from inject.orbits.passes import (
     RUBIN,
     TRACK_STEP_S,
@@ -439,7 +440,8 @@ def plan_visit(visit, constellation, site=RUBIN, prefilter=None):
                     crossings.append((piece, values[first:first + len(piece)], hit))
         if not crossings:
             continue
-        streak, widths = _streak(orbit.name, p, crossings, spec, visit, seeing, sigmas)
+        streak, widths = _streak(orbit.name, p, crossings, spec, visit, seeing, sigmas,
+                                 constellation.pupil)
         mine = {}
         for piece, _, _ in crossings:
             for ccd in reached_ccds(xd[piece], yd[piece], max(widths.values())):
@@ -454,7 +456,19 @@ def plan_visit(visit, constellation, site=RUBIN, prefilter=None):
     return plan
 
 
-def _streak(name, p, crossings, spec, visit, seeing, sigmas):
+def _field(xd, yd, piece, n):
+    """The traced pupil's field angle and radius direction (from the direction of motion) at
+    sample ``n`` of a crossing's ``piece`` of focal-plane samples (mm)."""
+    j = piece[n]
+    a, b = piece[max(n - 1, 0)], piece[min(n + 1, len(piece) - 1)]
+    heading = math.atan2(yd[b] - yd[a], xd[b] - xd[a])
+    angle = math.degrees(math.hypot(*fp.field_angle(xd[j], yd[j])))
+    radius = math.atan2(yd[j], xd[j])
+    return {"field_angle_deg": min(angle, FIELD_MAX_DEG),
+            "field_position_angle_deg": math.degrees(radius - heading)}
+
+
+def _streak(name, p, crossings, spec, visit, seeing, sigmas, pupil="annulus"):
     """A :class:`Streak` from its crossing parts (the model at the middle of the samples on
     the CCDs crossed) and its mask width (px) on each sensor type."""
     inside = []
@@ -478,7 +492,8 @@ def _streak(name, p, crossings, spec, visit, seeing, sigmas):
     model = StreakModel(height_km=v["height"], zenith_deg=v["zenith"], phi_deg=v["phi"],
                         shape=spec.shape, mag=v["mag"], band_name=visit.band,
                         seeing=Seeing(seeing), telescope=LSST, ref_range_km=spec.ref_range,
-                        range_km=v["range"], angular_speed_rad_s=v["angular_speed"])
+                        range_km=v["range"], angular_speed_rad_s=v["angular_speed"],
+                        pupil=pupil, **(_field(xd, yd, piece, n) if pupil != "annulus" else {}))
     widths = {vendor: mask_width_px(model, sigma) for vendor, sigma in sigmas.items()}
     total_mm = sum(lengths.values())
     mean_width = sum(widths[c.vendor] * mm for c, mm in lengths.items()) / total_mm \
