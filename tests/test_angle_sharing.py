@@ -85,7 +85,7 @@ def test_narrow_profile_at_many_angles_against_brute_force():
         assert image.sum() == pytest.approx(length, rel=1e-5)
 
 
-@pytest.mark.parametrize("angle", [23.0, 67.0])
+@pytest.mark.parametrize("angle", [pytest.param(23.0, marks=pytest.mark.slow), 67.0])
 def test_lsst_profile_against_brute_force(angle):
     """The paper's satellite at 550 km, z = 70 deg (FWHM ~7 px), on a short track. The
     reference's error falls as step^2: two steps extrapolate it away (Richardson)."""

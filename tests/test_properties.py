@@ -322,6 +322,7 @@ def test_short_track_flux(angle, length):
     assert image.sum() == pytest.approx(PAPER.flux_per_px * seg.length, rel=1e-4)
 
 
+@pytest.mark.slow  # ~1 min: a 37" wide profile's swept tables
 def test_crossing_line_outside_image_within_support():
     model = StreakModel(550, 0, shape=Box(1.0, 100.0))
     swept = swept_profile(model, 0.0)

@@ -126,6 +126,7 @@ def test_segment_angle_must_match_profile_angle():
         render_segment(np.zeros((10, 10)), swept, Segment(0, 0, 11.0, 5.0), 1.0)
 
 
+@pytest.mark.slow  # ~40 s: a no-seeing profile against the brute-force sweep
 def test_no_seeing_two_horns():
     """Without an atmosphere the defocused disk streak has two horns and still conserves flux."""
     model = StreakModel(350, 0, shape=Disk(0.5), seeing=Seeing(0.0))
