@@ -137,7 +137,7 @@ def inject_counts(tles, visits, folder):
     import numpy as np
 
     from inject.camera.wcs import Pointing
-    from inject.orbits.passes import RUBIN, Exposure, _segment_distances, compute_pass
+    from inject.orbits.passes import RUBIN, Exposure, compute_pass, segment_distances
     from inject.survey import plan as engine
     from inject.survey.constellation import read_constellation
     from inject.survey.prefilter import NightPrefilter
@@ -171,7 +171,7 @@ def inject_counts(tles, visits, folder):
             xi, eta = np.nan_to_num(p.xi_deg, nan=1e9), np.nan_to_num(p.eta_deg, nan=1e9)
             ok = np.isfinite(p.xi_deg) & (p.apparent_alt_deg > 0)
             d = np.hypot(xi, eta)
-            chord = _segment_distances(xi, eta)
+            chord = segment_distances(xi, eta)
 
             def enters(mask):
                 return bool((mask & (d <= RADIUS_DEG)).any()

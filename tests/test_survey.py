@@ -597,12 +597,12 @@ def prefilter_night():
 def _exact_closest(p):
     """The closest approach (deg, gnomonic) of an exact pass's apparent track above the
     horizon to the boresight: its samples and the chords between them."""
-    from inject.orbits.passes import _segment_distances
+    from inject.orbits.passes import segment_distances
 
     xi, eta = p.xi_deg, p.eta_deg
     ok = np.isfinite(xi) & np.isfinite(eta) & (p.apparent_alt_deg > 0)
     point = np.where(ok, np.hypot(np.nan_to_num(xi), np.nan_to_num(eta)), np.inf).min()
-    seg = np.where(ok[:-1] & ok[1:], _segment_distances(np.nan_to_num(xi),
+    seg = np.where(ok[:-1] & ok[1:], segment_distances(np.nan_to_num(xi),
                                                         np.nan_to_num(eta)), np.inf)
     return min(point, seg.min())
 

@@ -878,7 +878,7 @@ class Pass:
                 "field_radius_deg": self.field_radius_deg, "samples": self.samples()}
 
 
-def _segment_distances(x, y):
+def segment_distances(x, y):
     """Per segment between consecutive points: its closest distance to the origin."""
     x0, y0, x1, y1 = x[..., :-1], y[..., :-1], x[..., 1:], y[..., 1:]
     dx, dy = x1 - x0, y1 - y0
@@ -969,7 +969,7 @@ def compute_pass(orbit, exposure, pointing, site=RUBIN, step_s=1.0, t_s=None,
     ok = front & above
     inside_pts = ok & (np.hypot(xi, eta) <= field_radius_deg)
     # Gnomonic: great circles are straight, so a segment between samples is the track's chord.
-    seg_d = np.where(ok[:-1] & ok[1:], _segment_distances(np.nan_to_num(xi),
+    seg_d = np.where(ok[:-1] & ok[1:], segment_distances(np.nan_to_num(xi),
                                                           np.nan_to_num(eta)), np.inf)
     in_field = bool(inside_pts.any() or (seg_d <= field_radius_deg).any())
     lit_inside = inside_pts & (frac > 0)
@@ -1022,7 +1022,7 @@ def crossing_candidates(orbits, exposure, pointing, site=RUBIN, step_s=5.0, marg
     eta = np.degrees(np.einsum("sti,ti->st", unit, frame.north) / safe)
     ok = above & front
     radius = field_radius_deg + margin_deg
-    near = _segment_distances(xi, eta) <= radius
+    near = segment_distances(xi, eta) <= radius
     hit = (near & ok[:, :-1] & ok[:, 1:]).any(axis=1) | (ok & (np.hypot(xi, eta) <= radius)).any(
         axis=1)
     return np.flatnonzero(hit)

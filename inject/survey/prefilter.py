@@ -43,7 +43,12 @@ import math
 import numpy as np
 
 from inject.errors import OrbitError
-from inject.orbits.passes import EARTH_ROTATION_RAD_S, FIELD_RADIUS_DEG, RUBIN
+from inject.orbits.passes import (
+    EARTH_ROTATION_RAD_S,
+    FIELD_RADIUS_DEG,
+    RUBIN,
+    segment_distances,
+)
 
 #: Seconds between two nodes of the night's grid.
 NODE_STEP_S = 300.0
@@ -94,15 +99,6 @@ def _basis(b):
     e1 = np.cross(helper, b)
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
     return e1, np.cross(b, e1)
-
-
-def _segment_distances(x, y):
-    """Per segment between consecutive points: its closest distance to the origin."""
-    x0, y0, x1, y1 = x[..., :-1], y[..., :-1], x[..., 1:], y[..., 1:]
-    dx, dy = x1 - x0, y1 - y0
-    len2 = dx * dx + dy * dy
-    t = np.clip(-(x0 * dx + y0 * dy) / np.where(len2 > 0, len2, 1.0), 0.0, 1.0)
-    return np.hypot(x0 + t * dx, y0 + t * dy)
 
 
 class NightPrefilter:
@@ -267,5 +263,5 @@ class NightPrefilter:
         xi = np.degrees(los @ self._e1[k] / safe)
         eta = np.degrees(los @ self._e2[k] / safe)
         point = np.where(front, np.hypot(xi, eta), np.inf).min(axis=1)
-        seg = np.where(front[:, :-1] & front[:, 1:], _segment_distances(xi, eta), np.inf)
+        seg = np.where(front[:, :-1] & front[:, 1:], segment_distances(xi, eta), np.inf)
         return np.minimum(point, seg.min(axis=1))
