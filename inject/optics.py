@@ -60,6 +60,15 @@ _JACOBIAN_GRID = 128
 _PUPIL_SEED = 20240522
 
 
+def check_field_angle(value):
+    """``value`` checked as a field angle, deg: a finite number within [0,
+    :data:`FIELD_MAX_DEG`] (InputError otherwise)."""
+    field = finite("field_angle_deg", value, scalar=True)
+    if not 0 <= field <= FIELD_MAX_DEG:
+        raise InputError("field_angle_deg", value, f"must be within [0, {FIELD_MAX_DEG}] deg")
+    return field
+
+
 def _batoid():
     import batoid
 
@@ -319,10 +328,7 @@ def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=
     """
     check_band(band)
     range_km = positive("range_km", range_km, scalar=True)
-    field = finite("field_angle_deg", field_angle_deg, scalar=True)
-    if not 0 <= field <= FIELD_MAX_DEG:
-        raise InputError("field_angle_deg", field_angle_deg,
-                         f"must be within [0, {FIELD_MAX_DEG}] deg")
+    field = check_field_angle(field_angle_deg)
     pa = finite("field_position_angle_deg", field_position_angle_deg, scalar=True)
     n_rays = int(positive("n_rays", n_rays, scalar=True))
     scale = positive("pixel_scale", pixel_scale, scalar=True)
@@ -486,10 +492,7 @@ def kernel(band, range_km, field_angle_deg=0.0):
     """
     check_band(band)
     range_km = positive("range_km", range_km, scalar=True)
-    field = finite("field_angle_deg", field_angle_deg, scalar=True)
-    if not 0 <= field <= FIELD_MAX_DEG:
-        raise InputError("field_angle_deg", field_angle_deg,
-                         f"must be within [0, {FIELD_MAX_DEG}] deg")
+    field = check_field_angle(field_angle_deg)
     range_index = int(round(np.log(range_km) / np.log(RANGE_BIN_FACTOR)))
     low = min(int(np.searchsorted(FIELD_NODES_DEG, field, side="right")) - 1,
               len(FIELD_NODES_DEG) - 1)

@@ -102,10 +102,7 @@ class StreakModel:
         band(self.band_name)
         if not isinstance(self.pupil, str) or self.pupil not in PUPILS:
             raise InputError("pupil", self.pupil, "choose " + " or ".join(PUPILS))
-        field = finite("field_angle_deg", self.field_angle_deg, scalar=True)
-        if not 0 <= field <= optics.FIELD_MAX_DEG:
-            raise InputError("field_angle_deg", self.field_angle_deg,
-                             f"must be within [0, {optics.FIELD_MAX_DEG}] deg")
+        optics.check_field_angle(self.field_angle_deg)
         finite("field_position_angle_deg", self.field_position_angle_deg, scalar=True)
         # Touch the cached geometry: validates height and zenith now rather than on first use.
         _ = self.geometry

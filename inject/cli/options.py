@@ -50,12 +50,13 @@ def add_satellite_options(p):
 def model_from_args(args, pixel_scale=None, pixel_scale_name="--pixel-scale"):
     """The :class:`~inject.streak.StreakModel` of the satellite options, their ranges checked
     (:data:`inject.validate.RANGES`) before any profile is built."""
+    from inject.optics import FIELD_MAX_DEG
     from inject.profile import Seeing  # GalSim: when a command runs, not for --help
     from inject.streak import StreakModel
 
-    if not 0 <= args.field_angle <= 2.05:  # also NaN
+    if not 0 <= args.field_angle <= FIELD_MAX_DEG:  # also NaN
         raise InputError("--field-angle", args.field_angle,
-                         "must be within [0, 2.05] deg (LSSTCam's CCDs reach 2.048)")
+                         f"must be within [0, {FIELD_MAX_DEG}] deg (LSSTCam's CCDs reach 2.048)")
     model = StreakModel(  # its own domain checks first (NaN, <= 0, zenith >= 90, band)
         height_km=args.height, zenith_deg=args.zenith, phi_deg=args.phi,
         shape=shape_from_args(args), mag=args.mag, band_name=args.band,
