@@ -35,6 +35,16 @@ def add_focal_stars(image, fscene, ccd, wcs=None, noise=None, variance=None):
     return add_star_field(image, fscene.scene, None, wcs=wcs, noise=noise, variance=variance)
 
 
+def ccd_cards(ccd, digest, what="focal-plane scene digest (sha256)"):
+    """The primary-header cards naming a focal-plane CCD and the scene it belongs to
+    (``DETNAME``, ``DETECTOR``, ``VENDOR``, ``FPSCENE``: the first 16 hex digits of
+    ``digest``)."""
+    return {"DETNAME": (ccd.name, "detector name"),
+            "DETECTOR": (ccd.id, "detector id (obs_lsst, 0-188)"),
+            "VENDOR": (ccd.vendor.upper(), "sensor vendor"),
+            "FPSCENE": (digest[:16], what)}
+
+
 def simulate_ccd(fscene, ccd, streaks, budget=Budget()):
     """Simulate one CCD of a focal-plane scene, with its streaks from the plan
     (:meth:`inject.exposure.plan.Plan.streaks`).
@@ -49,13 +59,24 @@ def simulate_ccd(fscene, ccd, streaks, budget=Budget()):
     """
     scene = ccd_scene(fscene, ccd, streaks)
     wcs = ccd_wcs(ccd, fscene.pointing)
+    return scene, simulate_streaks(fscene, ccd, scene, wcs, streaks, budget), streaks, wcs
+
+
+def simulate_streaks(fscene, ccd, scene, wcs, streaks, budget=Budget()):
+    """Simulate a CCD's ``scene`` (the CCD or a box of it, ``wcs`` in its pixels) with its
+    ``streaks`` in those pixels: each streak's model and plate scale are the whole CCD's
+    (:class:`~inject.exposure.plan.CCDStreak`), the stars the sky's through ``wcs``.
+
+    Returns
+    -------
+    inject.scene.SceneResult
+    """
     models = [vertex_model(fscene, s.satellite, s.values[0], s.pixel_scale) for s in streaks]
     rendered = render_tracks(scene.detector.shape, models, [s.track for s in streaks], budget,
                              pixel_noise(scene))
     for row, s in zip(rendered[1], streaks):
         row["satellite"] = s.satellite
         row["pixel_scale_arcsec"] = s.pixel_scale
-    result = simulate(scene, budget, detector_index=ccd.id, wcs=wcs, rendered=rendered,
-                      add_stars=lambda image, **noise: add_focal_stars(image, fscene, ccd, wcs,
-                                                                       **noise))
-    return scene, result, streaks, wcs
+    return simulate(scene, budget, detector_index=ccd.id, wcs=wcs, rendered=rendered,
+                    add_stars=lambda image, **noise: add_focal_stars(image, fscene, ccd, wcs,
+                                                                     **noise))

@@ -120,7 +120,7 @@ def render_ccd(task):
     if multiprocessing.parent_process() is not None:
         limit_threads()
     from inject.camera import layout as fp
-    from inject.exposure.ccd import simulate_ccd
+    from inject.exposure.ccd import ccd_cards, simulate_ccd
     from inject.io.atomic import temporary_prefix
     from inject.io.fits import write_exposure
 
@@ -131,10 +131,7 @@ def render_ccd(task):
     path = os.path.join(task.outdir, f"{ccd.name}.fits")
     # A temporary name (removed by the clean-up of temporary files if this process dies).
     part = os.path.join(task.outdir, f"{temporary_prefix()}part-{ccd.name}.fits")
-    cards = {"DETNAME": (ccd.name, "detector name"),
-             "DETECTOR": (ccd.id, "detector id (obs_lsst, 0-188)"),
-             "VENDOR": (ccd.vendor.upper(), "sensor vendor"),
-             "FPSCENE": (task.fscene.digest[:16], "focal-plane scene digest (sha256)")}
+    cards = ccd_cards(ccd, task.fscene.digest)
     try:
         # The digest of the bytes as they are written: no second read of the file.
         digest = write_exposure(part, scene, result, scene.detector.gain,

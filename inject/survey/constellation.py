@@ -112,6 +112,24 @@ def read_constellation(path, default_epoch):
                                source=path)
 
 
+#: Constellations already read in this process, by (path, epoch, file time).
+_READ = {}
+
+
+def read_constellation_once(path, epoch):
+    """:func:`read_constellation` once per process and file (a worker's visits share it; SGP4's
+    element sets do not pickle): again only when the path, the epoch or the file's time
+    changes. Its OrbitWarnings are left out (the caller has warned)."""
+    key = (os.path.abspath(path), float(epoch.utc.jd1), float(epoch.utc.jd2),
+           os.path.getmtime(path))
+    if key not in _READ:
+        _READ.clear()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", OrbitWarning)
+            _READ[key] = read_constellation(path, epoch)
+    return _READ[key]
+
+
 def parse_constellation(raw, default_epoch, folder=".", source="constellation"):
     """A :class:`Constellation` from a mapping (the file's content); ``folder`` resolves a
     relative ``tle`` path. Raises as :func:`read_constellation`."""

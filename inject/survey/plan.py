@@ -529,26 +529,14 @@ def plan_visits(visits, constellation, site=RUBIN, progress=None):
     return out
 
 
-#: Constellations already read in this process, by (path, epoch, file time): a worker reads
-#: its constellation once, whatever number of visits it plans.
-_CONSTELLATIONS = {}
-
-
 def plan_chunk(constellation_path, epoch, visits):
     """Plan ``visits`` in a worker process, reading the constellation file once per process
-    (SGP4's element sets do not pickle). ``epoch`` (an astropy Time) is the shells' default
-    epoch, exactly as the caller read it. Returns a list of :class:`VisitPlan`."""
-    import os
+    (:func:`~inject.survey.constellation.read_constellation_once`). ``epoch`` (an astropy
+    Time) is the shells' default epoch, exactly as the caller read it. Returns a list of
+    :class:`VisitPlan`."""
+    from inject.survey.constellation import read_constellation_once
 
-    from inject.survey.constellation import read_constellation
-
-    key = (os.path.abspath(constellation_path), float(epoch.utc.jd1), float(epoch.utc.jd2),
-           os.path.getmtime(constellation_path))
-    if key not in _CONSTELLATIONS:
-        _CONSTELLATIONS.clear()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", OrbitWarning)  # the caller has warned
-            _CONSTELLATIONS[key] = read_constellation(constellation_path, epoch)
+    constellation = read_constellation_once(constellation_path, epoch)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OrbitWarning)
-        return plan_visits(visits, _CONSTELLATIONS[key])
+        return plan_visits(visits, constellation)

@@ -44,6 +44,7 @@ import numpy as np
 
 from inject import __version__
 from inject.errors import InjectError, OrbitWarning, OutputError
+from inject.trajectory import clip_segment
 
 #: Columns :func:`measured_columns` adds to ``streaks.csv``.
 MEASURED_FIELDS = ("rendered_ccds", "found_ccds", "measured_fwhm_arcsec",
@@ -124,23 +125,6 @@ def model_keys(path):
 
 # --- the visit's scene (a worker) -----------------------------------------------------------
 
-#: Constellations read in this process, by (path, epoch, file time).
-_READ = {}
-
-
-def _constellation(path, epoch):
-    from inject.survey.constellation import read_constellation
-
-    key = (os.path.abspath(path), float(epoch.utc.jd1), float(epoch.utc.jd2),
-           os.path.getmtime(path))
-    if key not in _READ:
-        _READ.clear()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", OrbitWarning)  # the caller has warned
-            _READ[key] = read_constellation(path, epoch)
-    return _READ[key]
-
-
 @dataclass(frozen=True)
 class VisitJob:
     """A streaked visit to render: what the parent knows from the plan."""
@@ -178,10 +162,11 @@ def visit_scene(constellation_path, epoch, model, job, options):
     from inject.exposure.scene import FocalScene
     from inject.orbits.passes import RUBIN, Exposure, FieldFrame, compute_pass
     from inject.orbits.tracks import sunlit_runs
+    from inject.survey.constellation import read_constellation_once
     from inject.survey.plan import SNAP_BREAK_S, visit_times
     from inject.trajectory import FocalTrack
 
-    constellation = _constellation(constellation_path, epoch)
+    constellation = read_constellation_once(constellation_path, epoch)
     by_name = _orbits_by_name(constellation)
     visit = job.visit
     pointing = Pointing(visit.ra_deg, visit.dec_deg, visit.rotation_deg)
@@ -268,7 +253,7 @@ def cutout_box(ccd, streaks, side):
     middles = []
     for s in streaks:
         x0, y0, x1, y1 = s.ends
-        a = _clip_segment(x0, y0, x1, y1, (-0.5, nx_all - 0.5, -0.5, ny_all - 0.5))
+        a = clip_segment(x0, y0, x1, y1, (-0.5, nx_all - 0.5), (-0.5, ny_all - 0.5))
         if a is not None:
             middles.append(((a[0] + a[2]) / 2, (a[1] + a[3]) / 2))
     cx, cy = np.mean(middles, axis=0) if middles else (nx_all / 2, ny_all / 2)
@@ -276,27 +261,6 @@ def cutout_box(ccd, streaks, side):
     bx = int(min(max(round(cx - nx / 2), 0), nx_all - nx))
     by = int(min(max(round(cy - ny / 2), 0), ny_all - ny))
     return (bx, by, nx, ny)
-
-
-def _clip_segment(x0, y0, x1, y1, box):
-    """The part of a segment inside a box ``(xmin, xmax, ymin, ymax)`` (Liang-Barsky), or
-    None."""
-    xmin, xmax, ymin, ymax = box
-    dx, dy = x1 - x0, y1 - y0
-    t0, t1 = 0.0, 1.0
-    for p, q in ((-dx, x0 - xmin), (dx, xmax - x0), (-dy, y0 - ymin), (dy, ymax - y0)):
-        if p == 0:
-            if q < 0:
-                return None
-            continue
-        r = q / p
-        if p < 0:
-            t0 = max(t0, r)
-        else:
-            t1 = min(t1, r)
-    if t0 > t1:
-        return None
-    return (x0 + t0 * dx, y0 + t0 * dy, x0 + t1 * dx, y0 + t1 * dy)
 
 
 # --- one CCD (a worker) ---------------------------------------------------------------------
@@ -341,10 +305,7 @@ def simulate_box(fscene, ccd, streaks, box):
 
     from inject.camera.wcs import ccd_wcs
     from inject.config import with_detector
-    from inject.exposure.ccd import add_focal_stars
-    from inject.exposure.plan import vertex_model
-    from inject.render import Budget
-    from inject.scene import pixel_noise, render_tracks, simulate
+    from inject.exposure.ccd import simulate_streaks
 
     wcs = ccd_wcs(ccd, fscene.pointing)
     det = ccd.detector
@@ -362,17 +323,7 @@ def simulate_box(fscene, ccd, streaks, box):
         wcs.wcs.set()
     sats = [replace(fscene.scene.satellites[s.satellite], track=s.track) for s in streaks]
     scene = with_detector(fscene.scene, det, sats)
-    budget = Budget()
-    models = [vertex_model(fscene, s.satellite, s.values[0], s.pixel_scale) for s in streaks]
-    rendered = render_tracks(det.shape, models, [s.track for s in streaks], budget,
-                             pixel_noise(scene))
-    for row, s in zip(rendered[1], streaks):
-        row["satellite"] = s.satellite
-        row["pixel_scale_arcsec"] = s.pixel_scale
-    result = simulate(scene, budget, detector_index=ccd.id, wcs=wcs, rendered=rendered,
-                      add_stars=lambda image, **noise: add_focal_stars(image, fscene, ccd, wcs,
-                                                                       **noise))
-    return scene, result, wcs, streaks
+    return scene, simulate_streaks(fscene, ccd, scene, wcs, streaks), wcs, streaks
 
 
 def match_streaks(found, streaks, widths):
@@ -449,6 +400,7 @@ def render_ccd(task):
     import multiprocessing
 
     from inject.camera import layout as fp
+    from inject.exposure.ccd import ccd_cards
     from inject.exposure.runner import FIELDS, commit, limit_threads
     from inject.instrument import LSST
     from inject.io.atomic import temporary_prefix
@@ -466,10 +418,7 @@ def render_ccd(task):
     path = os.path.join(task.outdir, f"{ccd.name}.fits")
     part = os.path.join(task.outdir, f"{temporary_prefix()}part-{ccd.name}.fits")
     x0, y0 = (0, 0) if task.box is None else task.box[:2]
-    cards = {"DETNAME": (ccd.name, "detector name"),
-             "DETECTOR": (ccd.id, "detector id (obs_lsst, 0-188)"),
-             "VENDOR": (ccd.vendor.upper(), "sensor vendor"),
-             "FPSCENE": (task.fscene.digest[:16], "survey visit key (sha256)")}
+    cards = ccd_cards(ccd, task.fscene.digest, "survey visit key (sha256)")
     try:
         digest = write_exposure(part, scene, result, scene.detector.gain,
                                 wcs_header=wcs.to_header(relax=True), overwrite=True,
