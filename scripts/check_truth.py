@@ -128,25 +128,34 @@ FOCAL_RUNS = (("paper", "sample_fields/focal_paper_550km.yaml"),
 # -------------------------------------------------------------------------------------------
 # Geometry (pure functions, tested in tests/test_check_truth.py)
 
-def clipped_length(x0, y0, x1, y1, shape):
-    """Length of the segment ``(x0, y0)-(x1, y1)`` inside the pixel area of an image of
-    ``shape`` ``(ny, nx)`` (edges at -0.5 and n - 0.5), by Liang-Barsky clipping."""
-    ny, nx = shape
+def _inside_interval(x0, y0, x1, y1, box):
+    """``(t0, t1)``: the fractions of the segment ``(x0, y0)-(x1, y1)`` inside the box
+    ``(xmin, xmax, ymin, ymax)`` (Liang-Barsky; ``t0 > t1`` when it misses), or None when it
+    runs parallel to an edge outside the box."""
+    xmin, xmax, ymin, ymax = box
     dx, dy = x1 - x0, y1 - y0
     t0, t1 = 0.0, 1.0
-    for p, q in ((-dx, x0 + 0.5), (dx, nx - 0.5 - x0), (-dy, y0 + 0.5), (dy, ny - 0.5 - y0)):
+    for p, q in ((-dx, x0 - xmin), (dx, xmax - x0), (-dy, y0 - ymin), (dy, ymax - y0)):
         if p == 0:
             if q < 0:
-                return 0.0
+                return None
             continue
         t = q / p
         if p < 0:
             t0 = max(t0, t)
         else:
             t1 = min(t1, t)
-    if t1 <= t0:
+    return t0, t1
+
+
+def clipped_length(x0, y0, x1, y1, shape):
+    """Length of the segment ``(x0, y0)-(x1, y1)`` inside the pixel area of an image of
+    ``shape`` ``(ny, nx)`` (edges at -0.5 and n - 0.5), by Liang-Barsky clipping."""
+    ny, nx = shape
+    inside = _inside_interval(x0, y0, x1, y1, (-0.5, nx - 0.5, -0.5, ny - 0.5))
+    if inside is None or inside[1] <= inside[0]:
         return 0.0
-    return float((t1 - t0) * math.hypot(dx, dy))
+    return float((inside[1] - inside[0]) * math.hypot(x1 - x0, y1 - y0))
 
 
 def segment_distance(px, py, x0, y0, x1, y1):
@@ -557,20 +566,8 @@ def _package_api():
 
 def _crosses_box(ax, ay, bx, by, box):
     """Whether the segment ``(ax, ay)-(bx, by)`` meets the box ``(xmin, xmax, ymin, ymax)``."""
-    xmin, xmax, ymin, ymax = box
-    dx, dy = bx - ax, by - ay
-    t0, t1 = 0.0, 1.0
-    for p, q in ((-dx, ax - xmin), (dx, xmax - ax), (-dy, ay - ymin), (dy, ymax - ay)):
-        if p == 0:
-            if q < 0:
-                return False
-            continue
-        t = q / p
-        if p < 0:
-            t0 = max(t0, t)
-        else:
-            t1 = min(t1, t)
-    return t0 <= t1
+    inside = _inside_interval(ax, ay, bx, by, box)
+    return inside is not None and inside[0] <= inside[1]
 
 
 def nearest_on_path(xs, ys, box):

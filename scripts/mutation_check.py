@@ -154,6 +154,17 @@ def run_tests(copy, tests, timeout, every=False):
     return proc.returncode, time.perf_counter() - start, text
 
 
+def baseline_passes(base, tests, timeout):
+    """Run ``tests`` on the unmutated copy ``base`` and say how it went; remove the copy when
+    they pass (a mutant that fails tests already failing would prove nothing)."""
+    status, seconds, failed = run_tests(base, tests, timeout)
+    print(f"baseline (unmutated) on {len(tests)} test files: "
+          f"{'pass' if status == 0 else 'FAIL ' + failed} in {seconds:.0f} s", flush=True)
+    if status == 0:
+        shutil.rmtree(base)
+    return status == 0
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--only", nargs="*", help="substrings of mutation names to run")
@@ -172,14 +183,9 @@ def main(argv=None):
         if not args.no_baseline:
             base = os.path.join(tmp, "baseline")
             copy_tree(base)
-            tests = sorted({t for m in chosen for t in m.tests})
-            status, seconds, failed = run_tests(base, tests, args.timeout)
-            print(f"baseline (unmutated) on {len(tests)} test files: "
-                  f"{'pass' if status == 0 else 'FAIL ' + failed} in {seconds:.0f} s",
-                  flush=True)
-            if status != 0:
+            if not baseline_passes(base, sorted({t for m in chosen for t in m.tests}),
+                                   args.timeout):
                 return 1
-            shutil.rmtree(base)
         for i, m in enumerate(chosen):
             copy = os.path.join(tmp, f"mutant{i}")
             copy_tree(copy)

@@ -44,7 +44,10 @@ import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
-from mutation_check import run_tests  # this folder's: the same pytest run in a copy
+from mutation_check import (  # this folder's: the same pytest run in a copy
+    baseline_passes,
+    run_tests,
+)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 IGNORE = shutil.ignore_patterns(".venv", ".git", "out", "__pycache__", "*.egg-info",
@@ -407,13 +410,8 @@ def main(argv=None):
             shutil.copytree(root, base, ignore=IGNORE, dirs_exist_ok=True)
             tests = sorted({t for m in chosen
                             for t in test_files(root, m, args.new, args.tests)[0]})
-            status, seconds, failed = run_tests(base, tests, args.timeout)
-            print(f"baseline (unmutated) on {len(tests)} test files: "
-                  f"{'pass' if status == 0 else 'FAIL ' + failed} in {seconds:.0f} s",
-                  flush=True)
-            if status != 0:
+            if not baseline_passes(base, tests, args.timeout):
                 return 1
-            shutil.rmtree(base)
         with ThreadPoolExecutor(max(1, args.jobs)) as pool:
             futures = [pool.submit(run_one, root, tmp, i, m, layout, args.new, args.timeout,
                                    args.tests, args.every) for i, m in enumerate(chosen)]
