@@ -169,9 +169,11 @@ class StreakModel:
         kernel = self.traced_kernel
         return 1.0 if kernel is None else kernel.transmitted
 
+    @cached_property
     def defocus_profile(self):
         """The unit-flux defocus kernel in the track frame for ``pupil="rubin"``, else None
-        (the annulus of :func:`inject.profile.stationary_profile`)."""
+        (the annulus of :func:`inject.profile.stationary_profile`); one object for the
+        model's full and reduced profiles (:meth:`render_profile`)."""
         kernel = self.traced_kernel
         if kernel is None:
             return None
@@ -190,7 +192,7 @@ class StreakModel:
         g = self.geometry
         shape = self.shape.profile(g.range_km, g.nadir_angle_deg, g.phi_deg)
         return stationary_profile(shape, g.range_km, self.seeing, self.telescope, drop=drop,
-                                  defocus=self.defocus_profile())
+                                  defocus=self.defocus_profile)
 
     def render_profile(self, tolerance):
         """The simplest profile that draws this streak to within ``tolerance`` of its peak.
@@ -312,7 +314,7 @@ def _shared_profile(ref):
     g = model.geometry
     shape = model.shape.profile(g.range_km, g.nadir_angle_deg, g.phi_deg)
     return stationary_profile(shape, g.range_km, model.seeing, model.telescope,
-                              defocus=model.defocus_profile())
+                              defocus=model.defocus_profile)
 
 
 @lru_cache(maxsize=256)  # two arrays of a few thousand samples each
