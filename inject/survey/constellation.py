@@ -21,6 +21,7 @@ name line (or its catalog number).
 import os
 import warnings
 from dataclasses import dataclass, field
+from functools import cached_property
 
 from inject.config import ORBIT_SATELLITE_KEYS, parse_satellite
 from inject.errors import InjectError, OrbitError, OrbitWarning, SceneError
@@ -65,6 +66,11 @@ class Constellation:
 
     def __len__(self):
         return len(self.orbits)
+
+    @cached_property
+    def by_name(self):
+        """The orbits by their names."""
+        return {o.name: o for o in self.orbits}
 
     def check_epochs(self, first, last):
         """Refuse (OrbitError) a TLE whose epoch is more than

@@ -94,7 +94,7 @@ def _file_sha256(path):
 def visit_key(plan, constellation, model, options):
     """SHA-256 of what a visit's CCD files depend on: the visit, the plan's seeing and sky,
     its streak satellites' element sets, the satellites' model and the render options."""
-    by_name = _orbits_by_name(constellation)
+    by_name = constellation.by_name
     v = plan.visit
     text = json.dumps({
         "visit": [v.observation_id, v.mjd_tai, v.ra_deg, v.dec_deg, v.rotation_deg, v.band,
@@ -104,14 +104,6 @@ def visit_key(plan, constellation, model, options):
         "model": model, "options": [options.cutout, options.compression, options.stars],
         "version": __version__}, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
-
-
-def _orbits_by_name(constellation):
-    cached = getattr(constellation, "_render_names", None)
-    if cached is None:
-        cached = {o.name: o for o in constellation.orbits}
-        object.__setattr__(constellation, "_render_names", cached)  # a frozen dataclass
-    return cached
 
 
 def model_keys(path):
@@ -167,7 +159,7 @@ def visit_scene(constellation_path, epoch, model, job, options):
     from inject.trajectory import FocalTrack
 
     constellation = read_constellation_once(constellation_path, epoch)
-    by_name = _orbits_by_name(constellation)
+    by_name = constellation.by_name
     visit = job.visit
     pointing = Pointing(visit.ra_deg, visit.dec_deg, visit.rotation_deg)
     ts = visit_times(visit)
