@@ -189,3 +189,14 @@ def test_an_unwritable_cache_warns_once_and_the_run_goes_on(traces, tmp_path, mo
     assert len(caught) == 1 and caught[0].category is InputWarning
     text = str(caught[0].message)
     assert str(root) in text and "INJECT_CACHE_DIR" in text and "\n" not in text
+
+
+def test_the_command_says_it_in_one_line_and_goes_on(traces, tmp_path, monkeypatch, cli):
+    (tmp_path / "a-file").write_text("")
+    monkeypatch.setenv("INJECT_CACHE_DIR", str(tmp_path / "a-file" / "cache"))
+    monkeypatch.setattr(optics, "_unwritable_said", False)
+    status, out, err = cli("profile", "--height", "550", "--pupil", "rubin", "--field-angle",
+                           "1.0", "--field-position-angle", "30")
+    assert status == 0 and "FWHM" in out and len(traces) == 1
+    [line] = err.splitlines()
+    assert line.startswith("inject profile: warning: kernel cache folder ")
