@@ -127,7 +127,8 @@ class Scene:
     #: The defocus kernel, ``annulus`` or ``rubin`` (:data:`inject.streak.PUPILS`).
     pupil: str = "annulus"
     #: A CCD scene's ``field:``, ``(angle, position_angle)`` in deg: where the CCD sits in
-    #: the field for ``pupil: rubin`` (None: on the optical axis).
+    #: the field for ``pupil: rubin`` (None: on the optical axis); the position angle is the
+    #: outward field radius's direction on the image, from the pixel rows' +x.
     field: tuple | None = None
 
 
@@ -247,12 +248,20 @@ def parse_common(raw):
         site=merged.get("site"), shadow_atmosphere_km=atmosphere, pupil=pupil, raw=raw)
 
 
-def parse_field(value):
+def parse_field(value, pupil="rubin"):
     """A CCD scene's ``field: {angle, position_angle}`` as ``(angle, position_angle)`` deg.
 
     ``angle`` is the CCD's (the streak's) angle from the optical axis, 0 to 2.05 deg;
     ``position_angle`` the direction of the outward field radius on the image, deg
-    counter-clockwise from the pixel rows' +x (default 0). None when absent.
+    counter-clockwise from the pixel rows' +x (default 0), whatever the tracks' directions.
+    (TRUTH's ``field_position_angle_deg`` is that radius measured from each streak's direction
+    of motion instead.) None when absent.
+
+    Raises
+    ------
+    SceneError
+        A key or value is wrong, or ``field:`` is given with a ``pupil`` other than ``rubin``
+        (the annulus is the same everywhere in the field).
     """
     if value is None:
         return None
@@ -261,6 +270,9 @@ def parse_field(value):
     if not 0 <= angle <= FIELD_MAX_DEG:
         raise SceneError(f"field.angle={angle}: must be within [0, {FIELD_MAX_DEG}] deg "
                          "(LSSTCam's CCDs reach 2.048)")
+    if pupil != "rubin":
+        raise SceneError(f"field.angle={angle}: only with pupil: rubin (pupil: {pupil} is the "
+                         "same everywhere in the field)")
     return (angle, number("field.position_angle", value.get("position_angle", 0.0)))
 
 
@@ -378,8 +390,8 @@ def parse_scene(raw, charge_check=True):
                    {"height", "shape", "mag", "track"})
         track = parse_track(f"{where}.track", spec["track"])
         parsed.append(parse_satellite(where, spec, track))
-    scene = Scene(detector=detector, satellites=tuple(parsed), field=parse_field(raw.get("field")),
-                  **common)
+    scene = Scene(detector=detector, satellites=tuple(parsed),
+                  field=parse_field(raw.get("field"), common["pupil"]), **common)
     if charge_check:
         check_charge(scene)
     ny, nx = detector.shape

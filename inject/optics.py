@@ -22,13 +22,17 @@ wavelength per band (the band's effective wavelength, :data:`BAND_WAVELENGTH_NM`
 """
 import copy
 import functools
+import hashlib
+import json
 import os
+import warnings
+import zipfile
 from dataclasses import dataclass
 
 import galsim
 import numpy as np
 
-from inject.errors import InputError
+from inject.errors import InputError, InputWarning
 from inject.instrument import ARCSEC_PER_RAD
 from inject.photometry import band as check_band
 from inject.profile import GSPARAMS, line_spread
@@ -58,6 +62,7 @@ _PUPIL_MARGIN_M = 0.1
 _JACOBIAN_STEP_RAD = 10.0 / ARCSEC_PER_RAD
 _JACOBIAN_GRID = 128
 _PUPIL_SEED = 20240522
+_DETECTOR = "LSST.LSSTCamera.Detector"
 
 
 def check_field_angle(value):
@@ -75,12 +80,34 @@ def _batoid():
     return batoid
 
 
+def _model_path(name):
+    return os.path.join(_batoid().datadir, "LSST", name)
+
+
+def _model_files(band):
+    """The batoid model files :func:`telescope` builds ``band``'s optics from."""
+    return ("LSST_r_baffles.yaml", f"LSST_{band}.yaml")
+
+
 def _model_config(name):
     import yaml
 
-    path = os.path.join(_batoid().datadir, "LSST", name)
-    with open(path) as f:
+    with open(_model_path(name)) as f:
         return yaml.safe_load(f)["opticalSystem"]
+
+
+@functools.lru_cache(maxsize=6)
+def _model_identity(band):
+    """The identity of ``band``'s optics model: batoid's version and a digest of its files.
+
+    A kernel traced with other model files or another batoid is another kernel (the disk
+    cache's key holds this).
+    """
+    digest = hashlib.sha256()
+    for name in _model_files(band):
+        with open(_model_path(name), "rb") as f:
+            digest.update(f.read())
+    return f"batoid {_batoid().__version__} {digest.hexdigest()[:16]}"
 
 
 @functools.lru_cache(maxsize=6)
@@ -97,8 +124,9 @@ def telescope(band):
     batoid.CompoundOptic
     """
     check_band(band)
-    config = _model_config("LSST_r_baffles.yaml")
-    plain = _model_config(f"LSST_{band}.yaml")
+    baffled, own = _model_files(band)
+    config = _model_config(baffled)
+    plain = _model_config(own)
     camera = [item for item in plain["items"] if item["name"] == "LSSTCamera"]
     config["items"] = [item for item in config["items"] if item["name"] != "LSSTCamera"]
     config["items"] += copy.deepcopy(camera)
@@ -141,6 +169,8 @@ class TracedKernel:
     field_angle_deg, field_position_angle_deg : float
     n_traced : int
         Rays traced (those entering M1's clear annulus, widened by a margin).
+    focus_offset_um : float
+        The detector's shift from the design's focus (:func:`traced_kernel`), micron.
     """
 
     image: np.ndarray
@@ -155,6 +185,7 @@ class TracedKernel:
     field_angle_deg: float
     field_position_angle_deg: float
     n_traced: int
+    focus_offset_um: float = 0.0
 
     def profile(self, gsparams=GSPARAMS):
         """The kernel as a GalSim profile (arcsec) with flux :attr:`transmitted`."""
@@ -293,7 +324,7 @@ def _edges(dx, dy, centre, scale):
 
 
 def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=0.0,
-                  n_rays=N_RAYS, pixel_scale=KERNEL_SCALE_ARCSEC):
+                  n_rays=N_RAYS, pixel_scale=KERNEL_SCALE_ARCSEC, focus_offset_um=0.0):
     """Trace a point at ``range_km`` through Rubin's telescope: the real defocus kernel.
 
     Parameters
@@ -312,6 +343,11 @@ def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=
         through the same pupil points.
     pixel_scale : float
         Sampling of the returned image, arcsec.
+    focus_offset_um : float
+        Shift of the detector from the design's position along batoid's z axis, micron (0:
+        focused at infinity). A negative shift moves it towards the light arriving from L3,
+        where a star is out of focus the way a point at finite range is (-50 um looks like a
+        point about 2000 km away).
 
     Returns
     -------
@@ -332,8 +368,11 @@ def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=
     pa = finite("field_position_angle_deg", field_position_angle_deg, scalar=True)
     n_rays = int(positive("n_rays", n_rays, scalar=True))
     scale = positive("pixel_scale", pixel_scale, scalar=True)
+    focus = finite("focus_offset_um", focus_offset_um, scalar=True)
 
     optic = telescope(band)
+    if focus:
+        optic = optic.withGloballyShiftedOptic(_DETECTOR, [0.0, 0.0, focus * 1e-6])
     wavelength_m = BAND_WAVELENGTH_NM[band] * 1e-9
     theta = np.radians(field) * np.array([np.cos(np.radians(pa)), np.sin(np.radians(pa))])
 
@@ -359,7 +398,8 @@ def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=
                         inner_radius=float(inner), outer_radius=float(outer),
                         transmitted=float(transmitted), star_throughput=len(sx) / n_clear,
                         band=band, range_km=range_km, field_angle_deg=field,
-                        field_position_angle_deg=pa, n_traced=len(points[0]))
+                        field_position_angle_deg=pa, n_traced=len(points[0]),
+                        focus_offset_um=focus)
 
 
 # -------------------------------------------------------------------------------------------
@@ -388,16 +428,23 @@ FIELD_NODES_DEG = np.round(np.concatenate([np.arange(0.0, 1.6, 0.05),
 #: the 0.54% the FWHM moves over that range at 1.5 deg.
 VANE_OFFSET_DEG = 22.5
 
-#: Version of the kernels written to the disk cache: a new one ignores older files.
-CACHE_VERSION = 1
+#: Version of the kernel files and of the code that traces them: files of another version are
+#: not read (they stay in their own folder). Bump it when a change to this module changes the
+#: kernels traced from the same inputs; the inputs themselves (band, wavelength, range, field,
+#: vanes, rays, sampling, focus, pupil points, optics model) are in each file's key.
+CACHE_VERSION = 2
+
+#: Errors that say a cache file is damaged (truncated, a bad CRC, not an npz, arrays missing):
+#: the kernel is traced again and the file rewritten.
+_DAMAGED = (OSError, EOFError, ValueError, KeyError, IndexError, TypeError, zipfile.BadZipFile)
 
 
 def cache_dir():
     """Folder of the traced kernels kept between runs.
 
     ``$INJECT_CACHE_DIR`` if set, else the user's cache folder (``~/.cache/inject`` on Linux),
-    in a sub-folder per batoid version and kernel version. An empty ``INJECT_CACHE_DIR``
-    keeps kernels in memory only.
+    in a sub-folder per :data:`CACHE_VERSION`. An empty ``INJECT_CACHE_DIR`` keeps kernels in
+    memory only.
     """
     root = os.environ.get("INJECT_CACHE_DIR")
     if root is None:
@@ -406,11 +453,54 @@ def cache_dir():
         root = platformdirs.user_cache_dir("inject", appauthor=False)
     if not root:
         return None
-    return os.path.join(root, "kernels", f"v{CACHE_VERSION}-batoid{_batoid().__version__}")
+    return os.path.join(root, "kernels", f"v{CACHE_VERSION}")
 
 
-def _save(path, kernel):
-    """Write a kernel to ``path`` atomically (a partial file never has the final name)."""
+def _grid_trace(band, range_index, field_index):
+    """The arguments of :func:`traced_kernel` for the grid node ``(range_index, field_index)``:
+    range :data:`RANGE_BIN_FACTOR` ** ``range_index`` km, field angle
+    ``FIELD_NODES_DEG[field_index]``, the radius at :data:`VANE_OFFSET_DEG` from the vanes,
+    :data:`GRID_RAYS` rays, :data:`KERNEL_SCALE_ARCSEC` sampling, focused at infinity."""
+    return dict(band=band, range_km=RANGE_BIN_FACTOR ** range_index,
+                field_angle_deg=float(FIELD_NODES_DEG[field_index]),
+                field_position_angle_deg=VANE_OFFSET_DEG, n_rays=GRID_RAYS,
+                pixel_scale=KERNEL_SCALE_ARCSEC, focus_offset_um=0.0)
+
+
+def _cache_key(trace):
+    """Everything a kernel traced with the arguments ``trace`` depends on.
+
+    The arguments of :func:`traced_kernel` (band, range, field angle, the radius's angle to
+    the vanes, rays, sampling, focus), the band's wavelength, the pupil points' seed and
+    margin, the plate-scale Jacobian's step and grid, and the optics model's identity
+    (:func:`_model_identity`). The code that traces is :data:`CACHE_VERSION`'s.
+
+    Returns
+    -------
+    dict
+        JSON-ready; its digest names the cache file.
+    """
+    band = trace["band"]
+    return dict(trace, wavelength_nm=BAND_WAVELENGTH_NM[band], pupil_seed=_PUPIL_SEED,
+                pupil_margin_m=_PUPIL_MARGIN_M, jacobian_step_rad=_JACOBIAN_STEP_RAD,
+                jacobian_grid=_JACOBIAN_GRID, model=_model_identity(band))
+
+
+def _key_text(key):
+    return json.dumps(key, sort_keys=True)
+
+
+def _cache_path(folder, key):
+    """The file in ``folder`` of the kernel of ``key`` (:func:`_cache_key`): its band, range
+    and field for the reader, and a digest of the whole key."""
+    digest = hashlib.sha256(_key_text(key).encode()).hexdigest()[:20]
+    return os.path.join(folder, f"{key['band']}_{key['range_km']:.1f}km_"
+                                f"f{key['field_angle_deg']:.3f}_{digest}.npz")
+
+
+def _save(path, kernel, key):
+    """Write a kernel and its key to ``path`` atomically (a partial file never has the final
+    name)."""
     import tempfile
 
     folder = os.path.dirname(path)
@@ -418,7 +508,8 @@ def _save(path, kernel):
     fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=".npz")
     try:
         with os.fdopen(fd, "wb") as stream:
-            np.savez(stream, image=kernel.image.astype(np.float32), scale=kernel.scale,
+            np.savez(stream, key=np.array(_key_text(key)),
+                     image=kernel.image.astype(np.float32), scale=kernel.scale,
                      centroid=np.asarray(kernel.centroid),
                      radii=np.array([kernel.inner_radius, kernel.outer_radius]),
                      transmitted=kernel.transmitted, star_throughput=kernel.star_throughput,
@@ -430,37 +521,71 @@ def _save(path, kernel):
         raise
 
 
-def _load(path, band, range_km, field_angle_deg):
-    with np.load(path) as data:
-        return TracedKernel(
-            image=data["image"].astype(float), scale=float(data["scale"]),
-            centroid=tuple(float(v) for v in data["centroid"]),
-            inner_radius=float(data["radii"][0]), outer_radius=float(data["radii"][1]),
-            transmitted=float(data["transmitted"]),
-            star_throughput=float(data["star_throughput"]), band=band, range_km=range_km,
-            field_angle_deg=field_angle_deg, field_position_angle_deg=VANE_OFFSET_DEG,
-            n_traced=int(data["n_traced"]))
+def _load(path, key):
+    """The kernel stored in ``path`` for ``key``; None if there is none, the file is damaged
+    or it holds another key's kernel."""
+    try:
+        # The file opened here: np.load leaves it open when the zip is unreadable.
+        with open(path, "rb") as stream, np.load(stream) as data:
+            if str(data["key"][()]) != _key_text(key):
+                return None
+            image = data["image"].astype(float)
+            scale, transmitted = float(data["scale"]), float(data["transmitted"])
+            centroid, radii = data["centroid"].astype(float), data["radii"].astype(float)
+            star_throughput, n_traced = float(data["star_throughput"]), int(data["n_traced"])
+    except _DAMAGED:  # a missing file too (FileNotFoundError)
+        return None
+    n = image.shape[0] if image.ndim == 2 else 0
+    # The light the image holds is stored twice: a file that does not agree is damaged.
+    if not (image.shape == (n, n) and n % 2 == 1 and np.isfinite(image).all()
+            and scale == key["pixel_scale"] and centroid.shape == radii.shape == (2,)
+            and np.isclose(image.sum() * scale ** 2, transmitted, rtol=1e-4)):
+        return None
+    return TracedKernel(
+        image=image, scale=scale, centroid=(float(centroid[0]), float(centroid[1])),
+        inner_radius=float(radii[0]), outer_radius=float(radii[1]), transmitted=transmitted,
+        star_throughput=star_throughput, band=key["band"], range_km=key["range_km"],
+        field_angle_deg=key["field_angle_deg"],
+        field_position_angle_deg=key["field_position_angle_deg"], n_traced=n_traced,
+        focus_offset_um=key["focus_offset_um"])
+
+
+#: Whether this process has said that the cache folder cannot be written.
+_unwritable_said = False
+
+
+def _unwritable(folder, err):
+    """Say once per process that kernels cannot be kept in ``folder``."""
+    global _unwritable_said
+    if _unwritable_said:
+        return
+    _unwritable_said = True
+    warnings.warn(f"kernel cache folder {folder!r} cannot be written ({err.strerror or err}): "
+                  "pupil: rubin traces its kernels again on every run; set INJECT_CACHE_DIR "
+                  "to a writable folder (or to an empty value to keep kernels in memory only)",
+                  InputWarning, stacklevel=2)
 
 
 @functools.lru_cache(maxsize=64)  # images of ~500 x 500 at 350 km: about 130 MB at most
 def _grid_kernel(band, range_index, field_index):
-    """The kernel traced at a grid node, from the disk cache when it holds it."""
-    range_km = RANGE_BIN_FACTOR ** range_index
-    field = float(FIELD_NODES_DEG[field_index])
+    """The kernel traced at a grid node, from the disk cache when it holds it.
+
+    A damaged cache file is traced again and rewritten; a folder that cannot be written keeps
+    the kernel in memory only (one :class:`~inject.errors.InputWarning` per process).
+    """
+    trace = _grid_trace(band, range_index, field_index)
     folder = cache_dir()
-    path = None if folder is None else os.path.join(
-        folder, f"{band}_r{range_index}_f{field:.3f}_n{GRID_RAYS}.npz")
-    if path is not None and os.path.exists(path):
+    if folder is None:
+        return traced_kernel(**trace)
+    key = _cache_key(trace)
+    path = _cache_path(folder, key)
+    kernel = _load(path, key)
+    if kernel is None:
+        kernel = traced_kernel(**trace)
         try:
-            return _load(path, band, range_km, field)
-        except (OSError, ValueError, KeyError):
-            pass  # a damaged file: traced again and rewritten
-    kernel = traced_kernel(band, range_km, field, VANE_OFFSET_DEG, n_rays=GRID_RAYS)
-    if path is not None:
-        try:
-            _save(path, kernel)
-        except OSError:
-            pass  # a read-only cache folder: the kernel is kept in memory only
+            _save(path, kernel, key)
+        except OSError as err:
+            _unwritable(folder, err)
     return kernel
 
 
@@ -516,5 +641,6 @@ def kernel(band, range_km, field_angle_deg=0.0):
                         outer_radius=zoom * mixed["outer_radius"],
                         transmitted=mixed["transmitted"],
                         star_throughput=mixed["star_throughput"], band=band, range_km=range_km,
-                        field_angle_deg=field, field_position_angle_deg=VANE_OFFSET_DEG,
-                        n_traced=base.n_traced)
+                        field_angle_deg=field,
+                        field_position_angle_deg=base.field_position_angle_deg,
+                        n_traced=base.n_traced, focus_offset_um=base.focus_offset_um)

@@ -1185,3 +1185,12 @@ def test_shape_type_a_list_on_the_command_line(cli, scene, tmp_path):
     status, _, err = cli("simulate", scene, "-o", tmp_path / "o.fits",
                       "satellites.0.shape.type=[box]")
     assert status == 2 and "shape.type=['box']" in err
+
+
+def test_simulate_refuses_a_field_without_the_traced_pupil(cli, scene, tmp_path):
+    """``field:`` only says where the CCD sits for ``pupil: rubin``, as ``inject profile``
+    refuses ``--field-angle`` without ``--pupil rubin``."""
+    out = tmp_path / "out.fits"
+    status, _, err = cli("simulate", scene, "-o", out, "field={angle: 1.2}", strict=True)
+    assert status == 2 and "field.angle=1.2: only with pupil: rubin" in err
+    assert not out.exists() and not leftovers(tmp_path)

@@ -60,3 +60,13 @@ def test_scene_file_is_loaded_safely(tmp_path):
     listy.write_text(yaml.safe_dump([1, 2]))
     with pytest.raises(SceneError, match="must be a mapping"):
         load_scene_file(listy)
+
+
+def test_a_field_without_the_traced_pupil_is_refused():
+    """``field:`` says where the CCD sits for ``pupil: rubin``; with the annulus it would be
+    ignored (``inject profile`` refuses ``--field-angle`` without ``--pupil rubin`` too)."""
+    raw = dict(DEFAULT_SCENE, field={"angle": 1.2, "position_angle": 40})
+    with pytest.raises(SceneError, match=r"^field\.angle=1\.2: only with pupil: rubin") as info:
+        parse_scene(raw)
+    assert "\n" not in str(info.value)
+    assert parse_scene(dict(raw, pupil="rubin")).field == (1.2, 40.0)

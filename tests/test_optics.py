@@ -61,21 +61,34 @@ def test_the_kernel_holds_the_light_a_star_keeps(on_axis_500):
     assert k.image.shape[0] % 2 == 1 and k.image.shape[0] == k.image.shape[1]
 
 
-def test_edges_at_500_km_against_rim_rays_and_the_annulus(on_axis_500):
-    """The half-plateau radii against rays through the rims of M1's clear annulus, traced
-    here through batoid's plain g-band model and scaled by the design's plate scale."""
+def _rim_radii(range_km=None, focus_offset_um=0.0):
+    """Mean radii (arcsec, by the design's plate scale) at which rays through the rims of M1's
+    clear annulus land, traced through batoid's plain g-band model: from a point on the axis
+    ``range_km`` away, or from a star (None), the detector shifted by ``focus_offset_um``."""
     optic = batoid.Optic.fromYaml(os.path.join(batoid.datadir, "LSST", "LSST_g.yaml"))
+    if focus_offset_um:
+        optic = optic.withGloballyShiftedOptic("Detector", [0.0, 0.0, focus_offset_um * 1e-6])
     phi = np.linspace(0, 2 * np.pi, 720, endpoint=False)
     radii = {}
     for name, rho in (("inner", 2.558 + 1e-4), ("outer", 4.18 - 1e-4)):
         x, y = rho * np.cos(phi), rho * np.sin(phi)
         z = np.full_like(x, STOP_Z)
-        u = np.vstack([x, y, z]) - _source(500.0)[:, None]
-        u /= np.linalg.norm(u, axis=0)
+        if range_km is None:
+            u = np.vstack([0 * x, 0 * x, -np.ones_like(x)])
+        else:
+            u = np.vstack([x, y, z]) - _source(range_km)[:, None]
+            u /= np.linalg.norm(u, axis=0)
         start = np.vstack([x, y, z]) - 15.0 * u
         out = optic.trace(batoid.RayVector(*start, *u, wavelength=WAVELENGTH_G))
         assert not out.vignetted.any()
         radii[name] = np.hypot(out.x, out.y).mean() * 1e6 / UM_PER_ARCSEC
+    return radii
+
+
+def test_edges_at_500_km_against_rim_rays_and_the_annulus(on_axis_500):
+    """The half-plateau radii against rays through the rims of M1's clear annulus, traced
+    here through batoid's plain g-band model and scaled by the design's plate scale."""
+    radii = _rim_radii(500.0)
     assert on_axis_500.inner_radius == pytest.approx(radii["inner"], rel=5e-3)
     assert on_axis_500.outer_radius == pytest.approx(radii["outer"], rel=5e-3)
     # The issue's measurement: the hole ~0.1" wider, the outer edge ~0.06" narrower than the
@@ -84,6 +97,18 @@ def test_edges_at_500_km_against_rim_rays_and_the_annulus(on_axis_500):
     annulus_outer = 4.18 / 500e3 * ARCSEC_PER_RAD
     assert 0.08 < on_axis_500.inner_radius - annulus_inner < 0.15
     assert -0.08 < on_axis_500.outer_radius - annulus_outer < -0.04
+
+
+def test_a_focus_offset_makes_a_star_a_defocused_annulus():
+    """A point 10^6 km away (defocus 0.001") with the detector 200 um towards L3: its edges
+    against rim rays of a star traced through the plain model with the detector moved the
+    same way (the paraxial R f / dz would be 0.99" and 1.62")."""
+    k = traced_kernel("g", 1e6, 0.0, n_rays=250_000, focus_offset_um=-200.0)
+    radii = _rim_radii(None, focus_offset_um=-200.0)
+    assert k.focus_offset_um == -200.0
+    assert k.inner_radius == pytest.approx(radii["inner"], rel=5e-3)
+    assert k.outer_radius == pytest.approx(radii["outer"], rel=5e-3)
+    assert 1.0 < radii["inner"] < 1.3 and 1.6 < radii["outer"] < 1.8
 
 
 def test_fwhm_with_seeing_agrees_with_a_histogrammed_trace(on_axis_500):
@@ -153,7 +178,8 @@ def test_fwhm_with_seeing_converges_in_ray_count():
 
 
 @pytest.mark.parametrize("kwargs", [dict(band="q"), dict(field_angle_deg=2.5),
-                                    dict(range_km=-1.0), dict(n_rays=0)])
+                                    dict(range_km=-1.0), dict(n_rays=0),
+                                    dict(focus_offset_um=float("nan"))])
 def test_bad_input_is_an_input_error(kwargs):
     args = dict(band="g", range_km=500.0, field_angle_deg=0.0, n_rays=10_000) | kwargs
     with pytest.raises(InputError):

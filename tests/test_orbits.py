@@ -517,3 +517,16 @@ def test_magnitude_along_the_pass_follows_the_paper_and_fades_in_the_penumbra(ce
     base = apparent_magnitude(5.0, late.range_km, late.nadir_angle_deg)
     np.testing.assert_allclose((ml - base)[pen], -2.5 * np.log10(late.sun_fraction[pen]))
     assert np.all(np.diff(late.sun_fraction[pen]) <= 0)
+
+
+def test_a_tle_file_error_names_the_file_line(sat, tmp_path):
+    """After a name line and a blank one, TLE line 2 is the file's line 4."""
+    l1, l2 = sat.tle_lines()
+    bad = l2[:68] + str((int(l2[68]) + 1) % 10)
+    path = tmp_path / "bad.tle"
+    path.write_text(f"EXAMPLE\n{l1}\n\n{bad}\n")
+    with pytest.raises(OrbitError, match=rf"^TLE file '{path}' line 4='2 .*: bad checksum"):
+        Orbit.read_tle(path)
+    path.write_text(f"{l1[:-1]}x\n{l2}\n")
+    with pytest.raises(OrbitError, match=r"line 1='1 .*: bad checksum"):
+        Orbit.read_tle(path)

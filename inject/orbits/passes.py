@@ -246,16 +246,22 @@ class Orbit:
         OrbitError
             If a line is malformed or its checksum is wrong.
         """
+        return cls._from_lines(line1, line2, name, ("TLE line 1", "TLE line 2"))
+
+    @classmethod
+    def _from_lines(cls, line1, line2, name, where):
+        """:meth:`from_tle`, its errors naming the lines as ``where`` says (e.g. by their
+        line numbers in a file)."""
         lines = []
-        for k, line in ((1, line1), (2, line2)):
+        for k, line, label in ((1, line1, where[0]), (2, line2, where[1])):
             if not isinstance(line, str):
-                raise OrbitError(f"TLE line {k}={line!r}: must be a string")
+                raise OrbitError(f"{label}={line!r}: must be a string")
             line = line.rstrip()
             if len(line) != 69 or line[0] != str(k):
-                raise OrbitError(f"TLE line {k}={line!r}: must be 69 characters starting with "
+                raise OrbitError(f"{label}={line!r}: must be 69 characters starting with "
                                  f"'{k} '")
             if not _tle_checksum_ok(line):
-                raise OrbitError(f"TLE line {k}={line!r}: bad checksum (last digit "
+                raise OrbitError(f"{label}={line!r}: bad checksum (last digit "
                                  f"{line[68]}, expected {compute_checksum(line)})")
             lines.append(line)
         if lines[0][2:7] != lines[1][2:7]:
@@ -270,17 +276,18 @@ class Orbit:
         return orbit
 
     @classmethod
-    def from_text(cls, text, source="TLE"):
-        """An orbit from TLE text: two lines, optionally after a name line."""
-        lines = [ln for ln in text.splitlines() if ln.strip()]
-        if len(lines) == 3:
-            name, l1, l2 = lines[0].strip().removeprefix("0 "), lines[1], lines[2]
-        elif len(lines) == 2:
-            name, (l1, l2) = None, lines
-        else:
-            raise OrbitError(f"{source}: holds {len(lines)} non-empty lines, expected 2 TLE "
+    def from_text(cls, text, source="TLE text"):
+        """An orbit from TLE text: two lines, optionally after a name line.
+
+        Errors name ``source`` and the text's own line numbers (``TLE file 'x.tle' line 3``).
+        """
+        numbered = [(n, ln) for n, ln in enumerate(text.splitlines(), 1) if ln.strip()]
+        if len(numbered) not in (2, 3):
+            raise OrbitError(f"{source}: holds {len(numbered)} non-empty lines, expected 2 TLE "
                              f"lines, optionally after a name line")
-        return cls.from_tle(l1, l2, name)
+        name = numbered[0][1].strip().removeprefix("0 ") if len(numbered) == 3 else None
+        (n1, l1), (n2, l2) = numbered[-2:]
+        return cls._from_lines(l1, l2, name, (f"{source} line {n1}", f"{source} line {n2}"))
 
     @classmethod
     def read_tle(cls, path):
