@@ -260,7 +260,7 @@ def test_a_visit_plans_the_same_whole_alone_and_in_a_job_slice(night):
     assert len(whole) == 1
     assert read_csv(folder / "alone" / "streaks.csv") == whole
     assert read_csv(folder / "job" / "streaks-job1-of-3.csv") == whole
-    assert night["summary"]["epoch"] == "2026-06-15T23:12:00.000"
+    assert night["summary"]["epoch"] == "2026-06-15T23:12:00.000000"
 
 
 def test_shells_without_an_epoch_are_refused(cli, night, tmp_path):

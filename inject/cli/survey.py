@@ -128,11 +128,10 @@ def _inputs(args, constellation, options):
     from inject.exposure.runner import sha256_file
     from inject.survey.constellation import file_digests
 
-    epoch = constellation.epoch
     return {"visits_file": os.path.abspath(args.visits),
             "visits_sha256": sha256_file(args.visits),
             "constellation_sha256": file_digests(constellation),
-            "epoch": None if epoch is None else epoch.isot,
+            "epoch": constellation.epoch_isot,
             "njobs": args.njobs,
             "render": None if options is None else [options.cutout, options.compression]}
 

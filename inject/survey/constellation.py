@@ -15,8 +15,8 @@ The model keys are checked as a scene's satellite's (:func:`inject.config.parse_
 a shell is :func:`inject.orbits.passes.walker_shell` ``i: t/p/f`` with ``t = planes x
 per_plane`` (optional ``raan0``, deg, and ``name``), its elements at the file's ``epoch``
 (required with shells: the satellites' positions are part of the constellation, never taken
-from the visits). A ``tle`` file (relative to the constellation file's folder, or absolute) holds
-any number of TLEs, each two lines optionally after a name line; a satellite's name is its
+from the visits). A ``tle`` file (relative to the constellation file's folder, or absolute)
+holds any number of TLEs, each two lines optionally after a name line; a satellite's name is its
 name line (or its catalog number). No satellite may come twice, by name or by identical
 elements (a shell repeated, a TLE file holding the same TLE twice).
 """
@@ -40,6 +40,8 @@ SHELL_KEYS = ("height", "inclination", "planes", "per_plane", "phasing", "raan0"
 #: The lowest shell, km: below ~150 km a satellite re-enters within days (the atmosphere's
 #: drag), so no constellation flies there.
 MIN_SHELL_HEIGHT_KM = 150.0
+
+
 @dataclass(frozen=True, eq=False)
 class Constellation:
     """The satellites of a survey run.
@@ -76,6 +78,15 @@ class Constellation:
 
     def __len__(self):
         return len(self.orbits)
+
+    @property
+    def epoch_isot(self):
+        """The shells' epoch as ISO 8601 UTC to the microsecond (None without shells)."""
+        if self.epoch is None:
+            return None
+        epoch = self.epoch.copy()
+        epoch.precision = 6
+        return epoch.isot
 
     @cached_property
     def by_name(self):
@@ -144,14 +155,21 @@ def read_constellation(path, default_epoch=None):
                                source=path)
 
 
-#: Constellations already read in this process, by :func:`_files_key`.
+#: The constellation read last in this process, by the stamps of its files (:func:`_stamps`).
 _READ = {}
 
 
-def _stamp(path):
-    """A file's identity for the cache: its path, size and modification time (ns)."""
-    st = os.stat(path)
-    return os.path.abspath(path), st.st_size, st.st_mtime_ns
+def _stamps(path, when, tle_files):
+    """The cache key of a constellation file: the default epoch ``when`` and each file's
+    path, size and modification time (ns); None if a file is gone."""
+    def stamp(f):
+        st = os.stat(f)
+        return os.path.abspath(f), st.st_size, st.st_mtime_ns
+
+    try:
+        return when, tuple(stamp(f) for f in (path, *tle_files))
+    except OSError:
+        return None
 
 
 def read_constellation_once(path, epoch=None):
@@ -161,16 +179,17 @@ def read_constellation_once(path, epoch=None):
     file it names changes. Its OrbitWarnings are left out (the caller has warned)."""
     when = None if epoch is None else (float(epoch.utc.jd1), float(epoch.utc.jd2))
     for key, constellation in _READ.items():
-        if key[:2] == (_stamp(path), when) and key[2] == tuple(
-                _stamp(f) for f in constellation.tle_files):
+        if key is not None and key == _stamps(path, when, constellation.tle_files):
             return constellation
     _READ.clear()
+    # The file's stamp before it is read: an edit made meanwhile makes the next call read it.
+    before = _stamps(path, when, ())
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OrbitWarning)
         constellation = read_constellation(path, epoch)
-    # Stamped before reading would miss an edit made while it is read: the next call rereads.
-    _READ[(_stamp(path), when, tuple(_stamp(f) for f in constellation.tle_files))] = \
-        constellation
+    after = _stamps(path, when, constellation.tle_files)
+    if before is not None and after is not None and after[1][0] == before[1][0]:
+        _READ[after] = constellation
     return constellation
 
 
@@ -211,9 +230,9 @@ def parse_constellation(raw, default_epoch=None, folder=".", source="constellati
         except InjectError as err:
             raise SceneError(f"{source}: {err}") from None
     for i, shell in enumerate(shells):
-        mine = _shell(f"shells[{i}]", shell, epoch)
+        name, mine = _shell(f"shells[{i}]", shell, epoch)
         orbits += mine
-        sources.append((f"shells[{i}] {mine[0].name.rsplit('-', 2)[0]}", len(mine)))
+        sources.append((f"shells[{i}] {name}", len(mine)))
     if "tle" in raw:
         tle = raw["tle"]
         if not isinstance(tle, str) or not tle.strip():
@@ -249,7 +268,7 @@ def _check_unique(source, orbits):
 
 
 def _shell(where, spec, epoch):
-    """The orbits of one Walker shell, its values checked."""
+    """The name and the orbits of one Walker shell, its values checked."""
     check_keys(where, spec, SHELL_KEYS, SHELL_KEYS[:5])
     height = number(f"{where}.height", spec["height"])
     if height < MIN_SHELL_HEIGHT_KM:
@@ -270,8 +289,8 @@ def _shell(where, spec, epoch):
     if not isinstance(name, str) or not name.strip():
         raise SceneError(f"{where}.name={name!r}: must be a non-empty string")
     try:
-        return walker_shell(planes * per_plane, planes, phasing, height, inclination, epoch,
-                            raan0, name=name.strip())
+        return name.strip(), walker_shell(planes * per_plane, planes, phasing, height,
+                                          inclination, epoch, raan0, name=name.strip())
     except InjectError as err:
         raise SceneError(f"{where}: {err}") from None
 

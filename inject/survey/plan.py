@@ -227,8 +227,8 @@ def fallbacks(visits):
 
 
 def warn_fallbacks(visits):
-    """One :class:`~inject.errors.InputWarning` per default the plan takes (module
-    :func:`fallbacks`), naming the visits (the first five)."""
+    """One :class:`~inject.errors.InputWarning` per default the plan takes
+    (:func:`fallbacks`), naming the visits (the first five)."""
     for missing, column, instead in (
             ([v for v in visits if v.seeing_fwhm_eff is None], "seeingFwhmEff",
              f"the streak model's default seeing, {DEFAULT_SEEING:g} arcsec"),

@@ -295,8 +295,8 @@ def check_mjd(name, mjd):
     """Refuse (InputError) an MJD outside :data:`MJD_RANGE` (1900-2100)."""
     if not MJD_RANGE[0] <= mjd < MJD_RANGE[1]:
         year = 1858.87 + mjd / 365.25
-        raise InputError(name, mjd, f"is the year {year:.0f}, outside 1900-2100 (a JD "
-                                    f"instead of an MJD?)")
+        hint = " (a JD instead of an MJD?)" if mjd > 2400000.5 else ""
+        raise InputError(name, mjd, f"is the year {year:.0f}, outside 1900-2100{hint}")
 
 
 def select_visits(visits, job=None, njobs=None):
