@@ -134,8 +134,12 @@ def test_summary_totals_are_the_hand_count_of_the_tables(night):
 
 
 def test_numbers_are_written_to_read_back_exactly(night):
-    """A visit's pixel fraction (a few 1e-5: 0.0 at six decimals) reads back as the float
-    pixels / all pixels, and every streak's number as written (repr round-trips)."""
+    """A visit's pixel fraction reads back as the float pixels / all pixels, a loss of
+    1,500 px too (4.9e-7: 0.0 at six decimals), and every streak's number as written."""
+    from inject.survey.outputs import csv_text
+
+    text = csv_text([{"pixel_fraction_lost": 1500 / ALL_PIXELS}], ["pixel_fraction_lost"])
+    assert float(text.split()[1]) == 1500 / ALL_PIXELS
     for row in night["table"]:
         pixels = int(row["pixels_lost"])
         assert float(row["pixel_fraction_lost"]) == pixels / ALL_PIXELS
