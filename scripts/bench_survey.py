@@ -134,9 +134,9 @@ def main():
           f"{'other':>7} {'cand/v':>7} {'field/v':>7} {'streaks/v':>9}")
     for size in args.sizes:
         raw = {"shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0,
-               "shells": shells(size)}
+               "epoch": night[0].start.utc, "shells": shells(size)}
         start = time.perf_counter()
-        constellation = parse_constellation(raw, night[0].start.utc)
+        constellation = parse_constellation(raw)
         build = time.perf_counter() - start
         engine.plan_visit(night[0], constellation)  # astropy's first-call set-up, untimed
         for every in args.every:

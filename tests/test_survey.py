@@ -495,7 +495,7 @@ def _survey(cli, tmp_path, db, const, *extra):
 
 def _shell_file(tmp_path, shell="{height: 550, inclination: 53, planes: 2, per_plane: 2, "
                                "phasing: 1}"):
-    return write_constellation(str(tmp_path), f"shells:\n  - {shell}\n")
+    return write_constellation(str(tmp_path), f"epoch: {EPOCH}\nshells:\n  - {shell}\n")
 
 
 @pytest.mark.parametrize("make, words", [
@@ -534,7 +534,8 @@ def test_outputs_appear_together_and_are_not_replaced(cli, tmp_path, digest):
     const = _shell_file(tmp_path)
     status, _, out = _survey(cli, tmp_path, db, const, "--no-plots")
     assert status == 0
-    assert sorted(os.listdir(out)) == ["streaks.csv", "summary.json", "visits.csv"]
+    assert sorted(os.listdir(out)) == ["streaks.csv", "summary.json", "survey_claim.json",
+                                       "visits.csv"]
     before = digest(out / "visits.csv")
     status, err, _ = _survey(cli, tmp_path, db, const, "--no-plots")
     assert status == 2 and "exists" in err and digest(out / "visits.csv") == before
@@ -723,10 +724,11 @@ def test_the_constellation_may_ask_for_the_traced_pupil():
 
     raw = {"shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0,
            "shells": [dict(SHELL, planes=2, per_plane=2)]}
-    assert parse_constellation(raw, "2026-06-15T00:00:00").pupil == "annulus"
-    assert parse_constellation(dict(raw, pupil="rubin"), "2026-06-15T00:00:00").pupil == "rubin"
+    raw["epoch"] = EPOCH
+    assert parse_constellation(raw).pupil == "annulus"
+    assert parse_constellation(dict(raw, pupil="rubin")).pupil == "rubin"
     with pytest.raises(SceneError, match="pupil='ideal'"):
-        parse_constellation(dict(raw, pupil="ideal"), "2026-06-15T00:00:00")
+        parse_constellation(dict(raw, pupil="ideal"))
     # Samples moving outward along the radius at 45 deg, then across it at x = 200 mm.
     t = np.linspace(50.0, 250.0, 21)
     out = _field(t, t, np.arange(21), 10)

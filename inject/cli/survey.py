@@ -65,7 +65,8 @@ CHUNK_VISITS = 8
 
 def run_survey(args):
     from inject.exposure.runner import check_outdir
-    from inject.survey.outputs import output_paths
+    from inject.survey.outputs import claim_outdir, output_paths, remove_earlier
+    from inject.survey.plan import warn_fallbacks
 
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers", args.workers, "must be >= 1")
@@ -90,19 +91,55 @@ def run_survey(args):
         from inject.exposure.runner import make_outdir
 
         make_outdir(args.output)
+    inputs = _inputs(args, constellation, options)
+    claim = None
     try:
+        claim = claim_outdir(args.output, _run_key(inputs), inputs, args.overwrite)
+        warn_fallbacks(visits)
         started = time.perf_counter()
-        plans = _plan(visits, constellation, args, night[0])
+        plans = _plan(visits, constellation, args)
         elapsed = time.perf_counter() - started
         rendered = None
         if options is not None:
             rendered = _render(plans, constellation, args, night[0], options)
-        _write(args, paths, plans, night, visits, constellation, elapsed, rendered)
-    except BaseException:
+        written = _write(args, paths, plans, night, visits, constellation, elapsed, inputs,
+                         rendered)
+        if args.overwrite:
+            remove_earlier(args.output, claim, written.values(),
+                           set(rendered.measured) if rendered is not None else set())
+        if rendered is not None:
+            error = _failed(rendered, args.output)
+            if error is not None:
+                raise error
+    except BaseException as err:
+        from inject.errors import RunError
+
+        if claim is not None and not isinstance(err, RunError):  # a RunError has written
+            claim.release()
         if made:  # the folder this run made, if nothing else was put there meanwhile
             with contextlib.suppress(OSError):
                 os.rmdir(args.output)
         raise
+
+
+def _inputs(args, constellation, options):
+    """What makes a run: its input files' SHA-256, the constellation's epoch and the options
+    that change its outputs (``--job`` left out: a run's slices share its OUTDIR)."""
+    from inject.exposure.runner import sha256_file
+    from inject.survey.constellation import file_digests
+
+    return {"visits_file": os.path.abspath(args.visits),
+            "visits_sha256": sha256_file(args.visits),
+            "constellation_sha256": file_digests(constellation),
+            "epoch": constellation.epoch_isot,
+            "njobs": args.njobs,
+            "render": None if options is None else [options.cutout, options.compression]}
+
+
+def _run_key(inputs):
+    import hashlib
+
+    return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()
 
 
 def _render_options(args):
@@ -165,12 +202,12 @@ def _render(plans, constellation, args, first, options):
 def _constellation(path, night):
     from inject.survey.constellation import read_constellation
 
-    constellation = read_constellation(path, night[0].start.utc)
-    constellation.check_epochs(night[0].start, night[-1].start)
+    constellation = read_constellation(path)
+    constellation.check_epochs(night)
     return constellation
 
 
-def _plan(visits, constellation, args, first):
+def _plan(visits, constellation, args):
     """Every visit's plan, in this process or on workers, with a progress bar."""
     from inject.survey.plan import plan_chunk, plan_visits
 
@@ -183,18 +220,17 @@ def _plan(visits, constellation, args, first):
                 warnings.simplefilter("ignore", OrbitWarning)
                 return plan_visits(visits, constellation, progress=progress.step)
         chunks = [visits[k:k + CHUNK_VISITS] for k in range(0, len(visits), CHUNK_VISITS)]
-        epoch = first.start.utc  # the Time itself: its ISO text would round it to 1 ms
         path = os.path.abspath(args.constellation)
         if args.scheduler:
             from inject.exposure.runner import dask_executor
 
             with dask_executor(args.scheduler, args.workers) as executor:
-                return _gather(executor, plan_chunk, path, epoch, chunks, progress)
+                return _gather(executor, plan_chunk, path, chunks, progress)
         from inject.exposure.runner import process_pool
 
         pool = process_pool(workers)
         try:
-            result = _gather(pool, plan_chunk, path, epoch, chunks, progress)
+            result = _gather(pool, plan_chunk, path, chunks, progress)
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)
             raise
@@ -204,10 +240,10 @@ def _plan(visits, constellation, args, first):
         progress.close()
 
 
-def _gather(executor, function, path, epoch, chunks, progress):
+def _gather(executor, function, path, chunks, progress):
     from concurrent.futures import as_completed
 
-    futures = {executor.submit(function, path, epoch, chunk): k for k, chunk in enumerate(chunks)}
+    futures = {executor.submit(function, path, chunk): k for k, chunk in enumerate(chunks)}
     out = [None] * len(chunks)
     for future in as_completed(futures):
         out[futures[future]] = future.result()
@@ -216,14 +252,21 @@ def _gather(executor, function, path, epoch, chunks, progress):
     return [plan for chunk in out for plan in chunk]
 
 
-def _write(args, paths, plans, night, visits, constellation, elapsed, rendered=None):
+def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, rendered=None):
+    """Write the run's files (:func:`inject.survey.outputs.write_outputs`) and say so;
+    returns ``{kind: path}`` of the files written."""
+    from inject import __version__
     from inject.orbits.passes import RUBIN
     from inject.survey.outputs import summary, write_outputs
 
-    about = {"visits_file": os.path.abspath(args.visits),
+    about = {"inject_version": __version__,
+             "visits_file": inputs["visits_file"], "visits_sha256": inputs["visits_sha256"],
              "constellation_file": os.path.abspath(args.constellation),
-             "satellites": len(constellation), "night_visits": len(night),
-             "job": args.job, "njobs": args.njobs,
+             "constellation_sha256": inputs["constellation_sha256"],
+             "epoch": inputs["epoch"], "pupil": constellation.pupil,
+             "satellites": len(constellation),
+             "satellites_by_source": dict(constellation.sources),
+             "night_visits": len(night), "job": args.job, "njobs": args.njobs,
              "site_lon_deg": RUBIN.lon_deg, "plan_seconds": round(elapsed, 3),
              "plan_seconds_per_visit": round(elapsed / len(visits), 4)}
     measured = None
@@ -242,10 +285,7 @@ def _write(args, paths, plans, night, visits, constellation, elapsed, rendered=N
           f"{result['streaks']} streaks, pixel fraction lost "
           f"{result['pixel_fraction_lost_total']:.3g} ({elapsed / len(visits):.3f} s a visit); "
           f"wrote {', '.join(written.values())}", file=sys.stderr)
-    if rendered is not None:
-        error = _failed(rendered, args.output)
-        if error is not None:
-            raise error
+    return written
 
 
 def _failed(rendered, outdir):

@@ -10,18 +10,28 @@ the night (local mean solar time at the site). The plots: streaks per visit thro
 sky map of the visits coloured by it (``sky_map.png``).
 
 A ``--job J --njobs N`` slice writes the same files with ``-jobJ-of-N`` before the extension,
-so that the slices of a night can share one folder.
+so that the slices of a night can share one folder. A run claims its folder before any work
+(:func:`claim_outdir`, the file :data:`CLAIM`, keyed on the run's inputs and options): the
+slices of one run share the claim, another run is refused unless it overwrites, and then
+the earlier run's files that this run does not write are removed (:func:`remove_earlier`).
+
+Numbers are written as Python's ``repr`` of the float, the shortest text that reads back as
+the same float.
 """
+import contextlib
 import csv
 import io
 import json
 import math
 import os
+import re
+import shutil
 
 import numpy as np
 
+from inject.errors import OutputError
 from inject.io.atomic import atomic_path, output_group
-from inject.survey.plan import STREAK_FIELDS, TOTAL_PIXELS, VISIT_FIELDS
+from inject.survey.plan import STREAK_FIELDS, TOTAL_PIXELS, VISIT_FIELDS, fallbacks
 from inject.survey.visits import night_hours
 
 #: Files of a run, by kind (the plots last).
@@ -46,7 +56,7 @@ def _cell(value):
         return ""
     if isinstance(value, (float, np.floating)):
         value = float(value)
-        return "" if not math.isfinite(value) else repr(round(value, 6))
+        return "" if not math.isfinite(value) else repr(value)
     return value
 
 
@@ -98,12 +108,14 @@ def _totals(plans):
 
 def summary(plans, about, site_lon_deg):
     """The ``summary.json`` mapping: ``about`` (inputs, for the record), the night's totals,
+    the visits whose seeing or sky came from a default (:func:`inject.survey.plan.fallbacks`),
     and the same per band and per hour of the night (local mean solar time, 24 and above
     after midnight)."""
-    out = {**about, "total_pixels_per_visit": TOTAL_PIXELS, **_totals(plans)}
+    out = {**about, "total_pixels_per_visit": TOTAL_PIXELS, **_totals(plans),
+           "fallbacks": fallbacks([p.visit for p in plans])}
     out["by_band"] = {b: _totals([p for p in plans if p.visit.band == b])
                       for b in sorted({p.visit.band for p in plans}, key="ugrizy".index)}
-    hours = night_hours([p.visit for p in plans], site_lon_deg) if plans else []
+    hours = night_hours([p.visit for p in plans], site_lon_deg)
     by_hour = {}
     for hour in sorted({int(h) for h in hours}):
         chosen = [p for p, h in zip(plans, hours) if int(h) == hour]
@@ -156,7 +168,7 @@ def write_plots(paths, plans, site_lon_deg, overwrite=False):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    hours = night_hours([p.visit for p in plans], site_lon_deg) if plans else np.array([])
+    hours = night_hours([p.visit for p in plans], site_lon_deg)
     counts = np.array([len(p.streaks) for p in plans])
     fraction = np.array([p.pixels_lost for p in plans], float) / TOTAL_PIXELS
     bands = [p.visit.band for p in plans]
@@ -166,7 +178,8 @@ def write_plots(paths, plans, site_lon_deg, overwrite=False):
     def figure():
         fig = Figure(figsize=(8, 4))
         FigureCanvasAgg(fig)
-        return fig, fig.add_axes([0.1, 0.14, 0.86, 0.78])
+        # The legend goes right of the axes, where it covers no visit.
+        return fig, fig.add_axes([0.1, 0.14, 0.8, 0.78])
 
     def hour_axis(ax):
         ticks = np.arange(np.floor(hours.min()), np.ceil(hours.max()) + 1) if len(hours) \
@@ -187,26 +200,30 @@ def write_plots(paths, plans, site_lon_deg, overwrite=False):
         ax.set_title(f"{len(plans)} visits, {int(np.count_nonzero(counts))} streaked",
                      fontsize=9)
         if plans:
-            ax.legend(fontsize=7, ncol=6, loc="upper right")
+            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0),
+                      title="band", title_fontsize=7)
         _save(fig, paths[kind], overwrite)
 
+    # RA and Dec on plain axes, the labels outside them (a Mollweide's RA labels sit on the
+    # equator, among the fields).
     fig = Figure(figsize=(8, 4.6))
     FigureCanvasAgg(fig)
-    ax = fig.add_axes([0.06, 0.1, 0.78, 0.82], projection="mollweide")
+    ax = fig.add_axes([0.08, 0.11, 0.76, 0.8])
     ra = np.array([p.visit.ra_deg for p in plans], float)
     dec = np.array([p.visit.dec_deg for p in plans], float)
-    # RA increasing to the left, as the sky is seen.
-    x = -np.radians(((ra + 180.0) % 360.0) - 180.0)
     order = np.argsort(fraction)
-    points = ax.scatter(x[order], np.radians(dec[order]), c=fraction[order], s=8,
-                        cmap="viridis", vmin=0.0, vmax=max(float(fraction.max(initial=0.0)),
-                                                           1e-6))
-    ax.set_xticks(np.radians(np.arange(-150, 181, 30)))
-    ax.set_xticklabels([f"{(-a) % 360:d}" for a in range(-150, 181, 30)], fontsize=6)
-    ax.tick_params(labelsize=6)
+    points = ax.scatter(ra[order], dec[order], c=fraction[order], s=8, cmap="viridis",
+                        vmin=0.0, vmax=max(float(fraction.max(initial=0.0)), 1e-6))
+    ax.set_xlim(360.0, 0.0)  # RA increasing to the left, as the sky is seen
+    ax.set_ylim(-90.0, 90.0)
+    ax.set_xticks(np.arange(0, 361, 30))
+    ax.set_yticks(np.arange(-90, 91, 30))
+    ax.tick_params(labelsize=7)
+    ax.set_xlabel("RA (deg)", fontsize=8)
+    ax.set_ylabel("Dec (deg)", fontsize=8)
     ax.grid(True, lw=0.3)
     ax.set_title("visits (RA, Dec), coloured by the pixel fraction lost", fontsize=9)
-    bar = fig.colorbar(points, cax=fig.add_axes([0.87, 0.15, 0.02, 0.7]))
+    bar = fig.colorbar(points, cax=fig.add_axes([0.87, 0.11, 0.02, 0.8]))
     bar.ax.tick_params(labelsize=6)
     _save(fig, paths["sky"], overwrite)
 
@@ -214,3 +231,125 @@ def write_plots(paths, plans, site_lon_deg, overwrite=False):
 def _save(fig, path, overwrite):
     with atomic_path(path, overwrite) as tmp:
         fig.savefig(tmp, format="png", dpi=100)
+
+
+# --- the folder's claim ---------------------------------------------------------------------
+
+#: The claim of a run on its OUTDIR: the key of its inputs and options.
+CLAIM = "survey_claim.json"
+#: A plan file of any run or slice (:data:`NAMES`, with or without ``-jobJ-of-N``).
+_PLAN_FILE = re.compile(r"(%s)(-job\d+-of-\d+)?\.(csv|json|png)$" % "|".join(
+    re.escape(os.path.splitext(n)[0]) for n in NAMES.values()))
+
+
+class Claim:
+    """A run's claim on its OUTDIR (:func:`claim_outdir`).
+
+    Attributes
+    ----------
+    path : str
+        The claim file.
+    same_run : bool
+        The folder was claimed by a run of the same key (a slice of this run, or this run
+        again): the other slices' files are left alone.
+    previous : str or None
+        The claim file's earlier text, put back if this run fails.
+    """
+
+    def __init__(self, path, same_run, previous):
+        self.path, self.same_run, self.previous = path, same_run, previous
+
+    def release(self):
+        """Undo the claim (a failed run): the earlier claim back, or none."""
+        if self.same_run:
+            return
+        if self.previous is None:
+            with contextlib.suppress(OSError):
+                os.remove(self.path)
+        else:
+            _write_text(self.path, self.previous, True)
+
+
+def claim_outdir(outdir, key, inputs, overwrite=False):
+    """Claim ``outdir`` (an existing folder) for a run whose inputs and options hash to
+    ``key``, before any work.
+
+    Parameters
+    ----------
+    outdir : str
+    key : str
+        The run's key: equal for the ``--job`` slices of one run.
+    inputs : dict
+        What the key was made of, written beside it for the record.
+    overwrite : bool
+        Whether another run's claim may be replaced.
+
+    Returns
+    -------
+    Claim
+
+    Raises
+    ------
+    OutputError
+        The folder holds another run's claim, or plan files and no claim, without
+        ``overwrite``.
+    """
+    path = os.path.join(outdir, CLAIM)
+    try:
+        with open(path, encoding="utf-8") as stream:
+            previous = stream.read()
+    except FileNotFoundError:
+        previous = None
+    except OSError as err:
+        raise OutputError(f"{path}: cannot be read ({err.strerror or err})") from None
+    try:
+        earlier = json.loads(previous).get("key") if previous is not None else None
+    except (ValueError, AttributeError):
+        earlier = None
+    if earlier == key:
+        return Claim(path, True, previous)
+    if not overwrite:
+        if previous is not None:
+            raise OutputError(f"{outdir}: holds the outputs of another survey run ({CLAIM}: "
+                              f"other VISITS, constellation or options); give another OUTDIR, "
+                              f"or pass --overwrite to replace them")
+        plan_files = sorted(n for n in os.listdir(outdir) if _PLAN_FILE.fullmatch(n))
+        if plan_files:
+            raise OutputError(f"{os.path.join(outdir, plan_files[0])}: exists (an earlier "
+                              f"run's); give another OUTDIR, or pass --overwrite to replace it")
+    _write_text(path, json.dumps({"key": key, **inputs}, indent=1) + "\n", True)
+    return Claim(path, False, previous)
+
+
+def remove_earlier(outdir, claim, written, visit_ids):
+    """With ``--overwrite``: remove the earlier outputs in ``outdir`` that this run did not
+    write. Of another run (``claim.same_run`` false) every plan file of any slice and every
+    ``visits/<id>`` folder whose visit ``visit_ids`` (the visits this run rendered) leaves out;
+    of this run, the plan files of its own slice that it did not write (the plots after
+    ``--no-plots``).
+
+    Parameters
+    ----------
+    outdir : str
+    claim : Claim
+    written : sequence of str
+        The files this run wrote.
+    visit_ids : set of int
+        The visits this run rendered (their folders are kept).
+    """
+    from inject.survey.render import VISITS_DIR
+
+    keep = {os.path.abspath(p) for p in written}
+    slices = {_PLAN_FILE.fullmatch(os.path.basename(p)).group(2) for p in keep}
+    for name in os.listdir(outdir):
+        match = _PLAN_FILE.fullmatch(name)
+        path = os.path.abspath(os.path.join(outdir, name))
+        if match and path not in keep and (not claim.same_run or match.group(2) in slices):
+            os.remove(path)
+    folder = os.path.join(outdir, VISITS_DIR)
+    if claim.same_run or not os.path.isdir(folder):
+        return
+    kept = {str(i) for i in visit_ids}
+    for name in os.listdir(folder):
+        if name not in kept:
+            shutil.rmtree(os.path.join(folder, name))

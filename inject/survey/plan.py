@@ -36,7 +36,7 @@ import numpy as np
 
 from inject.camera import layout as fp
 from inject.camera.wcs import Pointing
-from inject.errors import OrbitWarning
+from inject.errors import InputWarning, OrbitWarning
 from inject.instrument import LSST
 from inject.masking.geometry import Line, rectangle_spans
 from inject.masking.mask import MIN_FWHM
@@ -209,6 +209,37 @@ def mask_width_px(model, sigma, sb_sigma=STREAK_MASK_SIGMA):
     reach = float(np.max(np.abs(lsf.offset_arcsec[above]))) / scale if above.size else 0.0
     fwhm = float(lsf.fwhm()) / scale
     return 2.0 * max(reach, 0.5 * MIN_FWHM * fwhm)
+
+
+def fallbacks(visits):
+    """The visits whose seeing or sky the plan takes from a default, for ``summary.json``.
+
+    Returns
+    -------
+    dict
+        ``seeing_default_arcsec`` (:data:`DEFAULT_SEEING`, the streak model's seeing
+        without ``seeingFwhmEff``), ``visits_default_seeing`` and ``visits_model_sky`` (those
+        without ``skyBrightness``, whose sky is the band's dark sky times the airmass).
+    """
+    return {"seeing_default_arcsec": DEFAULT_SEEING,
+            "visits_default_seeing": sum(v.seeing_fwhm_eff is None for v in visits),
+            "visits_model_sky": sum(v.sky_brightness is None for v in visits)}
+
+
+def warn_fallbacks(visits):
+    """One :class:`~inject.errors.InputWarning` per default the plan takes
+    (:func:`fallbacks`), naming the visits (the first five)."""
+    for missing, column, instead in (
+            ([v for v in visits if v.seeing_fwhm_eff is None], "seeingFwhmEff",
+             f"the streak model's default seeing, {DEFAULT_SEEING:g} arcsec"),
+            ([v for v in visits if v.sky_brightness is None], "skyBrightness",
+             "the band's dark sky at zenith (SMTN-002) times the airmass")):
+        if missing:
+            ids = " ".join(str(v.observation_id) for v in missing[:5])
+            more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
+            warnings.warn(f"{len(missing)} of {len(visits)} visits have no {column} "
+                          f"(visits {ids}{more}): they take {instead}", InputWarning,
+                          stacklevel=2)
 
 
 # --- pixels ---------------------------------------------------------------------------------
@@ -529,14 +560,13 @@ def plan_visits(visits, constellation, site=RUBIN, progress=None):
     return out
 
 
-def plan_chunk(constellation_path, epoch, visits):
+def plan_chunk(constellation_path, visits):
     """Plan ``visits`` in a worker process, reading the constellation file once per process
-    (:func:`~inject.survey.constellation.read_constellation_once`). ``epoch`` (an astropy
-    Time) is the shells' default epoch, exactly as the caller read it. Returns a list of
+    (:func:`~inject.survey.constellation.read_constellation_once`). Returns a list of
     :class:`VisitPlan`."""
     from inject.survey.constellation import read_constellation_once
 
-    constellation = read_constellation_once(constellation_path, epoch)
+    constellation = read_constellation_once(constellation_path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OrbitWarning)
         return plan_visits(visits, constellation)

@@ -56,6 +56,10 @@ REQUIRED = ("observationId", "observationStartMJD", "fieldRA", "fieldDec", "rotS
 #: Columns read when present.
 OPTIONAL = ("numExposures", "seeingFwhmEff", "skyBrightness")
 
+#: The MJDs of 1900-01-01 and 2100-01-01: a time of a survey outside is a mistake (a JD given
+#: as an MJD is year ~8600).
+MJD_RANGE = (15020.0, 88069.0)
+
 #: FWHMgeom = a FWHMeff + b (arcsec), SMTN-002.
 FWHM_GEOM_PER_EFF = 0.822
 FWHM_GEOM_OFFSET = 0.052
@@ -277,11 +281,22 @@ def _visit(path, k, row, names):
     seeing = optional("seeingFwhmEff")
     if seeing is not None and not seeing > 0:
         raise InputError(f"{path} row {k + 1} seeingFwhmEff", seeing, "must be > 0 arcsec")
-    return Visit(observation_id=get("observationId", int), mjd_tai=get("observationStartMJD"),
+    mjd = get("observationStartMJD")
+    check_mjd(f"{path} row {k + 1} observationStartMJD (visit {row[names['observationId']]})",
+              mjd)
+    return Visit(observation_id=get("observationId", int), mjd_tai=mjd,
                  ra_deg=get("fieldRA") % 360.0, dec_deg=dec,
                  rotation_deg=get("rotSkyPos") % 360.0, band=band, exptime_s=exptime,
                  n_exposures=n_exp, seeing_fwhm_eff=seeing,
                  sky_brightness=optional("skyBrightness"))
+
+
+def check_mjd(name, mjd):
+    """Refuse (InputError) an MJD outside :data:`MJD_RANGE` (1900-2100)."""
+    if not MJD_RANGE[0] <= mjd < MJD_RANGE[1]:
+        year = 1858.87 + mjd / 365.25
+        hint = " (a JD instead of an MJD?)" if mjd > 2400000.5 else ""
+        raise InputError(name, mjd, f"is the year {year:.0f}, outside 1900-2100{hint}")
 
 
 def select_visits(visits, job=None, njobs=None):
@@ -306,8 +321,13 @@ def select_visits(visits, job=None, njobs=None):
 
 def night_hours(visits, site_lon_deg):
     """Hours of local mean solar time at each visit's start (0-24, wrapping past midnight
-    into 24-36 for a night that starts in the evening), from the site's longitude."""
-    mjd = np.array([v.mjd_tai for v in visits], float)
-    local = (mjd + site_lon_deg / 360.0) % 1.0 * 24.0
+    into 24-36 for a night that starts in the evening): UTC plus the site's east longitude
+    over 15 deg an hour."""
+    from astropy.time import Time
+
+    if not len(visits):
+        return np.array([])
+    mjd = Time([v.mjd_tai for v in visits], format="mjd", scale="tai").utc.mjd
+    local = (np.asarray(mjd, float) + site_lon_deg / 360.0) % 1.0 * 24.0
     # Evening hours stay as they are; the morning after midnight continues past 24.
     return np.where(local < 12.0, local + 24.0, local)
