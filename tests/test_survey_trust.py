@@ -482,3 +482,17 @@ def test_getting_started_links_the_survey_guide():
     root = os.path.join(os.path.dirname(__file__), "..", "docs")
     with open(os.path.join(root, "getting-started.md")) as stream:
         assert "(guides/survey.md)" in stream.read()
+
+
+def test_a_constellation_tle_error_names_the_file_line(tmp_path):
+    """A bad checksum on the file's line 3 (after a name line) is reported as line 3, not as
+    the TLE's 'line 2'."""
+    from inject.errors import OrbitError
+    from inject.orbits.passes import Orbit
+    from inject.survey.constellation import read_tles
+
+    l1, l2 = Orbit.circular(550.0, 53.0, 0.0, 0.0, EPOCH, name="A", satnum=1).tle_lines()
+    path = tmp_path / "bad.tle"
+    path.write_text(f"A\n{l1}\n{l2[:68]}{(int(l2[68]) + 1) % 10}\n")
+    with pytest.raises(OrbitError, match=rf"^TLE file '{path}' line 3='2 .*: bad checksum"):
+        read_tles(path)

@@ -238,15 +238,16 @@ class Orbit:
     kind: str = "tle"
 
     @classmethod
-    def from_tle(cls, line1, line2, name=None):
-        """An orbit from the two lines of a TLE (checksums verified).
+    def from_tle(cls, line1, line2, name=None, where=("TLE line 1", "TLE line 2")):
+        """An orbit from the two lines of a TLE (checksums verified); ``where`` names the two
+        lines in errors (e.g. by their line numbers in a file).
 
         Raises
         ------
         OrbitError
             If a line is malformed or its checksum is wrong.
         """
-        return cls._from_lines(line1, line2, name, ("TLE line 1", "TLE line 2"))
+        return cls._from_lines(line1, line2, name, where)
 
     @classmethod
     def _from_lines(cls, line1, line2, name, where):
@@ -265,12 +266,12 @@ class Orbit:
                                  f"{line[68]}, expected {compute_checksum(line)})")
             lines.append(line)
         if lines[0][2:7] != lines[1][2:7]:
-            raise OrbitError(f"TLE lines have different catalog numbers "
+            raise OrbitError(f"{where[0]} and {where[1]}: different catalog numbers "
                              f"({lines[0][2:7]!r} and {lines[1][2:7]!r})")
         try:
             sat = Satrec.twoline2rv(lines[0], lines[1], WGS72)
         except (ValueError, IndexError) as err:
-            raise OrbitError(f"TLE {lines[0][:20]!r}...: unreadable ({err})") from None
+            raise OrbitError(f"{where[0]}={lines[0][:20]!r}...: unreadable ({err})") from None
         orbit = cls(sat, (name or lines[0][2:7]).strip(), "tle")
         orbit._check_elements()
         return orbit

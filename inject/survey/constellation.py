@@ -313,10 +313,9 @@ def read_tles(path):
     while k < len(lines):
         number_, text = lines[k]
         if text.startswith("1 ") and k + 1 < len(lines) and lines[k + 1][1].startswith("2 "):
-            try:
-                orbits.append(Orbit.from_tle(text, lines[k + 1][1], name))
-            except OrbitError as err:
-                raise OrbitError(f"TLE file {str(path)!r} line {number_}: {err}") from None
+            source = f"TLE file {str(path)!r} line"
+            orbits.append(Orbit.from_tle(text, lines[k + 1][1], name,
+                                         (f"{source} {number_}", f"{source} {lines[k + 1][0]}")))
             name, k = None, k + 2
         elif name is None and not text.startswith(("1 ", "2 ")):
             name, k = text.strip().removeprefix("0 "), k + 1
