@@ -1,0 +1,148 @@
+"""inject's version: from the git checkout the package runs from, else from its installed
+metadata, else ``0+unknown``.
+
+The version is what setuptools-scm makes of the repository (its default ``guess-next-dev``
+and ``node-and-date`` schemes), so an editable install in a checkout and a wheel built from
+the same commit say the same thing:
+
+* untagged history: ``0.1.devN+g<hash>``, N the number of commits, ``<hash>`` the first 9
+  hex digits of the commit;
+* N commits after a tag ``vX.Y.Z``: ``X.Y.(Z+1).devN+g<hash>``; on the tag itself ``X.Y.Z``;
+* a work tree with uncommitted changes to tracked files: ``.dYYYYMMDD`` (today, UTC) after
+  the hash (on a tag too: ``X.Y.(Z+1).dev0+g<hash>.dYYYYMMDD``).
+
+In a git checkout the version is read from git when first asked for, not when the package
+was installed: an editable install follows the checkout's later commits. Anywhere else (a
+wheel or sdist install) it is the installed distribution's version, which setuptools-scm
+wrote when the wheel was built.
+"""
+import datetime
+import functools
+import importlib.metadata
+import os
+import re
+import subprocess
+from pathlib import Path
+
+#: The distribution whose metadata holds the version of an installed (non-git) copy.
+DISTRIBUTION = "satstreak-inject"
+
+#: The version when neither git nor installed metadata can say (a PEP 440 local version).
+UNKNOWN = "0+unknown"
+
+#: The folder holding the ``inject`` package: a checkout's root when run from one.
+ROOT = Path(__file__).resolve().parent.parent
+
+#: Hex digits of the commit in the version (setuptools-scm's length).
+HASH_DIGITS = 9
+
+# ``git describe --long`` of a tagged history: TAG-DISTANCE-gHASH (a tag may contain dashes).
+_DESCRIBE = re.compile(r"^(?P<tag>.+)-(?P<distance>\d+)-g(?P<node>[0-9a-f]+)$")
+# A tag setuptools-scm reads as a version: an optional v, then digits ... ending in a number.
+_TAG = re.compile(r"^[vV]?(?P<version>\d[0-9A-Za-z.]*\d)$|^[vV]?(?P<single>\d+)$")
+
+
+@functools.cache
+def get_version():
+    """inject's version string (PEP 440), computed once per process.
+
+    Returns
+    -------
+    str
+        From git when the package lives in a checkout of this project
+        (:func:`version_from_git`), else the installed distribution's metadata, else
+        :data:`UNKNOWN`.
+    """
+    return version_from_git(ROOT) or version_from_metadata() or UNKNOWN
+
+
+def version_from_metadata(distribution=DISTRIBUTION):
+    """The version recorded in the installed distribution's metadata.
+
+    Parameters
+    ----------
+    distribution : str
+        Distribution name.
+
+    Returns
+    -------
+    str or None
+        None when the distribution is not installed.
+    """
+    try:
+        return importlib.metadata.version(distribution)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def _git(root, *args):
+    """stdout of ``git args`` in ``root`` (stripped), or None if git is missing or fails."""
+    # The caller's GIT_DIR or GIT_WORK_TREE (a hook, a script) would point git elsewhere;
+    # no optional locks: reading the version never writes the index another git is using.
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}
+    env["GIT_OPTIONAL_LOCKS"] = "0"
+    try:
+        done = subprocess.run(["git", *args], cwd=root, env=env, capture_output=True,
+                              text=True, timeout=10, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() if done.returncode == 0 else None
+
+
+def _next_version(tag):
+    """setuptools-scm's guess of the release after ``tag``: ``1.2.3`` -> ``1.2.4``,
+    ``1.2.3rc1`` -> ``1.2.3rc2``, ``1.3.dev0`` -> ``1.3``."""
+    if ".dev" in tag:
+        return tag.rsplit(".dev", 1)[0]
+    head, tail = re.match(r"(.*?)(\d+)$", tag).groups()
+    return f"{head}{int(tail) + 1}"
+
+
+def version_from_git(root):
+    """The version of the git checkout at ``root``, as setuptools-scm would build it.
+
+    Parameters
+    ----------
+    root : pathlib.Path
+        The folder holding the ``inject`` package.
+
+    Returns
+    -------
+    str or None
+        None unless ``root`` is the top of a git work tree of this project (a ``.git`` and a
+        ``pyproject.toml`` naming :data:`DISTRIBUTION`; so an install inside someone
+        else's repository is not versioned by it) and git answers.
+
+    Notes
+    -----
+    Dirty means a tracked file differs from the commit (``git status --untracked-files=no``,
+    as setuptools-scm): a new untracked file does not make the tree dirty.
+    """
+    root = Path(root)
+    try:
+        if not (root / ".git").exists() or DISTRIBUTION not in (
+                root / "pyproject.toml").read_text(encoding="utf-8"):
+            return None
+    except OSError:
+        return None
+    described = _git(root, "describe", "--tags", "--long", "--abbrev=40", "--match",
+                     "*[0-9]*", "--always")
+    status = _git(root, "status", "--porcelain", "--untracked-files=no")
+    if described is None or status is None:
+        return None
+    dirty = bool(status)
+    match = _DESCRIBE.match(described)
+    node = match["node"] if match else described
+    tag = match and _TAG.match(match["tag"])
+    if tag:
+        base, distance = tag["version"] or tag["single"], int(match["distance"])
+    else:  # no version tag: everything counts from 0.0, as setuptools-scm does
+        count = _git(root, "rev-list", "--count", "HEAD")
+        if count is None or not re.fullmatch(r"[0-9a-f]{40}", node):
+            return None
+        base, distance = "0.0", int(count)
+    if distance == 0 and not dirty:
+        return base
+    day = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%d")
+    local = f"g{node[:HASH_DIGITS]}" + (f".d{day}" if dirty else "")
+    return f"{_next_version(base)}.dev{distance}+{local}"
