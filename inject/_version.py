@@ -18,11 +18,9 @@ wrote when the wheel was built.
 """
 import datetime
 import functools
-import importlib.metadata
 import os
 import re
 import subprocess
-from pathlib import Path
 
 #: The distribution whose metadata holds the version of an installed (non-git) copy.
 DISTRIBUTION = "satstreak-inject"
@@ -31,7 +29,7 @@ DISTRIBUTION = "satstreak-inject"
 UNKNOWN = "0+unknown"
 
 #: The folder holding the ``inject`` package: a checkout's root when run from one.
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))
 
 #: Hex digits of the commit in the version (setuptools-scm's length).
 HASH_DIGITS = 9
@@ -69,24 +67,33 @@ def version_from_metadata(distribution=DISTRIBUTION):
     str or None
         None when the distribution is not installed.
     """
+    import importlib.metadata  # here: some 20 ms to import, and a checkout never needs it
+
     try:
         return importlib.metadata.version(distribution)
     except importlib.metadata.PackageNotFoundError:
         return None
 
 
-def _git(root, *args):
-    """stdout of ``git args`` in ``root`` (stripped), or None if git is missing or fails."""
+def _git(root, *commands):
+    """The stdout of each git command (a tuple of arguments) in ``root``, stripped, None for
+    one that fails; None if git cannot be run. The commands run at the same time."""
     # The caller's GIT_DIR or GIT_WORK_TREE (a hook, a script) would point git elsewhere;
     # no optional locks: reading the version never writes the index another git is using.
     env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}
     env["GIT_OPTIONAL_LOCKS"] = "0"
+    runs = []
     try:
-        done = subprocess.run(["git", *args], cwd=root, env=env, capture_output=True,
-                              text=True, timeout=10, check=False)
+        for args in commands:
+            runs.append(subprocess.Popen(["git", *args], cwd=root, env=env, text=True,
+                                         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL))
+        outs = [run.communicate(timeout=10)[0] for run in runs]
     except (OSError, subprocess.SubprocessError):
+        for run in runs:
+            run.kill()
+            run.communicate()
         return None
-    return done.stdout.strip() if done.returncode == 0 else None
+    return [out.strip() if run.returncode == 0 else None for run, out in zip(runs, outs)]
 
 
 def _next_version(tag):
@@ -103,7 +110,7 @@ def version_from_git(root):
 
     Parameters
     ----------
-    root : pathlib.Path
+    root : str or os.PathLike
         The folder holding the ``inject`` package.
 
     Returns
@@ -118,18 +125,22 @@ def version_from_git(root):
     Dirty means a tracked file differs from the commit (``git status --untracked-files=no``,
     as setuptools-scm): a new untracked file does not make the tree dirty.
     """
-    root = Path(root)
     try:
-        if not (root / ".git").exists() or DISTRIBUTION not in (
-                root / "pyproject.toml").read_text(encoding="utf-8"):
+        if not os.path.exists(os.path.join(root, ".git")):
             return None
+        with open(os.path.join(root, "pyproject.toml"), encoding="utf-8") as stream:
+            if DISTRIBUTION not in stream.read():
+                return None
     except OSError:
         return None
-    described = _git(root, "describe", "--tags", "--long", "--abbrev=40", "--match",
-                     "*[0-9]*", "--always")
-    status = _git(root, "status", "--porcelain", "--untracked-files=no")
-    if described is None or status is None:
+    # The commit count is needed only without a tag, but costs no wait beside the others.
+    answers = _git(root, ("describe", "--tags", "--long", "--abbrev=40", "--match", "*[0-9]*",
+                          "--always"),
+                   ("status", "--porcelain", "--untracked-files=no"),
+                   ("rev-list", "--count", "HEAD"))
+    if answers is None or None in answers[:2]:
         return None
+    described, status, count = answers
     dirty = bool(status)
     match = _DESCRIBE.match(described)
     node = match["node"] if match else described
@@ -137,7 +148,6 @@ def version_from_git(root):
     if tag:
         base, distance = tag["version"] or tag["single"], int(match["distance"])
     else:  # no version tag: everything counts from 0.0, as setuptools-scm does
-        count = _git(root, "rev-list", "--count", "HEAD")
         if count is None or not re.fullmatch(r"[0-9a-f]{40}", node):
             return None
         base, distance = "0.0", int(count)
