@@ -35,9 +35,11 @@ def _git(cwd, *args):
         cwd=cwd, env=env, capture_output=True, text=True, check=True).stdout.strip()
 
 
-def _version_of(folder, env=None):
-    """``inject.__version__`` of the package in ``folder``, in a fresh ``python -S``."""
+def _version_of(folder, **env):
+    """``inject.__version__`` of the package in ``folder``, in a fresh ``python -S`` (with
+    ``env`` over the environment, less PYTHONPATH: a checkout on it may hold an egg-info)."""
     code = "import sys; sys.path.insert(0, sys.argv[1]); import inject; print(inject.__version__)"
+    env = {**{k: v for k, v in os.environ.items() if k != "PYTHONPATH"}, **env}
     done = subprocess.run([sys.executable, "-S", "-c", code, str(folder)], cwd=folder,
                           env=env, capture_output=True, text=True, check=True)
     return done.stdout.strip()
@@ -127,7 +129,7 @@ def test_with_neither_git_nor_metadata_the_version_is_unknown(tmp_path):
 
 @needs_git
 def test_a_checkout_without_the_git_program_falls_back(repo):
-    assert _version_of(repo, env={**os.environ, "PATH": ""}) == "0+unknown"
+    assert _version_of(repo, PATH="") == "0+unknown"
 
 
 def test_inject_version_prints_it(capsys):
