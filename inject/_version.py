@@ -48,26 +48,44 @@ def get_version():
     -------
     str
         From git when the package lives in a checkout of this project
-        (:func:`version_from_git`), else the installed distribution's metadata, else
-        :data:`UNKNOWN`.
+        (:func:`version_from_git`), else the installed distribution's metadata
+        (:func:`version_from_metadata`), else :data:`UNKNOWN`.
     """
-    return version_from_git(ROOT) or version_from_metadata() or UNKNOWN
+    return version_from_git(ROOT) or version_from_metadata(ROOT) or UNKNOWN
 
 
-def version_from_metadata(distribution=DISTRIBUTION):
-    """The version recorded in the installed distribution's metadata.
+def version_from_metadata(root, distribution=DISTRIBUTION):
+    """The version in the installed distribution's metadata.
 
     Parameters
     ----------
+    root : str or os.PathLike
+        The folder holding the ``inject`` package: a wheel install's metadata is the one
+        ``*.dist-info`` folder of the distribution beside it there.
     distribution : str
         Distribution name.
 
     Returns
     -------
     str or None
-        None when the distribution is not installed.
+        The ``Version`` of the metadata beside the package, or else of the distribution
+        :mod:`importlib.metadata` finds on ``sys.path`` (an editable install's); None when
+        the distribution is not installed.
     """
-    import importlib.metadata  # here: some 20 ms to import, and a checkout never needs it
+    prefix = re.sub(r"[-_.]+", "_", distribution).lower() + "-"
+    try:
+        beside = [entry.path for entry in os.scandir(root)
+                  if entry.name.lower().startswith(prefix) and entry.name.endswith(".dist-info")]
+        if len(beside) == 1:
+            with open(os.path.join(beside[0], "METADATA"), encoding="utf-8") as stream:
+                for line in stream:
+                    if line.startswith("Version:"):
+                        return line.partition(":")[2].strip()
+                    if not line.strip():  # the end of the headers
+                        break
+    except OSError:
+        pass
+    import importlib.metadata  # here: some 20 ms to import and a scan of sys.path
 
     try:
         return importlib.metadata.version(distribution)

@@ -35,13 +35,15 @@ def _git(cwd, *args):
         cwd=cwd, env=env, capture_output=True, text=True, check=True).stdout.strip()
 
 
-def _version_of(folder, **env):
-    """``inject.__version__`` of the package in ``folder``, in a fresh ``python -S`` (with
-    ``env`` over the environment, less PYTHONPATH: a checkout on it may hold an egg-info)."""
-    code = "import sys; sys.path.insert(0, sys.argv[1]); import inject; print(inject.__version__)"
+def _version_of(folder, *more_path, **env):
+    """``inject.__version__`` of the package in ``folder``, in a fresh ``python -S`` with
+    ``more_path`` before it on ``sys.path`` and ``env`` over the environment, less PYTHONPATH
+    (a checkout on it may hold an egg-info)."""
+    code = ("import sys; sys.path[:0] = sys.argv[1:]; import inject; "
+            "print(inject.__version__)")
     env = {**{k: v for k, v in os.environ.items() if k != "PYTHONPATH"}, **env}
-    done = subprocess.run([sys.executable, "-S", "-c", code, str(folder)], cwd=folder,
-                          env=env, capture_output=True, text=True, check=True)
+    done = subprocess.run([sys.executable, "-S", "-c", code, *map(str, more_path), str(folder)],
+                          cwd=folder, env=env, capture_output=True, text=True, check=True)
     return done.stdout.strip()
 
 
@@ -114,13 +116,26 @@ def test_a_dirty_tree_is_marked(repo):
     assert _version_of(repo) in {f"0.1.dev1+g{head}.d{d}" for d in (day, _today())}
 
 
-def test_without_git_the_installed_metadata_is_the_version(tmp_path):
-    site = _copy_package(tmp_path / "site")
-    info = site / "satstreak_inject-2.5.1.dist-info"
-    info.mkdir()
+def _metadata(folder, version):
+    """A distribution's metadata for ``version`` in ``folder``, as pip installs it."""
+    info = folder / f"satstreak_inject-{version}.dist-info"
+    info.mkdir(parents=True)
     (info / "METADATA").write_text(
-        "Metadata-Version: 2.1\nName: satstreak-inject\nVersion: 2.5.1\n")
-    assert _version_of(site) == "2.5.1"
+        f"Metadata-Version: 2.1\nName: satstreak-inject\nVersion: {version}\n\nREADME\n")
+
+
+def test_without_git_the_metadata_beside_the_package_is_the_version(tmp_path):
+    site = _copy_package(tmp_path / "site")
+    _metadata(site, "2.5.1")
+    _metadata(tmp_path / "other", "9.9")  # another install's, earlier on sys.path
+    assert _version_of(site, tmp_path / "other") == "2.5.1"
+
+
+def test_without_git_an_editable_installs_metadata_on_the_path_is_the_version(tmp_path):
+    """Its metadata lies in site-packages, not beside the package."""
+    _metadata(tmp_path / "site-packages", "3.0.dev4+gabcdef123")
+    assert _version_of(_copy_package(tmp_path / "src"), tmp_path / "site-packages") == \
+        "3.0.dev4+gabcdef123"
 
 
 def test_with_neither_git_nor_metadata_the_version_is_unknown(tmp_path):
