@@ -109,7 +109,7 @@ def _git(root, *commands):
     except (OSError, subprocess.SubprocessError):
         for run in runs:
             run.kill()
-            run.communicate()
+            run.wait()
         return None
     return [out.strip() if run.returncode == 0 else None for run, out in zip(runs, outs)]
 
