@@ -3,6 +3,10 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DOCS_STAMP := $(VENV)/.docs-installed
+# setuptools-scm takes the version from git or an sdist's PKG-INFO; a copy with neither (a
+# source archive, or no git program) is installed as 0+unknown instead of failing to build.
+HAS_VERSION := $(or $(wildcard PKG-INFO),$(and $(wildcard .git),$(shell command -v git)))
+VERSION_ENV := $(if $(HAS_VERSION),,SETUPTOOLS_SCM_PRETEND_VERSION_FOR_SATSTREAK_INJECT=0+unknown)
 
 .PHONY: install test lint slow demo focalplane figures bench docs clean
 
@@ -15,7 +19,7 @@ $(BIN)/python:
 $(STAMP): $(BIN)/python pyproject.toml
 	@echo "==> installing inject and its dependencies into $(VENV) (GalSim, astropy, OpenCV,"
 	@echo "    OpenImageIO, matplotlib, pytest...; a minute or two the first time, quiet meanwhile)"
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(VERSION_ENV) $(BIN)/python -m pip install --quiet -e '.[test]'
 	@echo "==> installing lumos-sat (optional BRDF brightness; --no-deps: it pins numpy 1.24 and astropy 5.2)"
 	$(BIN)/python -m pip install --quiet --no-deps 'lumos-sat==1.0.9'
 	@touch $(STAMP)
@@ -60,7 +64,7 @@ bench: $(STAMP)
 
 $(DOCS_STAMP): $(STAMP)
 	@echo "==> installing the documentation tools (MkDocs, Material, mkdocstrings) into $(VENV)"
-	$(BIN)/python -m pip install --quiet -e '.[docs]'
+	$(VERSION_ENV) $(BIN)/python -m pip install --quiet -e '.[docs]'
 	@touch $(DOCS_STAMP)
 
 # The site goes to out/site; --strict turns every warning (a broken link, a missing page,

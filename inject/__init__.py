@@ -9,10 +9,10 @@ The public API, imported on first use (``import inject`` itself loads nothing he
                                shape=inject.Box(7.25, 2.65), mag=5.0)
 
 Names and the module that defines them are listed in ``_API``; ``dir(inject)`` shows them.
+``inject.__version__`` is read from the git checkout the package runs from (or the installed
+metadata) on first access; :mod:`inject._version` says how.
 """
 import importlib
-
-__version__ = "0.1.0"
 
 #: Public name -> defining module.
 _API = {
@@ -54,6 +54,10 @@ __all__ = ["__version__", *_API]
 
 
 def __getattr__(name):
+    if name == "__version__":  # on first access: it may run git
+        from inject._version import get_version
+        globals()[name] = get_version()
+        return globals()[name]
     module = _API.get(name)
     if module is None:
         raise AttributeError(f"module 'inject' has no attribute {name!r}")

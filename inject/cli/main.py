@@ -24,7 +24,7 @@ import signal
 import sys
 import warnings
 
-from inject import __version__
+import inject
 from inject.cli.add_streak import add_add_streak_parser
 from inject.cli.evaluate import add_evaluate_parser
 from inject.cli.focalplane import add_focalplane_parser
@@ -76,11 +76,25 @@ class _Parser(argparse.ArgumentParser):
         _usage_error(self.prog, message)
 
 
+class _VersionAction(argparse.Action):
+    """``--version``: print ``inject VERSION`` and exit; the version is read only then (it may
+    run git), not for every parse."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=argparse.SUPPRESS, nargs=0,
+                         help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"inject {inject.__version__}")
+        parser.exit()
+
+
 def build_parser():
     """The ``inject`` argument parser with every subcommand."""
     parser = _Parser(
         prog="inject", description="Realistic satellite streaks for Rubin/LSSTCam images.")
-    parser.add_argument("--version", action="version", version=f"inject {__version__}")
+    parser.add_argument("--version", action=_VersionAction,
+                        help="show inject's version (from git in a checkout) and exit")
     parser.add_argument("--traceback", action="store_true",
                         help="show the full traceback on errors")
     sub = parser.add_subparsers(dest="command", required=True)

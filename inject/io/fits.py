@@ -18,7 +18,7 @@ from astropy.io import fits
 from astropy.table import Table
 from astropy.time import Time, TimeDelta
 
-from inject import __version__
+import inject
 from inject.errors import OutputError
 from inject.io.atomic import atomic_path
 from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, mask_header
@@ -26,6 +26,9 @@ from inject.truth import TRUTH_COLUMNS, complete
 
 #: Extension types of afw's MaskedImage HDUs 1-3, in that order.
 MASKED_IMAGE_TYPES = ("IMAGE", "MASK", "VARIANCE")
+
+#: The longest string value that fits on one 80-column FITS card (FITS 4.0, 4.2.1.1).
+CARD_STRING_MAX = 68
 
 #: How a FITS output may be named (lower case).
 FITS_EXTENSIONS = (".fits", ".fit", ".fts")
@@ -44,6 +47,24 @@ def check_fits_name(path, compressed=False):
         names = ", ".join(FITS_EXTENSIONS) + (" (.gz after them to gzip it) or .fz"
                                               if compressed else "")
         raise OutputError(f"{path}: the output is a FITS file: name it {names}")
+
+
+def version_card():
+    """The ``INJVER`` card, ``(value, comment)``: inject's version, on one 80-column card.
+
+    Returns
+    -------
+    tuple of str
+        :data:`inject.__version__`, cut at :data:`CARD_STRING_MAX` characters (longer than
+        any version inject makes itself), and the comment, left out when the card has no
+        room for it.
+    """
+    value = inject.__version__[:CARD_STRING_MAX]
+    comment = "inject version"
+    # KEYWORD= (10 columns), the quoted value (at least 8 wide), " / " and the comment.
+    if 10 + max(len(value), 8) + 2 + 3 + len(comment) > 80:
+        comment = ""  # astropy would cut it with a warning
+    return value, comment
 
 
 def time_cards(scene):
@@ -83,7 +104,7 @@ def primary_header(scene, primary_cards=None):
     """
     hdr = fits.Header()
     hdr["ORIGIN"] = ("inject", "satellite streak simulator")
-    hdr["INJVER"] = (__version__, "inject version")
+    hdr["INJVER"] = version_card()
     hdr["BAND"] = (scene.band, "LSST filter")
     hdr["FILTER"] = (scene.band, "band (afw FilterLabel band)")
     hdr["EXPTIME"] = (scene.exptime, "[s] exposure time")
@@ -154,6 +175,7 @@ def truth_table(rows):
                            array=np.array([row[name] for row in rows], dtype=dtype))
                for name, (dtype, unit, _) in TRUTH_COLUMNS.items()]
     hdu = fits.BinTableHDU.from_columns(columns, name="TRUTH")
+    hdu.header["INJVER"] = version_card()  # also in the files add-streak writes into
     hdu.header["FLAG_OFF"] = (FLAG_OFF_IMAGE, "flag bit: track misses the image")
     hdu.header["FLAG_CLP"] = (FLAG_CLIPPED, "flag bit: part of the streak is off the image")
     hdu.header["FLAG_SAT"] = (FLAG_SATURATED, "flag bit: streak saturates")
