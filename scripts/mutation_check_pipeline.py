@@ -1,5 +1,5 @@
-"""Mutation check of the newer code: the focal plane, the passes, the noise, the runner, the
-readers. Would the default tests notice a realistic single bug?
+r"""Mutation check of the newer code: the focal plane, the passes, the noise, the runner, the
+readers, the survey and the optics. Would the default tests notice a realistic single bug?
 
 Each mutation is one textual change (a constant of the wrong vendor, a random stream keyed on
 too little, a dropped term, an inverted guard) in one function that sets something users rely
@@ -17,17 +17,34 @@ checkout does not have are left out (the run says which); with ``--new`` the tes
 added by issue 19 run for every mutation too (``tests/test_independent_checks.py``,
 ``tests/test_reliability*.py``, ``tests/test_runner_reliability*.py``).
 
+The areas ``survey`` (``inject/survey/``, ``inject/cli/survey.py``) and ``optics``
+(``inject/optics.py``) exist only in the package in folders. Their tests are globs
+(``tests/test_survey*.py``; ``tests/test_optics*.py``, ``tests/test_pupil*.py``), so the test
+files written for them later are run without changing this list.
+
 Usage::
 
-    python scripts/mutation_check_pipeline.py [--root DIR] [--only NAME ...] [--list]
-        [--check] [--new] [--every] [--tests FILE ...] [--jobs N] [--markdown FILE]
+    python scripts/mutation_check_pipeline.py [--root DIR] [--area AREA ...] [--only NAME ...]
+        [--list] [--check] [--new] [--every] [--tests FILE ...] [--add-tests GLOB ...]
+        [--jobs N] [--markdown FILE] [--label TEXT]
 
 The tables of docs/explanation/testing.md come from::
 
+    AREAS=("focal plane" passes noise runner readers)
     git worktree add /tmp/before 1cf9c16   # the code before issue 19's session
     git worktree add /tmp/after c86fddb    # the code with issue 19's tests
-    python scripts/mutation_check_pipeline.py --root /tmp/before --markdown before.md
-    python scripts/mutation_check_pipeline.py --root /tmp/after --new --markdown after.md
+    python scripts/mutation_check_pipeline.py --root /tmp/before --area "${AREAS[@]}" \
+        --markdown before.md
+    python scripts/mutation_check_pipeline.py --root /tmp/after --area "${AREAS[@]}" --new \
+        --markdown after.md
+
+and, for the survey and the optics (a checkout of f730894 before their audit's tests, and one
+after)::
+
+    python scripts/mutation_check_pipeline.py --root /tmp/before --area survey optics \
+        --label "commit f730894" --markdown before.md
+    python scripts/mutation_check_pipeline.py --root /tmp/after --area survey optics \
+        --markdown after.md
 
 ``--every`` drops ``-x`` and lists every test file that fails (several times slower).
 
@@ -68,7 +85,8 @@ class Mutation:
     folders: Patch        # the package in folders (camera/, orbits/, exposure/, io/)
     flat: Patch | None    # the flat package before it, None if the code was not there
     tests: tuple          # groups of test files (TESTS) that must catch it
-    audit: bool = False   # one of the bugs issue 19's audit found the tests missed
+    audit: bool = False   # one of the bugs issue 19's audit (the survey's and the optics':
+    #                       the earlier audit of those wings) found the tests missed
 
 
 TESTS = {
@@ -83,6 +101,9 @@ TESTS = {
     "runner": ("tests/test_focalplane_run.py", "tests/test_stale_temporaries.py",
                "tests/test_satellites_record.py"),
     "reader": ("tests/test_add_streak.py", "tests/test_lsst_files.py"),
+    # Globs: the test files added for these wings later are run too.
+    "survey": ("tests/test_survey*.py",),
+    "optics": ("tests/test_optics*.py", "tests/test_pupil*.py"),
 }
 #: Test files issue 19 added (``--new``): run for every mutation.
 NEW_TESTS = ("tests/test_independent_checks*.py", "tests/test_reliability*.py",
@@ -300,6 +321,150 @@ MUTATIONS = [
 ]
 
 
+# --- the survey and the optics -------------------------------------------------------------
+# These bugs exist only in the package in folders (``flat`` is None). Their tests are picked
+# by globs (TESTS["survey"], TESTS["optics"]), so test files added later are run too. The
+# anchors are formulas and constants; those in inject/survey/render.py (the rendered CCDs'
+# time card, the cut-out box's clipping) sit in code that is moving to inject/exposure/ and
+# may need their ``path`` updated (``--check`` says so).
+
+def _survey(name, area, path, old, new, audit=False):
+    """A mutation of the survey or the optics: one patch, the area's own test group."""
+    return Mutation(name, area, Patch(path, old, new), None, (area,), audit)
+
+
+_PLAN = "inject/survey/plan.py"
+_OUT = "inject/survey/outputs.py"
+_VISITS = "inject/survey/visits.py"
+_PRE = "inject/survey/prefilter.py"
+_CONST = "inject/survey/constellation.py"
+_RENDER = "inject/survey/render.py"  # moving to inject/exposure/: anchors may need moving
+_CLI = "inject/cli/survey.py"
+_OPTICS = "inject/optics.py"
+_CACHE_NAME = 'f"{band}_r{range_index}_f{field:.3f}_n{GRID_RAYS}.npz")'
+
+SURVEY_MUTATIONS = [
+    # --- what the earlier audit found missed --------------------------------------------------
+    _survey("summary's total pixel fraction over one visit's pixels", "survey", _OUT,
+            '"pixel_fraction_lost_total": float(lost.sum() / (n * TOTAL_PIXELS)) if n else None,',
+            '"pixel_fraction_lost_total": float(lost.sum() / TOTAL_PIXELS) if n else None,',
+            audit=True),
+    _survey("sky dimmed instead of brightened with airmass", "survey", _PLAN,
+            "sky /= math.sin(math.radians(max(alt_deg, 1.0)))",
+            "sky *= math.sin(math.radians(max(alt_deg, 1.0)))", audit=True),
+    _survey("read noise counted once per visit, not per snap", "survey", _PLAN,
+            "return math.sqrt(sky + visit.n_exposures * read ** 2), float(sky)",
+            "return math.sqrt(sky + read ** 2), float(sky)", audit=True),
+    _survey("rendered CCDs' time from TAI read as UTC (37 s late)", "survey", _RENDER,
+            '"noise": True, "time": visit.start.utc.isot,',
+            '"noise": True, "time": visit.start.tai.isot,', audit=True),
+    _survey("plots' local-hour axis with the longitude's sign flipped", "survey", _OUT,
+            "night_hours([p.visit for p in plans], site_lon_deg) if plans else np.array([])",
+            "night_hours([p.visit for p in plans], -site_lon_deg) if plans else np.array([])",
+            audit=True),
+    _survey("cut-out box's row clipping off by one", "survey", _RENDER,
+            "keep = (rows >= y0) & (rows < y0 + ny)",
+            "keep = (rows >= y0) & (rows <= y0 + ny)", audit=True),
+    # --- visits ---------------------------------------------------------------------------------
+    _survey("snaps' readout gap ignored", "survey", _VISITS,
+            "return tuple(((each + READOUT_S) * k, each) for k in range(n))",
+            "return tuple((each * k, each) for k in range(n))"),
+    _survey("visitExposureTime taken as each snap's", "survey", _VISITS,
+            "each = self.exptime_s / n", "each = self.exptime_s"),
+    _survey("physical filter name (r_57) not read as its band", "survey", _VISITS,
+            "        band = band[0]\n", "        band = band\n"),
+    _survey("rotSkyPos read with the opposite sign", "survey", _VISITS,
+            "rotation_deg=get(\"rotSkyPos\") % 360.0",
+            "rotation_deg=-get(\"rotSkyPos\") % 360.0"),
+    _survey("local solar time with the longitude's sign flipped", "survey", _VISITS,
+            "local = (mjd + site_lon_deg / 360.0) % 1.0 * 24.0",
+            "local = (mjd - site_lon_deg / 360.0) % 1.0 * 24.0"),
+    # --- the plan: sky, seeing, masks, pixels ------------------------------------------------
+    _survey("sky over one snap's time, not the visit's", "survey", _PLAN,
+            "sky = sky_per_pixel(visit.band, visit.exptime_s, LSST.pixel_scale_arcsec,",
+            "sky = sky_per_pixel(visit.band, visit.exptime_s / visit.n_exposures, "
+            "LSST.pixel_scale_arcsec,"),
+    _survey("streak seeing is FWHMeff, not FWHMgeom", "survey", _PLAN,
+            "seeing = visit.seeing_arcsec if visit.seeing_arcsec is not None else DEFAULT_SEEING",
+            "seeing = visit.seeing_fwhm_eff if visit.seeing_arcsec is not None "
+            "else DEFAULT_SEEING"),
+    _survey("mask width with e2v's read noise on ITL CCDs", "survey", _PLAN,
+            "sigmas[vendor], plan.sky_e_per_px = sky_sigma(visit, plan.alt_deg, vendor)",
+            'sigmas[vendor], plan.sky_e_per_px = sky_sigma(visit, plan.alt_deg, "e2v")'),
+    _survey("mask reach left in arcsec, not px", "survey", _PLAN,
+            "reach = float(np.max(np.abs(lsf.offset_arcsec[above]))) / scale if above.size",
+            "reach = float(np.max(np.abs(lsf.offset_arcsec[above]))) if above.size"),
+    _survey("streak model at the start of its crossing, not the middle", "survey", _PLAN,
+            "piece, values, n = inside[len(inside) // 2]",
+            "piece, values, n = inside[0]"),
+    _survey("snap break at 2.5 s: a streak drawn across the readout", "survey", _PLAN,
+            "SNAP_BREAK_S = 1.5", "SNAP_BREAK_S = 2.5"),
+    _survey("total pixels counted as 189 e2v CCDs", "survey", _PLAN,
+            "TOTAL_PIXELS = int(sum(c.shape[0] * c.shape[1] for c in fp.CCDS))",
+            "TOTAL_PIXELS = int(len(fp.CCDS) * 4096 * 4004)"),
+    _survey("union of row runs counts overlaps twice", "survey", _PLAN,
+            "return int(np.sum(np.maximum(hi - np.maximum(lo, before), 0)))",
+            "return int(np.sum(hi - lo))"),
+    _survey("visit's pixels summed over its streaks, overlaps twice", "survey", _PLAN,
+            "merged = {name: union_pixels(spans) for name, spans in spans_by_ccd.items()}",
+            "merged = {name: sum(union_pixels([s]) for s in spans) "
+            "for name, spans in spans_by_ccd.items()}"),
+    _survey("CCD gaps (65 px each side) counted as sensitive", "survey", _PLAN,
+            "pieces = clip_path(xs, ys, ccd.bounds_mm())",
+            "pieces = clip_path(xs, ys, ccd.bounds_mm(65.0))"),
+    # --- the prefilter ---------------------------------------------------------------------------
+    _survey("umbra test with the Sun's side flipped", "survey", _PRE,
+            "behind = -(r @ s)", "behind = r @ s"),
+    _survey("umbra widening behind the Earth, not narrowing", "survey", _PRE,
+            "umbra = R_POLAR_KM - UMBRA_TAPER * behind - UMBRA_SLACK_KM",
+            "umbra = R_POLAR_KM + UMBRA_TAPER * behind - UMBRA_SLACK_KM"),
+    _survey("prefilter margin halved", "survey", _PRE,
+            "return max(2.0 * angle, 0.05)", "return max(angle, 0.05)"),
+    _survey("prefilter samples only the first snap", "survey", _PRE,
+            "start, duration = v.snaps()[-1]", "start, duration = v.snaps()[0]"),
+    _survey("Hermite end-velocity term with the wrong sign", "survey", _PRE,
+            "-2 * s3 + 3 * s2, s3 - s2\n", "-2 * s3 + 3 * s2, s2 - s3\n"),
+    # --- the constellation and the command ----------------------------------------------------
+    _survey("Walker shell with planes and satellites per plane swapped", "survey", _CONST,
+            "return walker_shell(planes * per_plane, planes, phasing,",
+            "return walker_shell(planes * per_plane, per_plane, phasing,"),
+    _survey("shell's raan0 ignored", "survey", _CONST,
+            'raan0 = number(f"{where}.raan0", spec.get("raan0", 0.0))', "raan0 = 0.0"),
+    _survey("shells' default epoch the night's last visit, not its first", "survey", _CLI,
+            "constellation = read_constellation(path, night[0].start.utc)",
+            "constellation = read_constellation(path, night[-1].start.utc)"),
+    _survey("worker chunks drop each chunk's last visit", "survey", _CLI,
+            "chunks = [visits[k:k + CHUNK_VISITS] for k in",
+            "chunks = [visits[k:k + CHUNK_VISITS - 1] for k in"),
+    # --- the optics: the traced kernel, its grid and its cache ---------------------------------
+    _survey("traced kernel turned the wrong way across the track", "optics", _OPTICS,
+            "parts = [self.profile(gsparams).rotate(-float(track_angle_deg) * galsim.degrees)]",
+            "parts = [self.profile(gsparams).rotate(float(track_angle_deg) * galsim.degrees)]",
+            audit=True),
+    _survey("kernel cache file named without the band", "optics", _OPTICS, _CACHE_NAME,
+            'f"r{range_index}_f{field:.3f}_n{GRID_RAYS}.npz")', audit=True),
+    _survey("kernel cache file named without the ray count", "optics", _OPTICS, _CACHE_NAME,
+            'f"{band}_r{range_index}_f{field:.3f}.npz")'),
+    _survey("kernel cache file names the field to 0.01 deg (nodes 0.002 apart)", "optics",
+            _OPTICS, _CACHE_NAME, 'f"{band}_r{range_index}_f{field:.2f}_n{GRID_RAYS}.npz")'),
+    _survey("kernel's range scaling inverted", "optics", _OPTICS,
+            "zoom = RANGE_BIN_FACTOR ** range_index / range_km",
+            "zoom = range_km / RANGE_BIN_FACTOR ** range_index"),
+    _survey("field-node interpolation weight flipped", "optics", _OPTICS,
+            "weight = (field - FIELD_NODES_DEG[low]) / (",
+            "weight = (FIELD_NODES_DEG[low + 1] - field) / ("),
+    _survey("light kept relative to the clear annulus, not the star", "optics", _OPTICS,
+            "transmitted = len(px) / len(sx)", "transmitted = len(px) / n_clear"),
+    _survey("plate-scale Jacobian over one step, not two", "optics", _OPTICS,
+            "columns.append((ends[1] - ends[0]) / (2 * _JACOBIAN_STEP_RAD))",
+            "columns.append((ends[1] - ends[0]) / _JACOBIAN_STEP_RAD)"),
+    _survey("field position angle measured from y, not x", "optics", _OPTICS,
+            "np.array([np.cos(np.radians(pa)), np.sin(np.radians(pa))])",
+            "np.array([np.sin(np.radians(pa)), np.cos(np.radians(pa))])"),
+]
+MUTATIONS += SURVEY_MUTATIONS
+
+
 def layout_of(root):
     """``"folders"`` for the package in folders, ``"flat"`` for the one before it."""
     return "folders" if os.path.isdir(os.path.join(root, "inject", "camera")) else "flat"
@@ -309,17 +474,23 @@ def patch_of(mutation, layout):
     return mutation.folders if layout == "folders" else mutation.flat
 
 
-def test_files(root, mutation, new=False, only=None):
+def test_files(root, mutation, new=False, only=None, add=()):
     """The mutation's test files present in ``root`` and those it does not have (``only``:
-    these files instead of the mutation's own)."""
+    these files instead of the mutation's own; ``add``: files or globs run as well)."""
     wanted = list(dict.fromkeys(only or [f for group in mutation.tests for f in TESTS[group]]))
-    have = [f for f in wanted if os.path.exists(os.path.join(root, f))]
-    missing = [f for f in wanted if f not in have]
-    if new:
-        for pattern in NEW_TESTS:
-            have += sorted(os.path.relpath(p, root) for p in
-                           glob.glob(os.path.join(root, pattern)) if os.path.relpath(p, root)
-                           not in have)
+    have, missing = [], []
+    for f in wanted:
+        if glob.has_magic(f):  # a pattern: the files matching it in ``root``, in order
+            found = sorted(os.path.relpath(p, root) for p in glob.glob(os.path.join(root, f)))
+            have += [p for p in found if p not in have]
+            missing += [] if found else [f]
+        elif os.path.exists(os.path.join(root, f)):
+            have += [f] if f not in have else []
+        else:
+            missing.append(f)
+    for pattern in (NEW_TESTS if new else ()) + tuple(add):
+        have += sorted(os.path.relpath(p, root) for p in glob.glob(os.path.join(root, pattern))
+                       if os.path.relpath(p, root) not in have)
     return have, missing
 
 
@@ -344,9 +515,9 @@ def describe(root):
     return f"commit {head.stdout.strip()}" + (" with local changes" if dirty else "")
 
 
-def run_one(root, tmp, i, mutation, layout, new, timeout, only=None, every=False):
+def run_one(root, tmp, i, mutation, layout, new, timeout, only=None, every=False, add=()):
     patch = patch_of(mutation, layout)
-    tests, _ = test_files(root, mutation, new, only)
+    tests, _ = test_files(root, mutation, new, only, add)
     if patch is None:
         return mutation, "not in this code", 0.0, "", tests
     copy = os.path.join(tmp, f"mutant{i}")
@@ -372,19 +543,23 @@ def main(argv=None):
     parser.add_argument("--root", default=ROOT, help="checkout to mutate (default: this one)")
     parser.add_argument("--only", nargs="*", help="substrings of mutation names to run")
     parser.add_argument("--area", nargs="*", help="only these areas (focal plane, passes, "
-                        "noise, runner, readers)")
+                        "noise, runner, readers, survey, optics)")
     parser.add_argument("--list", action="store_true")
     parser.add_argument("--check", action="store_true", help="only check that patches apply")
     parser.add_argument("--new", action="store_true",
                         help="also run issue 19's new test files for every mutation")
     parser.add_argument("--tests", nargs="*", help="run these test files for every mutation "
                         "instead of its own")
+    parser.add_argument("--add-tests", nargs="*", default=[], metavar="GLOB",
+                        help="also run these test files (globs allowed) for every mutation")
     parser.add_argument("--every", action="store_true",
                         help="run every test (no -x) and list all the files that fail")
     parser.add_argument("--jobs", type=int, default=1, help="mutants tested at once")
     parser.add_argument("--timeout", type=float, default=1200)
     parser.add_argument("--no-baseline", action="store_true")
     parser.add_argument("--markdown", metavar="FILE", help="also write the table to FILE")
+    parser.add_argument("--label", help="how the table's last line names the checkout "
+                        "(default: its git commit, or its path)")
     args = parser.parse_args(argv)
     root = os.path.abspath(args.root)
     layout = layout_of(root)
@@ -394,7 +569,7 @@ def main(argv=None):
         bad = 0
         for m in chosen:
             patch = patch_of(m, layout)
-            tests, missing = test_files(root, m, args.new, args.tests)
+            tests, missing = test_files(root, m, args.new, args.tests, args.add_tests)
             count = None if patch is None else applies(root, patch)
             bad += count not in (None, 1)
             state = "n/a" if count is None else ("ok" if count == 1 else f"{count} matches")
@@ -409,12 +584,14 @@ def main(argv=None):
             base = os.path.join(tmp, "baseline")
             shutil.copytree(root, base, ignore=IGNORE, dirs_exist_ok=True)
             tests = sorted({t for m in chosen
-                            for t in test_files(root, m, args.new, args.tests)[0]})
+                            for t in test_files(root, m, args.new, args.tests,
+                                                args.add_tests)[0]})
             if not baseline_passes(base, tests, args.timeout):
                 return 1
         with ThreadPoolExecutor(max(1, args.jobs)) as pool:
             futures = [pool.submit(run_one, root, tmp, i, m, layout, args.new, args.timeout,
-                                   args.tests, args.every) for i, m in enumerate(chosen)]
+                                   args.tests, args.every, args.add_tests)
+                       for i, m in enumerate(chosen)]
             for future in futures:
                 m, result, seconds, failed, _ = future.result()
                 bad += result not in ("caught", "not in this code")
@@ -432,7 +609,7 @@ def main(argv=None):
     caught = sum(r[1] == "caught" for r in rows)
     lines.append("")
     lines.append(f"{caught} of {len(rows)} mutations caught ({layout} layout, "
-                 f"{describe(root)}).")
+                 f"{args.label or describe(root)}).")
     print("\n" + "\n".join(lines))
     if args.markdown:
         with open(args.markdown, "w") as stream:
