@@ -187,12 +187,15 @@ def compression_check(folder, lsst_venv):
 
 
 def _fresh_caches():
-    """Empty the per-process profile caches: a new visit's scene meets them so in a worker."""
+    """Empty the per-process caches of streak models and profiles: a new visit's scene meets
+    them so in a worker (the stars' PSF stamps stay)."""
+    from inject import streak
     from inject.exposure import plan
     from inject.render import PROFILE_CACHE
 
     PROFILE_CACHE.clear()
-    plan._reach_px.cache_clear()
+    for cached in (plan._reach_px, streak._shared_profile, streak._shared_line_spreads):
+        cached.cache_clear()
 
 
 def paired(db, constellation, n_visits, cutout, compression, rounds, folder):

@@ -1,7 +1,8 @@
 """``inject survey --render``: what the masker measures on a rendered CCD, set against the plan.
 
 On each rendered CCD (:func:`measure_ccd`, the runner's measure hook, on a worker) the masker
-(:func:`inject.masking.run.analyse`, its defaults: the ``sb`` rule at 1 sigma) searches the
+(:func:`inject.masking.run.analyse`, its defaults: the ``sb`` rule at 1 sigma; no bootstrap of
+the FWHM's error bar, which is not recorded) searches the
 image, each streak it finds is matched to the planned track it lies on (:func:`match_streaks`)
 and the plan's mask is counted on the same pixels (:func:`planned_pixels`); the results go to
 ``<CCD>.mask.json`` beside the file. ``streaks.csv`` then gains, per planned crossing, the
@@ -116,7 +117,9 @@ def measure_ccd(task, ccd, scene, result, streaks, part):
             image = np.asarray(hdus["IMAGE"].data)
     planes = sum(1 << MASK_PLANES[p] for p in BAD_PLANES if p in MASK_PLANES)
     bad = (np.asarray(result.mask) & planes) != 0
-    masked = analyse(image, bad=bad if bad.any() else None, pixel_scale=LSST.pixel_scale_arcsec)
+    # No bootstrap of the FWHM's error bar: it is not recorded.
+    masked = analyse(image, bad=bad if bad.any() else None, pixel_scale=LSST.pixel_scale_arcsec,
+                     n_boot=0)
     widths = [task.planned[s.satellite][1] for s in streaks]
     matched = match_streaks(masked.streaks, streaks, widths)
     measured = {}
