@@ -1,4 +1,6 @@
-"""The focal-plane runner: one CCD per task on any ``concurrent.futures.Executor``.
+"""The focal-plane runner: one CCD per task on any ``concurrent.futures.Executor``, for
+``inject focalplane`` (:func:`run`: one output directory) and ``inject survey --render``
+(:func:`run_batches`: a directory per visit, each visit's plan made on the executor).
 
 A process pool by default; a Dask cluster through ``client.get_executor()`` (see
 :func:`dask_executor`). Each task simulates one CCD, writes its FITS file atomically and
@@ -15,10 +17,10 @@ the directory) leaves a manifest that says what is done. A stop signal cancels t
 started and stops a process pool's workers at once (:func:`stop_workers`). A rerun skips the
 CCDs whose file matches its row, redoes missing or corrupt ones, and removes the temporary
 files a killed worker left (:func:`inject.io.atomic.remove_stale_temporaries`). A directory
-holds one scene's run: another scene's run, and a file in no manifest row, are replaced
-only with ``overwrite``; the other scene is checked at the start and again under the lock
-before each CCD is committed (:func:`check_claim`), so that of two runs of different scenes
-started together the second stops.
+holds one scene's run by one inject version: another run, and a file in no manifest row,
+are replaced only with ``overwrite``; the other run is checked at the start and again under
+the lock before each CCD is committed (:func:`check_claim`), so that of two runs of
+different scenes started together the second stops.
 
 A CCD that fails does not stop the others; its row says ``failed`` with the error in one line.
 Failures on the input (an :class:`~inject.errors.InjectError` that is not a condition of the
@@ -690,10 +692,10 @@ def _claim(batch, overwrite):
             print(f"inject: removed {len(stale)} temporary file(s) left in {outdir} by a run "
                   f"that was killed", file=sys.stderr)
         todo, done = triage(batch.digest, batch.ccds, outdir, overwrite)
-        if batch.done is not None:
-            todo += [c for c in done if not batch.done(c)]
-            done = [c for c in done if c not in todo]
-            todo.sort(key=lambda c: c.id)
+        if batch.done is not None:  # outputs beside a file missing or another run's
+            redo = {c.name for c in done if not batch.done(c)}
+            todo = [c for c in batch.ccds if c in todo or c.name in redo]
+            done = [c for c in done if c.name not in redo]
         rows = read_manifest(outdir)
         for c in todo:
             rows[c.name] = {"detector": c.name, "id": c.id, "vendor": c.vendor,

@@ -100,7 +100,8 @@ def model_keys(path):
 
 @dataclass(frozen=True)
 class VisitJob:
-    """A streaked visit to render: what the parent knows from the plan."""
+    """A streaked visit to render: what its scene takes from the plan (its satellites' names,
+    the CCDs they cross, the seeing, sky and altitude) and its key."""
 
     visit: object
     names: tuple
@@ -109,9 +110,6 @@ class VisitJob:
     sky: float
     alt_deg: float
     key: str
-    outdir: str
-    #: ``{satellite: planned mask width, px}``.
-    widths: dict
 
 
 def visit_plan(constellation_path, epoch, model, job, options):
@@ -244,8 +242,7 @@ def visit_batches(plans, constellation, model, outdir, options, constellation_pa
         folder = visit_dir(outdir, plan.visit)
         key = visit_key(plan, constellation, model, options)
         job = VisitJob(plan.visit, names, tuple(c.name for c in ccds), plan.seeing_arcsec,
-                       plan.sky_e_per_px, plan.alt_deg, key, folder,
-                       {s.satellite: s.mask_width_px for s in plan.streaks})
+                       plan.sky_e_per_px, plan.alt_deg, key)
 
         def done(ccd, folder=folder, key=key):
             return (read_measured(folder, ccd.name) or {}).get("key") == key
@@ -254,7 +251,8 @@ def visit_batches(plans, constellation, model, outdir, options, constellation_pa
             folder, key, ccds, prepare=(visit_plan, constellation_path, epoch, model, job,
                                         options),
             task={"compression": options.compression, "measure": measure_ccd,
-                  "planned": {i: (n, job.widths[n]) for i, n in enumerate(names)}},
+                  "planned": {i: (s.satellite, s.mask_width_px)
+                              for i, s in enumerate(plan.streaks)}},
             cutout=options.cutout, done=done)
     return out
 
