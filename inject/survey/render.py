@@ -271,13 +271,11 @@ def render_visits(batches, executor, overwrite=False, retries=2, progress=None):
     OutputError, Stopped
         As :func:`~inject.exposure.runner.run_batches`.
     """
-    from inject.exposure.runner import run_batches
+    from inject.exposure.runner import make_outdir, run_batches
     from inject.survey.compare import read_measured
 
     started = time.perf_counter()
-    if batches:
-        from inject.exposure.runner import make_outdir
-
+    if batches:  # OUTDIR/visits, the visits' folders' parent
         make_outdir(os.path.dirname(next(iter(batches.values())).outdir))
     run = run_batches(list(batches.values()), executor, overwrite, retries, progress)
     visit = {b.outdir: v for v, b in batches.items()}
