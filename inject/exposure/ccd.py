@@ -18,10 +18,10 @@ from inject.stars import add_star_field
 from inject.trajectory import Track, clip_segment
 
 
-def ccd_scene(fscene, ccd, streaks=()):
-    """The CCD scene of one detector: its sensor (cut-out), the satellites that reach it with
-    their tracks in its pixels."""
-    ny, nx = ccd_shape(fscene, ccd)
+def ccd_scene(fscene, ccd, streaks=(), shape=None):
+    """The CCD scene of one detector: its sensor (the scene's cut-out, or ``shape = (ny,
+    nx)``), the satellites that reach it with their tracks in its pixels."""
+    ny, nx = ccd_shape(fscene, ccd) if shape is None else shape
     det = ccd.detector if (ny, nx) == ccd.shape else ccd.detector.cutout(nx, ny)
     sats = [replace(fscene.scene.satellites[s.satellite], track=s.track) for s in streaks]
     return with_detector(fscene.scene, det, sats)
@@ -68,16 +68,14 @@ def simulate_ccd(fscene, ccd, streaks, budget=Budget(), box=None):
         Of the simulated pixels.
     """
     wcs = ccd_wcs(ccd, fscene.pointing)
-    if box is None:
-        scene = ccd_scene(fscene, ccd, streaks)
-    else:
+    shape = None
+    if box is not None:
         x0, y0, nx, ny = box
         streaks = [replace(s, track=_shifted(s.track, x0, y0),
                            ends=(s.ends[0] - x0, s.ends[1] - y0, s.ends[2] - x0,
                                  s.ends[3] - y0)) for s in streaks]
-        wcs = _shifted_wcs(wcs, x0, y0)
-        sats = [replace(fscene.scene.satellites[s.satellite], track=s.track) for s in streaks]
-        scene = with_detector(fscene.scene, ccd.detector.cutout(nx, ny), sats)
+        wcs, shape = _shifted_wcs(wcs, x0, y0), (ny, nx)
+    scene = ccd_scene(fscene, ccd, streaks, shape)
     return scene, simulate_streaks(fscene, ccd, scene, wcs, streaks, budget), streaks, wcs
 
 
