@@ -14,10 +14,18 @@ times, the noise the lossy file adds (rms difference over the sky's sigma) and, 
 Python >= 3.12 lsst-images venv (``scripts/check_lsst.py`` builds one), lsst-images'
 ``MaskedImage.read_legacy`` reading the compressed files.
 
+``--paired N`` measures, in this one process and one thread, the seconds per CCD of the
+survey's render of each of the first N streaked visits (the visit's plan, shared by its CCDs,
+then each CCD's cut-out rendered, written and masked) against ``inject focalplane``'s render of
+the same CCDs of the same scene (its plan, then each CCD's task: the same cut-out and
+compression, no masker), alternating which goes first, each from empty profile caches (as a
+new scene in a worker meets them), the stars' PSF stamps warm in both.
+
 Run::
 
     python scripts/make_opsim_night.py -o out/night.db
     python scripts/bench_survey_render.py out/night.db --workers 2 --full --compression
+    python scripts/bench_survey_render.py out/night.db --paired 2 --rounds 2
 """
 import argparse
 import contextlib
@@ -178,6 +186,95 @@ def compression_check(folder, lsst_venv):
         print(f"lsst-images: no venv at {lsst_venv} (scripts/check_lsst.py builds one)")
 
 
+def _fresh_caches():
+    """Empty the per-process caches of streak models and profiles: a new visit's scene meets
+    them so in a worker (the stars' PSF stamps stay)."""
+    from inject import streak
+    from inject.exposure import plan
+    from inject.render import PROFILE_CACHE
+
+    PROFILE_CACHE.clear()
+    for cached in (plan._reach_px, streak._shared_profile, streak._shared_line_spreads):
+        cached.cache_clear()
+
+
+def paired(db, constellation, n_visits, cutout, compression, rounds, folder):
+    """Seconds per CCD (wall and CPU) of the survey's render and of the focal plane's, of the
+    same CCDs, alternating; per visit and their ratio."""
+    from inject.exposure import runner
+    from inject.exposure.plan import make_plan
+    from inject.survey.constellation import read_constellation
+    from inject.survey.plan import plan_visits
+    from inject.survey.render import RenderOptions, model_keys, visit_batches
+    from inject.survey.visits import read_visits
+
+    runner.limit_threads()
+    night = read_visits(db)
+    epoch = night[0].start.utc
+    const = read_constellation(str(constellation), epoch)
+    plans = [p for p in plan_visits(night, const) if p.streaks][:n_visits]
+    options = RenderOptions(cutout=cutout, compression=compression)
+    batches = visit_batches(plans, const, model_keys(str(constellation)), str(folder),
+                            options, str(constellation), epoch)
+
+    def survey_plan(batch):
+        return batch.prepare[0](*batch.prepare[1:])
+
+    def survey(batch):
+        plan = survey_plan(batch)
+        made = time.perf_counter()
+        rows = [runner.render_ccd(batch.make_task(plan, ccd)) for ccd in batch.ccds]
+        return made, rows
+
+    def focalplane(batch, fscene):
+        plan = make_plan(fscene)
+        made = time.perf_counter()
+        rows = []
+        for ccd in batch.ccds:
+            task = batch.make_task(plan, ccd)
+            rows.append(runner.render_ccd(runner.Task(
+                fscene, ccd.name, task.outdir, task.streaks, keep=False, box=task.box,
+                compression=task.compression)))
+        return made, rows
+
+    first = next(iter(batches.values()))
+    os.makedirs(first.outdir, exist_ok=True)
+    runner.render_ccd(first.make_task(survey_plan(first), first.ccds[0]))  # imports, stamps
+    print("\n| visit | CCDs | survey s/CCD (plan, simulate, write, mask) | CPU | focalplane s/CCD "
+          "(plan, simulate, write) | CPU | ratio | CPU ratio |")
+    print("|---|---|---|---|---|---|---|---|")
+    ratios = []
+    for visit, batch in batches.items():
+        os.makedirs(batch.outdir, exist_ok=True)
+        fscene = survey_plan(batch).fscene
+        times = {"survey": [], "focalplane": []}
+        for k in range(rounds):
+            steps = [("survey", lambda: survey(batch)),
+                     ("focalplane", lambda: focalplane(batch, fscene))]
+            for name, work in steps if k % 2 == 0 else steps[::-1]:
+                _fresh_caches()
+                wall, cpu = time.perf_counter(), time.process_time()
+                made, rows = work()
+                times[name].append((time.perf_counter() - wall, time.process_time() - cpu,
+                                    made - wall, rows))
+        n = len(batch.ccds)
+        cells = {}
+        for name, runs in times.items():
+            wall = float(np.median([r[0] for r in runs])) / n
+            cpu = float(np.median([r[1] for r in runs])) / n
+            plan_s = float(np.median([r[2] for r in runs])) / n
+            parts = [float(np.median([sum(row.get(key, 0.0) for row in r[3]) for r in runs])) / n
+                     for key in ("simulate_s", "write_s", "measure_s")]
+            cells[name] = (wall, cpu, plan_s, parts)
+        (sw, sc, sp, sparts), (fw, fc, fpl, fparts) = cells["survey"], cells["focalplane"]
+        ratios.append((sw / fw, sc / fc))
+        print(f"| {visit} | {n} | {sw:.2f} ({sp:.2f}, {sparts[0]:.2f}, {sparts[1]:.2f}, "
+              f"{sparts[2]:.2f}) | {sc:.2f} | {fw:.2f} ({fpl:.2f}, {fparts[0]:.2f}, "
+              f"{fparts[1]:.2f}) | {fc:.2f} | {sw / fw:.2f} | {sc / fc:.2f} |", flush=True)
+    print(f"survey over focalplane per CCD: median {np.median([r[0] for r in ratios]):.2f} "
+          f"(wall), {np.median([r[1] for r in ratios]):.2f} (CPU) (goal <= 1.2)")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("visits", help="opsim database of the night")
@@ -195,9 +292,19 @@ def main():
     parser.add_argument("--lsst-venv", default=os.environ.get(
         "INJECT_LSST_VENV", str(Path.home() / ".cache" / "inject" / "lsst-images-venv")))
     parser.add_argument("--workdir", default=None)
+    parser.add_argument("--paired", type=int, default=0, metavar="N",
+                        help="only the paired seconds per CCD against inject focalplane, on "
+                             "the first N streaked visits of the first constellation")
+    parser.add_argument("--rounds", type=int, default=2, help="with --paired: rounds per visit")
     args = parser.parse_args()
     work = Path(args.workdir or tempfile.mkdtemp(prefix="bench-survey-render-"))
     work.mkdir(parents=True, exist_ok=True)
+    if args.paired:
+        print(f"{args.visits}; {args.constellations[0]}; cut-outs {args.cutout} px, lossless; "
+              f"in {work}")
+        paired(args.visits, ROOT / args.constellations[0], args.paired, args.cutout,
+               "lossless", args.rounds, work / "paired")
+        return
     from inject.survey.visits import read_visits
 
     epoch = read_visits(args.visits)[0].start.utc.isot

@@ -521,3 +521,26 @@ def test_a_stray_file_is_not_replaced_without_overwrite(tmp_path, reference, man
         runner.run(make_plan(X), out, pool, overwrite=True)
     rows = _consistent(out, X.digest)
     assert {n: r["sha256"] for n, r in rows.items()} == reference["X"]
+
+
+def test_a_run_of_another_inject_version_is_not_resumed_without_overwrite(tmp_path,
+                                                                          monkeypatch):
+    """The same scene's files made by another inject version may differ from this one's: its
+    run is another run. Before: its files were kept as done."""
+    import inject
+
+    out = str(tmp_path)
+    one = [fp.ccd("R22_S12")]
+    with ThreadPoolExecutor(2) as pool:
+        runner.run(make_plan(X), out, pool, ccds=one)
+    monkeypatch.setattr(runner, "__version__", inject.__version__ + ".post1")
+    with ThreadPoolExecutor(2) as pool, pytest.raises(OutputError) as err:
+        runner.run(make_plan(X), out, pool, ccds=one)
+    assert str(err.value) == (f"{os.path.join(out, 'R22_S12.fits')}: exists, of the run of "
+                              f"scene {X.digest[:12]} by inject {inject.__version__} (1 done); "
+                              "pass --overwrite to replace that run")
+    with ThreadPoolExecutor(2) as pool:
+        result = runner.run(make_plan(X), out, pool, ccds=one, overwrite=True)
+    assert [r["detector"] for r in result.rendered] == ["R22_S12"]
+    assert runner.read_manifest(out)["R22_S12"]["inject_version"] == \
+        inject.__version__ + ".post1"

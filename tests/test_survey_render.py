@@ -246,3 +246,95 @@ def test_lossy_files_add_the_quantisation_noise_of_a_tenth_of_sigma(small_ccd, t
     assert LOSSY_NOISE == pytest.approx(1 / (10 * math.sqrt(12)))
     assert np.sqrt(np.mean(error ** 2)) / sigma == pytest.approx(LOSSY_NOISE, rel=0.15)
     assert abs(np.mean(error)) < 0.01 * sigma  # dithering leaves no bias
+
+
+# --- the rendered files' time ---------------------------------------------------------------
+
+def test_the_rendered_time_cards_are_the_visits_tai_start(rendered):
+    """observationStartMJD is TAI: DATE-OBS/MJD-OBS are that instant in TAI (TIMESYS), and
+    DATE-AVG/DATE-END half and all the open-shutter time later (astropy's own conversion; the
+    TAI value read as UTC would be 37 s late)."""
+    from astropy.io import fits
+    from astropy.time import Time, TimeDelta
+
+    con = sqlite3.connect(rendered["db"])
+    (mjd_tai,) = con.execute("SELECT observationStartMJD FROM observations WHERE "
+                             "observationId = 1").fetchone()
+    con.close()
+    start = Time(mjd_tai, format="mjd", scale="tai")
+    # The database was written from this UTC start: TAI - UTC = 37 s in 2026.
+    assert (start - Time(START, scale="utc")).sec == pytest.approx(0.0, abs=1e-4)
+    assert (Time(start.isot, scale="utc") - Time(START, scale="utc")).sec == \
+        pytest.approx(37.0, abs=1e-3)
+    folder = rendered["out"] / "visits" / "1"
+    name = next(p for p in sorted(os.listdir(folder)) if p.endswith(".fits"))
+    header = fits.getheader(folder / name, 0)
+    assert header["TIMESYS"] == "TAI"
+    for key, offset in (("OBS", 0.0), ("AVG", EXPTIME / 2), ("END", EXPTIME)):
+        when = start + TimeDelta(offset, format="sec")
+        assert (Time(header[f"DATE-{key}"], scale="tai") - when).sec == \
+            pytest.approx(0.0, abs=1e-3), key
+        assert (header[f"MJD-{key}"] - when.mjd) * 86400 == pytest.approx(0.0, abs=1e-3), key
+
+
+# --- a cut-out's box and the plan's pixels in it --------------------------------------------
+
+def _track(ccd, xs_px, ys_px):
+    """A FocalTrack (mm) through pixel points of ``ccd``."""
+    from inject.trajectory import FocalTrack
+
+    xs, ys = ccd.pixel_to_focal(np.asarray(xs_px, float), np.asarray(ys_px, float))
+    return FocalTrack("polyline", tuple(map(float, xs)), tuple(map(float, ys)),
+                      ({},) * len(xs_px), 0.0)
+
+
+@pytest.mark.parametrize("box, expected", [
+    # A horizontal mask 20 px wide about y = 1000.25 takes rows 991..1010 (centres inside).
+    ((100, 995, 300, 50), 16 * 300),    # the box's first row cuts it: rows 995..1010
+    ((100, 980, 300, 20), 9 * 300),     # its last row: rows 991..999
+    ((100, 991, 300, 20), 20 * 300),    # exactly its rows
+    ((4000, 900, 96, 500), 20 * 96),    # the CCD's last 96 columns
+])
+def test_planned_pixels_in_a_box_of_a_horizontal_mask(box, expected):
+    from inject.camera import layout as fp
+    from inject.survey.compare import planned_pixels
+
+    ccd = fp.ccd("R22_S11")  # 4096 x 4004
+    track = _track(ccd, [-1000.0, 6000.0], [1000.25, 1000.25])
+    assert planned_pixels(track, 20.0, ccd, box) == expected
+    assert planned_pixels(track, 20.0, ccd, None) == 20 * 4096
+
+
+@pytest.mark.parametrize("box, expected", [
+    ((900, 1000, 300, 100), 14 * 100),  # every row of the box holds 14 of the band's pixels
+    ((900, 1099, 300, 1), 14),
+    # The box's first column cuts rows 1000..1006, which lose 7, 6, ..., 1 columns left of it.
+    ((1000, 1000, 300, 100), 14 * 100 - (7 + 6 + 5 + 4 + 3 + 2 + 1)),
+])
+def test_planned_pixels_in_a_box_of_a_diagonal_mask(box, expected):
+    """A mask 10 px wide about y = x + 0.5: on row y, the pixel centres within 5 px of the
+    line are those within 5 sqrt 2 = 7.07 px of it along x, columns y - 7 .. y + 6 (14)."""
+    from inject.camera import layout as fp
+    from inject.survey.compare import planned_pixels
+
+    ccd = fp.ccd("R22_S11")
+    track = _track(ccd, [-500.0, 3400.0], [-499.5, 3400.5])
+    assert planned_pixels(track, 10.0, ccd, box) == expected
+
+
+@pytest.mark.parametrize("ends, box", [
+    ((1000.0, 1500.0, 2000.0, 2500.0), (1500 - 512, 2000 - 512, 1024, 1024)),
+    # Clipped to the CCD first (its edge at x = -0.5): the middle is at x = 1499.75.
+    ((-1000.0, 1000.0, 3000.0, 1000.0), (988, 1000 - 512, 1024, 1024)),
+    ((100.0, 200.0, 900.0, 200.0), (0, 0, 1024, 1024)),          # held inside at the corner
+    ((3900.0, 3950.0, 4100.0, 3950.0), (4096 - 1024, 4004 - 1024, 1024, 1024)),
+])
+def test_a_cut_out_box_is_centred_on_its_streak_and_held_inside_the_ccd(ends, box):
+    from types import SimpleNamespace
+
+    from inject.camera import layout as fp
+    from inject.exposure.ccd import cutout_box
+
+    ccd = fp.ccd("R22_S11")  # 4096 x 4004
+    assert cutout_box(ccd, [SimpleNamespace(ends=ends)], 1024) == box
+    assert cutout_box(ccd, [], 5000) == (0, 0, 4096, 4004)

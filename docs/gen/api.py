@@ -61,6 +61,7 @@ PAGES = [
      "which visit each satellite streaks and what its masks cost, and the outputs.",
      ["inject.survey", "inject.survey.visits", "inject.survey.constellation",
       "inject.survey.prefilter", "inject.survey.plan", "inject.survey.render",
+      "inject.survey.compare",
       "inject.survey.outputs"]),
     ("cli", "Command line",
      "The parser and entry point of the `inject` command, and one module per command; every "

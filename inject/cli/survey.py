@@ -165,29 +165,27 @@ def _render_options(args):
 
 
 def _render(plans, constellation, args, first, options):
-    """Render, mask and measure the streaked CCDs (:mod:`inject.survey.render`) on a process
-    pool (``--workers``, default the machine's cores) or Dask (``--scheduler``)."""
-    from inject.survey.render import Progress, model_keys, prepare, render_visits
+    """Render, mask and measure the streaked CCDs (:mod:`inject.survey.render`) on the focal
+    plane's runner: a process pool (``--workers``, default the machine's cores) or Dask
+    (``--scheduler``)."""
+    from inject.survey.render import model_keys, render_visits, visit_batches
 
     model = model_keys(args.constellation)
-    jobs = prepare(plans, constellation, model, args.output, options, args.overwrite)
-    total = sum(len(todo) for _, todo, _ in jobs)
-    epoch = first.start.utc
-    path = os.path.abspath(args.constellation)
-    progress = Progress(total)
+    batches = visit_batches(plans, constellation, model, args.output, options,
+                            os.path.abspath(args.constellation), first.start.utc)
+    total = sum(len(b.ccds) for b in batches.values())
     workers = max(1, min(args.workers or os.cpu_count() or 1, max(total, 1)))
     if args.scheduler:
         from inject.exposure.runner import dask_executor
 
         with dask_executor(args.scheduler, args.workers) as executor:
-            result = render_visits(jobs, path, epoch, model, options, executor,
-                                   progress=progress)
+            result = render_visits(batches, executor, args.overwrite)
     else:
         from inject.exposure.runner import process_pool, stop_fork_server
 
         pool = process_pool(workers)
         try:
-            result = render_visits(jobs, path, epoch, model, options, pool, progress=progress)
+            result = render_visits(batches, pool, args.overwrite)
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)
             stop_fork_server()

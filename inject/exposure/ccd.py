@@ -7,18 +7,21 @@ at any pointing or rotation.
 """
 from dataclasses import replace
 
+import numpy as np
+
 from inject.camera.wcs import ccd_wcs
 from inject.config import with_detector
 from inject.exposure.plan import ccd_shape, vertex_model
 from inject.render import Budget
 from inject.scene import pixel_noise, render_tracks, simulate
 from inject.stars import add_star_field
+from inject.trajectory import Track, clip_segment
 
 
-def ccd_scene(fscene, ccd, streaks=()):
-    """The CCD scene of one detector: its sensor (cut-out), the satellites that reach it with
-    their tracks in its pixels."""
-    ny, nx = ccd_shape(fscene, ccd)
+def ccd_scene(fscene, ccd, streaks=(), shape=None):
+    """The CCD scene of one detector: its sensor (the scene's cut-out, or ``shape = (ny,
+    nx)``), the satellites that reach it with their tracks in its pixels."""
+    ny, nx = ccd_shape(fscene, ccd) if shape is None else shape
     det = ccd.detector if (ny, nx) == ccd.shape else ccd.detector.cutout(nx, ny)
     sats = [replace(fscene.scene.satellites[s.satellite], track=s.track) for s in streaks]
     return with_detector(fscene.scene, det, sats)
@@ -45,9 +48,14 @@ def ccd_cards(ccd, digest, what="focal-plane scene digest (sha256)"):
             "FPSCENE": (digest[:16], what)}
 
 
-def simulate_ccd(fscene, ccd, streaks, budget=Budget()):
+def simulate_ccd(fscene, ccd, streaks, budget=Budget(), box=None):
     """Simulate one CCD of a focal-plane scene, with its streaks from the plan
-    (:meth:`inject.exposure.plan.Plan.streaks`).
+    (:meth:`inject.exposure.plan.Plan.streaks`): the scene's cut-out (or the whole CCD), or
+    only the pixels ``[y0, y0 + ny) x [x0, x0 + nx)`` of ``box = (x0, y0, nx, ny)``.
+
+    A box renders what the whole CCD renders on its pixels: the streaks' models are the whole
+    CCD's, the tracks and the WCS moved to the box, the sky's stars placed through that WCS;
+    its noise is drawn as for a cut-out at the CCD's corner (statistically the same).
 
     Returns
     -------
@@ -55,11 +63,57 @@ def simulate_ccd(fscene, ccd, streaks, budget=Budget()):
         The CCD's scene (for the file's headers).
     result : inject.scene.SceneResult
     streaks : list of CCDStreak
+        In the simulated pixels.
     wcs : astropy.wcs.WCS
+        Of the simulated pixels.
     """
-    scene = ccd_scene(fscene, ccd, streaks)
     wcs = ccd_wcs(ccd, fscene.pointing)
+    shape = None
+    if box is not None:
+        x0, y0, nx, ny = box
+        streaks = [replace(s, track=_shifted(s.track, x0, y0),
+                           ends=(s.ends[0] - x0, s.ends[1] - y0, s.ends[2] - x0,
+                                 s.ends[3] - y0)) for s in streaks]
+        wcs, shape = _shifted_wcs(wcs, x0, y0), (ny, nx)
+    scene = ccd_scene(fscene, ccd, streaks, shape)
     return scene, simulate_streaks(fscene, ccd, scene, wcs, streaks, budget), streaks, wcs
+
+
+def cutout_box(ccd, streaks, side):
+    """``(x0, y0, nx, ny)``: a ``side`` x ``side`` box of the CCD (clipped to it) centred on
+    the middle of its streaks' parts on the CCD (the mean of their middles; the CCD's centre
+    without one)."""
+    ny_all, nx_all = ccd.shape
+    middles = []
+    for s in streaks:
+        a = clip_segment(*s.ends, (-0.5, nx_all - 0.5), (-0.5, ny_all - 0.5))
+        if a is not None:
+            middles.append(((a[0] + a[2]) / 2, (a[1] + a[3]) / 2))
+    cx, cy = np.mean(middles, axis=0) if middles else (nx_all / 2, ny_all / 2)
+    nx, ny = min(side, nx_all), min(side, ny_all)
+    bx = int(min(max(round(cx - nx / 2), 0), nx_all - nx))
+    by = int(min(max(round(cy - ny / 2), 0), ny_all - ny))
+    return (bx, by, nx, ny)
+
+
+def _shifted(track, dx, dy):
+    vertices = None if track.vertices is None else tuple(
+        {**v, "x": v["x"] - dx, "y": v["y"] - dy} for v in track.vertices)
+    return Track(track.x0 - dx, track.y0 - dy, track.angle, track.length, vertices)
+
+
+def _shifted_wcs(wcs, dx, dy):
+    """``wcs`` of the pixels from ``(dx, dy)`` on (its SIP polynomials about the new
+    reference pixel)."""
+    from astropy.wcs import Sip
+
+    wcs = wcs.deepcopy()
+    wcs.wcs.crpix = wcs.wcs.crpix - np.array([dx, dy], float)
+    if wcs.sip is not None:
+        sip = wcs.sip
+        wcs.sip = Sip(sip.a, sip.b, sip.ap, sip.bp, wcs.wcs.crpix)
+    wcs.wcs.set()
+    return wcs
 
 
 def simulate_streaks(fscene, ccd, scene, wcs, streaks, budget=Budget()):

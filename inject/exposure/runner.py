@@ -1,4 +1,6 @@
-"""The focal-plane runner: one CCD per task on any ``concurrent.futures.Executor``.
+"""The focal-plane runner: one CCD per task on any ``concurrent.futures.Executor``, for
+``inject focalplane`` (:func:`run`: one output directory) and ``inject survey --render``
+(:func:`run_batches`: a directory per visit, each visit's plan made on the executor).
 
 A process pool by default; a Dask cluster through ``client.get_executor()`` (see
 :func:`dask_executor`). Each task simulates one CCD, writes its FITS file atomically and
@@ -15,10 +17,10 @@ the directory) leaves a manifest that says what is done. A stop signal cancels t
 started and stops a process pool's workers at once (:func:`stop_workers`). A rerun skips the
 CCDs whose file matches its row, redoes missing or corrupt ones, and removes the temporary
 files a killed worker left (:func:`inject.io.atomic.remove_stale_temporaries`). A directory
-holds one scene's run: another scene's run, and a file in no manifest row, are replaced
-only with ``overwrite``; the other scene is checked at the start and again under the lock
-before each CCD is committed (:func:`check_claim`), so that of two runs of different scenes
-started together the second stops.
+holds one scene's run by one inject version: another run, and a file in no manifest row,
+are replaced only with ``overwrite``; the other run is checked at the start and again under
+the lock before each CCD is committed (:func:`check_claim`), so that of two runs of
+different scenes started together the second stops.
 
 A CCD that fails does not stop the others; its row says ``failed`` with the error in one line.
 Failures on the input (an :class:`~inject.errors.InjectError` that is not a condition of the
@@ -42,7 +44,7 @@ import signal
 import sys
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from inject import __version__
 from inject.errors import InjectError, InputError, OutputError, RunError
@@ -98,24 +100,45 @@ def sha256_file(path, chunk=1 << 22):
 
 @dataclass(frozen=True)
 class Task:
-    """One CCD to render: the scene, the detector, where, and its streaks from the plan."""
+    """One CCD to render: the scene, the detector, where, its streaks from the plan, and how.
+
+    Attributes
+    ----------
+    keep : bool
+        False: write, hash and delete (benchmarks of whole exposures).
+    box : tuple or None
+        ``(x0, y0, nx, ny)``: render only those pixels of the CCD
+        (:func:`inject.exposure.ccd.simulate_ccd`); None: the scene's cut-out or the CCD.
+    compression : str or None
+        The file's tile compression (:data:`inject.io.fits.COMPRESSIONS`).
+    measure : callable or None
+        ``measure(task, ccd, scene, result, streaks, part)``, called on the written file
+        ``part`` before it is committed (a module-level function: a worker unpickles it);
+        what it returns comes back as the result's ``measured``.
+    planned : object
+        What ``measure`` needs from the caller.
+    """
 
     fscene: object
     detector: str
     outdir: str
     streaks: tuple
-    keep: bool = True  # False: write, hash and delete (benchmarks of whole exposures)
+    keep: bool = True
+    box: tuple | None = None
+    compression: str | None = None
+    measure: object = None
+    planned: object = None
 
 
 def render_ccd(task):
     """Simulate one CCD and write ``OUTDIR/<detector>.fits``; return its manifest row.
 
     In a worker process threads are limited first (a thread pool in the caller's process is
-    left alone). The file is written beside its name, then moved into place and its row
-    recorded together, under the manifest's lock, once :func:`check_claim` finds no other
-    scene's run in the directory (a file present is replaced: the runner decided beforehand
-    that it may be). If another scene's run has taken the directory meanwhile, nothing is
-    moved and the row says ``claimed`` (the runner stops the run).
+    left alone). The file is written beside its name, measured (``task.measure``), then moved
+    into place and its row recorded together, under the manifest's lock, once
+    :func:`check_claim` finds no other run in the directory (a file present is replaced: the
+    runner decided beforehand that it may be). If another run has taken the directory
+    meanwhile, nothing is moved and the row says ``claimed`` (the runner stops the run).
     """
     if multiprocessing.parent_process() is not None:
         limit_threads()
@@ -126,17 +149,22 @@ def render_ccd(task):
 
     start = time.perf_counter()
     ccd = fp.ccd(task.detector)
-    scene, result, streaks, wcs = simulate_ccd(task.fscene, ccd, task.streaks)
+    scene, result, streaks, wcs = simulate_ccd(task.fscene, ccd, task.streaks, box=task.box)
     simulated = time.perf_counter()
     path = os.path.join(task.outdir, f"{ccd.name}.fits")
     # A temporary name (removed by the clean-up of temporary files if this process dies).
     part = os.path.join(task.outdir, f"{temporary_prefix()}part-{ccd.name}.fits")
     cards = ccd_cards(ccd, task.fscene.digest)
+    measured = None
     try:
         # The digest of the bytes as they are written: no second read of the file.
         digest = write_exposure(part, scene, result, scene.detector.gain,
                                 wcs_header=wcs.to_header(relax=True), overwrite=True,
-                                primary_cards=cards)
+                                primary_cards=cards, compression=task.compression,
+                                xy0=(0, 0) if task.box is None else task.box[:2])
+        written = time.perf_counter()
+        if task.measure is not None:
+            measured = task.measure(task, ccd, scene, result, streaks, part)
         end = time.perf_counter()
         row = {"detector": ccd.name, "id": ccd.id, "vendor": ccd.vendor,
                "file": os.path.basename(path), "sha256": digest, "streaks": len(streaks),
@@ -145,11 +173,12 @@ def render_ccd(task):
         claimed = commit(task.outdir, row, part if task.keep else None)
     finally:
         with contextlib.suppress(FileNotFoundError):
-            os.remove(part)  # not moved: a failure, a stop, another scene's run, or keep=False
+            os.remove(part)  # not moved: a failure, a stop, another run, or keep=False
     if claimed is not None:
         return {"detector": ccd.name, "status": "claimed", "error": claimed}
-    return dict(row, **{  # Not in the manifest: for benchmarks.
-        "simulate_s": simulated - start, "write_s": end - simulated,
+    return dict(row, **{  # Not in the manifest: for benchmarks and the caller's measures.
+        "simulate_s": simulated - start, "write_s": written - simulated,
+        "measure_s": end - written, "measured": measured,
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "pid": os.getpid()})
 
@@ -219,9 +248,10 @@ def _init_worker():
     _POOL_WORKER = True
 
 
-def _attempt(render, task):
-    """``render(task)`` in the worker, where a failure on the input becomes a ``failed`` row
-    (see :func:`deterministic`): returned, not raised, so that no one retries it.
+def _attempt(function, *args):
+    """``function(*args)`` in the worker (a CCD's render, or the work that makes a scene's
+    plan), where a failure on the input becomes a ``failed`` result (see
+    :func:`deterministic`): returned, not raised, so that no one retries it.
 
     In a process pool's worker a stop signal (the runner stopping the pool, or Ctrl-C) ends
     the task as it ends a command: the temporary files are removed, a file being committed is
@@ -231,7 +261,7 @@ def _attempt(render, task):
 
     try:
         with handling() if _POOL_WORKER else contextlib.nullcontext():
-            return render(task)
+            return function(*args)
     except Stopped as stop:
         if _POOL_WORKER:
             os._exit(stop.exit_status)  # the pool is being stopped: no result to send
@@ -239,7 +269,7 @@ def _attempt(render, task):
     except InjectError as err:
         if not deterministic(err):
             raise
-        return {"detector": task.detector, "status": "failed", "error": error_text(err)}
+        return {"status": "failed", "error": error_text(err)}
 
 
 # -------------------------------------------------------------------------------------------
@@ -316,11 +346,13 @@ def update_manifest(outdir, new_rows, digest=None):
 
 
 def _other_scenes(rows, digest):
-    """``{digest: [row, ...]}`` of the manifest rows of scenes other than ``digest``."""
+    """``{(digest, version): [row, ...]}`` of the manifest rows of another run: of another
+    scene, or made by another inject version (its files may differ from this one's)."""
     out = {}
     for row in rows.values():
-        if row.get("scene_sha256") != digest:
-            out.setdefault(row.get("scene_sha256") or "?", []).append(row)
+        theirs = (row.get("scene_sha256") or "?", row.get("inject_version") or "?")
+        if theirs != (digest, __version__):
+            out.setdefault(theirs, []).append(row)
     return out
 
 
@@ -329,13 +361,15 @@ def _describe(other, rows):
     for row in rows:
         counts[row.get("status") or "?"] = counts.get(row.get("status") or "?", 0) + 1
     states = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
-    return f"the run of scene {other[:12]} ({states})"
+    digest, version = other
+    by = f" by inject {version}" if version != __version__ else ""
+    return f"the run of scene {digest[:12]}{by} ({states})"
 
 
 def check_claim(outdir, rows, digest):
-    """Raise :class:`~inject.errors.OutputError` if the manifest ``rows`` hold another scene's
-    rows: another scene's run took the directory after this one began (the runner removed
-    or refused any other scene's rows at its start). Call it under the manifest's lock."""
+    """Raise :class:`~inject.errors.OutputError` if the manifest ``rows`` hold another run's
+    rows: another run took the directory after this one began (the runner removed or refused
+    any other run's rows at its start). Call it under the manifest's lock."""
     others = _other_scenes(rows, digest)
     if others:
         other, theirs = next(iter(others.items()))
@@ -344,31 +378,13 @@ def check_claim(outdir, rows, digest):
                           f"as they are")
 
 
-def triage(fscene, ccds, outdir, overwrite=False):
-    """Split CCDs into those to render and those already done; with ``overwrite``, clear the
-    directory of another scene's run.
-
-    A directory holds one scene's run. Rows of another scene (done, failed or pending: a run
-    that is going, or was stopped) are refused without ``overwrite``; with it, they and
-    their CCD files are removed. Then, for each CCD: a file matching its manifest row (this
-    scene, ``done``, same SHA-256) is done; a missing file, or one whose row is this scene's
-    but not done or whose bytes do not match (corrupt, or a run killed before the row said
-    done), is redone; a file in no manifest row is replaced only with ``overwrite``. Call it
-    under the manifest's lock.
-
-    Returns
-    -------
-    todo, done : list of CCD
-
-    Raises
-    ------
-    OutputError
-        Another scene's run, or a file in no manifest, would be replaced without
-        ``overwrite``.
-    """
-    rows = read_manifest(outdir)
-    others = _other_scenes(rows, fscene.digest)
-    if others and not overwrite:
+def check_free(outdir, digest, ccds, rows=None):
+    """Raise :class:`~inject.errors.OutputError` if a run of the scene ``digest`` in ``outdir``
+    would replace, without ``--overwrite``, another run (another scene's or another inject
+    version's rows: done, failed or pending) or a CCD file in no manifest row."""
+    rows = read_manifest(outdir) if rows is None else rows
+    others = _other_scenes(rows, digest)
+    if others:
         other, theirs = next(iter(others.items()))
         names = {r["detector"] for r in theirs}
         hit = [c.name for c in ccds if c.name in names
@@ -377,24 +393,49 @@ def triage(fscene, ccds, outdir, overwrite=False):
             f"{outdir}: holds"
         raise OutputError(f"{where} {_describe(other, theirs)}; pass --overwrite to replace "
                           "that run")
+    for ccd in ccds:
+        path = os.path.join(outdir, f"{ccd.name}.fits")
+        if ccd.name not in rows and os.path.exists(path):
+            raise OutputError(f"{path}: exists (not in any manifest); pass --overwrite to "
+                              "replace it")
+
+
+def triage(digest, ccds, outdir, overwrite=False):
+    """Split CCDs into those to render and those already done; with ``overwrite``, clear the
+    directory of another run.
+
+    A directory holds one scene's run, by one inject version. Rows of another run (done,
+    failed or pending: a run that is going, or was stopped) are refused without
+    ``overwrite`` (:func:`check_free`); with it, they and their CCD files are removed. Then,
+    for each CCD: a file matching its manifest row (this scene, ``done``, same SHA-256) is
+    done; a missing file, or one whose row is this scene's but not done or whose bytes do not
+    match (corrupt, or a run killed before the row said done), is redone; a file in no
+    manifest row is replaced only with ``overwrite``. Call it under the manifest's lock.
+
+    Returns
+    -------
+    todo, done : list of CCD
+
+    Raises
+    ------
+    OutputError
+        Another run, or a file in no manifest, would be replaced without ``overwrite``.
+    """
+    rows = read_manifest(outdir)
+    if not overwrite:
+        check_free(outdir, digest, ccds, rows)
+    others = _other_scenes(rows, digest)
     if others:
         _remove_rows_and_files(outdir, rows, [r for theirs in others.values() for r in theirs])
     todo, done = [], []
     for ccd in ccds:
         path = os.path.join(outdir, f"{ccd.name}.fits")
         row = rows.get(ccd.name)
-        if not os.path.exists(path):
+        if row is not None and row.get("status") == "done" and os.path.exists(path) \
+                and row.get("sha256") == sha256_file(path):
+            done.append(ccd)
+        else:  # missing, broken, not recorded done, or (with overwrite) in no manifest
             todo.append(ccd)
-        elif row is not None:  # this scene's
-            if row.get("status") == "done" and row.get("sha256") == sha256_file(path):
-                done.append(ccd)
-            else:
-                todo.append(ccd)  # this scene's file, broken or not recorded done: redo it
-        elif overwrite:
-            todo.append(ccd)
-        else:
-            raise OutputError(f"{path}: exists (not in any manifest); pass --overwrite to "
-                              "replace it")
     return todo, done
 
 
@@ -538,12 +579,13 @@ def cancel(executor, futures):
 STOP_GRACE_S = 0.5
 
 
-def stop_workers(executor, outdir=None, grace=STOP_GRACE_S):
+def stop_workers(executor, outdirs=(), grace=STOP_GRACE_S):
     """Stop a process pool's worker processes now, whatever they are doing.
 
     Each worker gets SIGTERM: its task ends as a command's does (its temporary files removed;
     a CCD being committed is committed with its row) and the process exits. A worker still
-    alive after ``grace`` seconds is killed, and its temporary files in ``outdir`` removed.
+    alive after ``grace`` seconds is killed, and its temporary files in ``outdirs`` (the
+    run's output directories) removed.
     Other executors (threads, Dask) have no processes of their own to stop: their tasks
     already under way finish (and commit) by themselves.
 
@@ -575,16 +617,223 @@ def stop_workers(executor, outdir=None, grace=STOP_GRACE_S):
         with contextlib.suppress(Exception):
             worker.kill()
             worker.join(5.0)
-    if killed and outdir is not None:
+    if killed:
         from inject.io.atomic import remove_temporaries_of
 
-        remove_temporaries_of(outdir, [w.pid for w in killed])
+        for outdir in outdirs:
+            remove_temporaries_of(outdir, [w.pid for w in killed])
     return len(workers)
+
+
+@dataclass(frozen=True)
+class Batch:
+    """The CCDs of one output directory, one scene's run there: a part of :func:`run_batches`.
+
+    Attributes
+    ----------
+    outdir : str
+        Created if missing (its parent must exist).
+    digest : str
+        The scene's digest (the manifest's ``scene_sha256``, the run's claim on ``outdir``);
+        the plan's scene carries the same.
+    ccds : tuple of CCD
+    plan : inject.exposure.plan.Plan or None
+        The scene's plan; None until ``prepare`` has made it.
+    prepare : tuple
+        ``(function, *args)``: run on the executor (retried and failed as a CCD is, for all
+        the batch's CCDs) to make the plan, once a CCD is to be rendered.
+    task : dict
+        :class:`Task` fields for every CCD (``keep``, ``compression``, ``measure``,
+        ``planned``).
+    cutout : int or None
+        Render each CCD as a square of this side centred on its streaks
+        (:func:`inject.exposure.ccd.cutout_box`).
+    done : callable or None
+        ``done(ccd)``: whether a CCD whose file matches its manifest row is done (False: it is
+        rendered again), for outputs beside the file.
+    """
+
+    outdir: str
+    digest: str
+    ccds: tuple
+    plan: object = None
+    prepare: tuple = ()
+    task: dict = field(default_factory=dict)
+    cutout: int | None = None
+    done: object = None
+
+    def make_task(self, plan, ccd):
+        """The :class:`Task` of one CCD, with the batch's plan."""
+        from inject.exposure.ccd import cutout_box
+
+        streaks = tuple(plan.streaks(ccd))
+        box = None if self.cutout is None else cutout_box(ccd, streaks, self.cutout)
+        return Task(plan.fscene, ccd.name, self.outdir, streaks, box=box, **self.task)
+
+
+def _claim(batch, overwrite):
+    """Triage a batch's CCDs (:func:`triage`) and claim its directory for the run: a pending
+    row for each CCD to render, so that a run killed before a CCD's row says done still marks
+    its file as this scene's, to be redone, and another scene's run is refused from now on.
+    Temporary files a killed run left are removed first.
+
+    Returns
+    -------
+    todo : list of CCD
+    done : list of dict
+        The manifest rows of the CCDs done.
+    """
+    from inject.io.atomic import remove_stale_temporaries
+
+    outdir = batch.outdir
+    with _manifest_lock(outdir):
+        stale = remove_stale_temporaries(outdir)  # left by a killed run
+        if stale:
+            print(f"inject: removed {len(stale)} temporary file(s) left in {outdir} by a run "
+                  f"that was killed", file=sys.stderr)
+        todo, done = triage(batch.digest, batch.ccds, outdir, overwrite)
+        if batch.done is not None:  # outputs beside a file missing or another run's
+            redo = {c.name for c in done if not batch.done(c)}
+            todo = [c for c in batch.ccds if c in todo or c.name in redo]
+            done = [c for c in done if c.name not in redo]
+        rows = read_manifest(outdir)
+        for c in todo:
+            rows[c.name] = {"detector": c.name, "id": c.id, "vendor": c.vendor,
+                            "file": f"{c.name}.fits", "status": "pending",
+                            "scene_sha256": batch.digest, "inject_version": __version__}
+        _write_manifest(outdir, rows)
+    return todo, [dict(rows[c.name], outdir=outdir) for c in done]
+
+
+def run_batches(batches, executor, overwrite=False, retries=2, progress=None):
+    """Render the CCDs of several output directories (:class:`Batch`) on ``executor``,
+    resumably: one loop of submissions, retries, failures and a stop for them all.
+
+    Every directory is checked before any is claimed (a refusal leaves them all as they
+    were), and all are claimed before any work starts (:func:`_claim`). Then each batch's
+    plan is made (``prepare``) where it is not given, and its CCDs rendered
+    (:func:`render_ccd`).
+
+    Parameters
+    ----------
+    batches : sequence of Batch
+    executor : concurrent.futures.Executor
+        Any: a process pool, Dask's ``client.get_executor()``, a thread pool.
+    overwrite : bool
+        Replace the run of another scene (or inject version) in a directory (its CCD files
+        and rows, whichever CCDs this run renders) and files of no recorded run.
+    retries : int
+        Times a failed task is resubmitted (on top of the executor's own retries) before its
+        CCDs are reported as failed; the other CCDs go on regardless. A task that fails on its
+        input (:func:`deterministic`) fails at once.
+    progress : object, optional
+        ``update(row)`` after each CCD rendered or failed, ``close()`` at the end (default: a
+        line or a bar per CCD on stderr).
+
+    Returns
+    -------
+    RunResult
+        Its rows carry their ``outdir``; a rendered row its ``measured``.
+
+    Raises
+    ------
+    OutputError
+        At the start, as :func:`triage` says; later, another run took a directory
+        (:func:`check_claim`, checked under the lock at each CCD's commit).
+    Stopped, KeyboardInterrupt
+        A stop signal: the queued tasks are cancelled and a process pool's workers stopped
+        (:func:`stop_workers`, which removes their temporary files) before it is raised; the
+        CCDs committed before are ``done`` in the manifests, the others stay ``pending`` with
+        no file of theirs left.
+    """
+    for batch in batches:
+        make_outdir(batch.outdir)
+    if not overwrite:
+        for batch in batches:
+            check_free(batch.outdir, batch.digest, batch.ccds)
+    todo, skipped = [], []
+    for batch in batches:
+        mine, done = _claim(batch, overwrite)
+        todo.append(mine)
+        skipped += done
+    progress = progress or _Progress(sum(map(len, todo)))
+    plans = [batch.plan for batch in batches]
+    attempts, pending = {}, {}
+    rendered, failed = [], []
+
+    def fail(k, ccds, text):
+        batch = batches[k]
+        for ccd in ccds:
+            row = {"detector": ccd.name, "id": ccd.id, "vendor": ccd.vendor,
+                   "file": f"{ccd.name}.fits", "sha256": "", "streaks": "", "seconds": "",
+                   "status": "failed", "scene_sha256": batch.digest,
+                   "inject_version": __version__, "error": text}
+            update_manifest(batch.outdir, [row], batch.digest)
+            failed.append(dict(row, outdir=batch.outdir))
+            progress.update(row)
+
+    def submit(k, ccd=None):
+        """A CCD's task, or (``ccd`` None) the batch's plan."""
+        try:
+            if ccd is None:
+                future = executor.submit(_attempt, *batches[k].prepare)
+            else:
+                # render_ccd as this module holds it now (tests replace it to make CCDs fail).
+                future = executor.submit(_attempt, render_ccd,
+                                         batches[k].make_task(plans[k], ccd))
+        except Exception as err:  # a broken pool (a worker killed): report, go on
+            fail(k, todo[k] if ccd is None else [ccd], error_text(err))
+        else:
+            pending[future] = (k, ccd)
+
+    try:
+        for k, ccds in enumerate(todo):
+            if ccds and plans[k] is None:
+                submit(k)
+            elif ccds:
+                for ccd in ccds:
+                    submit(k, ccd)
+        while pending:
+            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in finished:
+                k, ccd = pending.pop(future)
+                ccds = todo[k] if ccd is None else [ccd]
+                try:
+                    value = future.result()
+                except Exception as err:  # a worker's failure must not lose the others
+                    tag = (k, None if ccd is None else ccd.name)
+                    attempts[tag] = attempts.get(tag, 0) + 1
+                    if attempts[tag] <= retries:
+                        submit(k, ccd)
+                    else:
+                        fail(k, ccds, error_text(err))
+                    continue
+                status = value.get("status") if isinstance(value, dict) else None
+                if status == "claimed":  # by another run: stop this one
+                    raise OutputError(value["error"])
+                if status == "failed":  # on its input (see _attempt): not retried
+                    fail(k, ccds, value["error"])
+                elif ccd is None:  # the batch's plan
+                    plans[k] = value
+                    for each in todo[k]:
+                        submit(k, each)
+                else:
+                    rendered.append(dict(value, outdir=batches[k].outdir))  # committed
+                    progress.update(value)
+    except BaseException:
+        # A stop signal, another run, or a bug: nothing more is to start or finish.
+        cancel(executor, pending)
+        stop_workers(executor, [batch.outdir for batch in batches])
+        raise
+    finally:
+        progress.close()
+    return RunResult(rendered, skipped, failed)
 
 
 def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=None,
         keep=True):
-    """Render CCDs of a focal-plane scene on ``executor``, resumably.
+    """Render CCDs of a focal-plane scene on ``executor``, resumably: :func:`run_batches` of
+    one :class:`Batch`.
 
     Parameters
     ----------
@@ -593,109 +842,20 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
     outdir : str
         Created if missing (its parent must exist).
     executor : concurrent.futures.Executor
-        Any: a process pool, Dask's ``client.get_executor()``, a thread pool.
     ccds : sequence of CCD, optional
         Default: the scene's.
-    overwrite : bool
-        Replace the run of another scene in ``outdir`` (its CCD files and rows, whichever
-        CCDs this run renders) and files of no recorded run.
-    retries : int
-        Times a failed CCD is resubmitted (on top of the executor's own retries) before it is
-        reported as failed; the other CCDs go on regardless. A CCD that fails on its input
-        (:func:`deterministic`) is reported at once.
-    progress : _Progress, optional
+    overwrite, retries, progress
+        As :func:`run_batches`.
     keep : bool
         False deletes each file once hashed (benchmarks).
 
     Returns
     -------
     RunResult
-
-    Raises
-    ------
-    OutputError
-        At the start, as :func:`triage` says; later, another scene's run took the directory
-        (:func:`check_claim`, checked under the lock at each CCD's commit).
-    Stopped, KeyboardInterrupt
-        A stop signal: the queued CCDs are cancelled and a process pool's workers stopped
-        (:func:`stop_workers`) before it is raised; the CCDs committed before are ``done``
-        in the manifest, the others stay ``pending`` with no file of theirs left.
     """
-    fscene = plan.fscene
-    ccds = fscene.ccds if ccds is None else tuple(ccds)
-    make_outdir(outdir)
-    with _manifest_lock(outdir):
-        from inject.io.atomic import remove_stale_temporaries
-
-        stale = remove_stale_temporaries(outdir)  # left by a killed run
-        if stale:
-            print(f"inject: removed {len(stale)} temporary file(s) left in {outdir} by a run "
-                  f"that was killed", file=sys.stderr)
-        todo, done = triage(fscene, ccds, outdir, overwrite)
-        rows = read_manifest(outdir)
-        # Pending rows first: they claim the directory for this scene, and a run killed
-        # before a CCD's row says done still marks its file as this scene's, to be redone.
-        for c in todo:
-            rows[c.name] = {"detector": c.name, "id": c.id, "vendor": c.vendor,
-                            "file": f"{c.name}.fits", "status": "pending",
-                            "scene_sha256": fscene.digest, "inject_version": __version__}
-        _write_manifest(outdir, rows)
-    skipped = [rows[c.name] for c in done]
-    progress = progress or _Progress(len(todo))
-    attempts = {c.name: 0 for c in todo}
-    pending = {}
-    rendered, failed = [], []
-
-    def fail(ccd, text):
-        row = {"detector": ccd.name, "id": ccd.id, "vendor": ccd.vendor,
-               "file": f"{ccd.name}.fits", "sha256": "", "streaks": "", "seconds": "",
-               "status": "failed", "scene_sha256": fscene.digest,
-               "inject_version": __version__, "error": text}
-        failed.append(row)
-        update_manifest(outdir, [row], fscene.digest)
-        progress.update(row)
-
-    def submit(ccd):
-        try:
-            task = Task(fscene, ccd.name, outdir, tuple(plan.streaks(ccd)), keep)
-            # render_ccd as this module holds it now (tests replace it to make CCDs fail).
-            future = executor.submit(_attempt, render_ccd, task)
-        except Exception as err:  # a broken pool (a worker killed): report, go on
-            fail(ccd, error_text(err))
-        else:
-            pending[future] = ccd
-
-    try:
-        for ccd in todo:
-            submit(ccd)
-        while pending:
-            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
-            for future in finished:
-                ccd = pending.pop(future)
-                try:
-                    row = future.result()
-                except Exception as err:  # a worker's failure must not lose the others
-                    attempts[ccd.name] += 1
-                    if attempts[ccd.name] <= retries:
-                        submit(ccd)
-                    else:
-                        fail(ccd, error_text(err))
-                    continue
-                if row["status"] == "claimed":  # by another scene's run: stop this one
-                    raise OutputError(row["error"])
-                if row["status"] == "failed":  # on its input (see _attempt): not retried
-                    fail(ccd, row["error"])
-                    continue
-                rendered.append(row)  # committed with its row by the task (see commit)
-                progress.update(row)
-    except BaseException:
-        # A stop signal, another scene's run, or a bug: nothing more is to start or finish.
-        cancel(executor, pending)
-        stop_workers(executor, outdir)
-        raise
-    finally:
-        progress.close()
-    return RunResult(rendered, skipped, failed)
+    ccds = plan.fscene.ccds if ccds is None else tuple(ccds)
+    batch = Batch(outdir, plan.fscene.digest, ccds, plan=plan, task={"keep": keep})
+    return run_batches([batch], executor, overwrite, retries, progress)
 
 
 #: Modules every worker needs, imported once by the fork server the workers come from: a
