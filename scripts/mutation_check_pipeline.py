@@ -101,8 +101,10 @@ TESTS = {
     "runner": ("tests/test_focalplane_run.py", "tests/test_stale_temporaries.py",
                "tests/test_satellites_record.py"),
     "reader": ("tests/test_add_streak.py", "tests/test_lsst_files.py"),
-    # Globs: the test files added for these wings later are run too.
-    "survey": ("tests/test_survey*.py",),
+    # Globs: the test files added for these wings later are run too. The quick files of
+    # independent numbers first (a bug they catch costs seconds, not the skyfield night's).
+    "survey": ("tests/test_survey_independent*.py", "tests/test_survey_trust*.py",
+               "tests/test_survey.py", "tests/test_survey*.py"),
     "optics": ("tests/test_optics*.py", "tests/test_pupil*.py"),
 }
 #: Test files issue 19 added (``--new``): run for every mutation.
@@ -341,7 +343,6 @@ _CONST = "inject/survey/constellation.py"
 _RENDER = "inject/survey/render.py"  # moving to inject/exposure/: anchors may need moving
 _CLI = "inject/cli/survey.py"
 _OPTICS = "inject/optics.py"
-_CACHE_NAME = 'f"{band}_r{range_index}_f{field:.3f}_n{GRID_RAYS}.npz")'
 
 SURVEY_MUTATIONS = [
     # --- what the earlier audit found missed --------------------------------------------------
@@ -359,8 +360,8 @@ SURVEY_MUTATIONS = [
             '"noise": True, "time": visit.start.utc.isot,',
             '"noise": True, "time": visit.start.tai.isot,', audit=True),
     _survey("plots' local-hour axis with the longitude's sign flipped", "survey", _OUT,
-            "night_hours([p.visit for p in plans], site_lon_deg) if plans else np.array([])",
-            "night_hours([p.visit for p in plans], -site_lon_deg) if plans else np.array([])",
+            "hours = night_hours([p.visit for p in plans], site_lon_deg)\n    counts",
+            "hours = night_hours([p.visit for p in plans], -site_lon_deg)\n    counts",
             audit=True),
     _survey("cut-out box's row clipping off by one", "survey", _RENDER,
             "keep = (rows >= y0) & (rows < y0 + ny)",
@@ -377,8 +378,8 @@ SURVEY_MUTATIONS = [
             "rotation_deg=get(\"rotSkyPos\") % 360.0",
             "rotation_deg=-get(\"rotSkyPos\") % 360.0"),
     _survey("local solar time with the longitude's sign flipped", "survey", _VISITS,
-            "local = (mjd + site_lon_deg / 360.0) % 1.0 * 24.0",
-            "local = (mjd - site_lon_deg / 360.0) % 1.0 * 24.0"),
+            "local = (np.asarray(mjd, float) + site_lon_deg / 360.0) % 1.0 * 24.0",
+            "local = (np.asarray(mjd, float) - site_lon_deg / 360.0) % 1.0 * 24.0"),
     # --- the plan: sky, seeing, masks, pixels ------------------------------------------------
     _survey("sky over one snap's time, not the visit's", "survey", _PLAN,
             "sky = sky_per_pixel(visit.band, visit.exptime_s, LSST.pixel_scale_arcsec,",
@@ -426,13 +427,14 @@ SURVEY_MUTATIONS = [
             "-2 * s3 + 3 * s2, s3 - s2\n", "-2 * s3 + 3 * s2, s2 - s3\n"),
     # --- the constellation and the command ----------------------------------------------------
     _survey("Walker shell with planes and satellites per plane swapped", "survey", _CONST,
-            "return walker_shell(planes * per_plane, planes, phasing,",
-            "return walker_shell(planes * per_plane, per_plane, phasing,"),
+            "walker_shell(planes * per_plane, planes, phasing, height,",
+            "walker_shell(planes * per_plane, per_plane, phasing, height,"),
     _survey("shell's raan0 ignored", "survey", _CONST,
             'raan0 = number(f"{where}.raan0", spec.get("raan0", 0.0))', "raan0 = 0.0"),
-    _survey("shells' default epoch the night's last visit, not its first", "survey", _CLI,
-            "constellation = read_constellation(path, night[0].start.utc)",
-            "constellation = read_constellation(path, night[-1].start.utc)"),
+    _survey("OUTDIR claim's key without the visits' content (an edited VISITS is one run)",
+            "survey", _CLI, "json.dumps(inputs, sort_keys=True)",
+            'json.dumps({k: v for k, v in inputs.items() if k != "visits_sha256"}, '
+            'sort_keys=True)'),
     _survey("worker chunks drop each chunk's last visit", "survey", _CLI,
             "chunks = [visits[k:k + CHUNK_VISITS] for k in",
             "chunks = [visits[k:k + CHUNK_VISITS - 1] for k in"),
@@ -441,12 +443,17 @@ SURVEY_MUTATIONS = [
             "parts = [self.profile(gsparams).rotate(-float(track_angle_deg) * galsim.degrees)]",
             "parts = [self.profile(gsparams).rotate(float(track_angle_deg) * galsim.degrees)]",
             audit=True),
-    _survey("kernel cache file named without the band", "optics", _OPTICS, _CACHE_NAME,
-            'f"r{range_index}_f{field:.3f}_n{GRID_RAYS}.npz")', audit=True),
-    _survey("kernel cache file named without the ray count", "optics", _OPTICS, _CACHE_NAME,
-            'f"{band}_r{range_index}_f{field:.3f}.npz")'),
-    _survey("kernel cache file names the field to 0.01 deg (nodes 0.002 apart)", "optics",
-            _OPTICS, _CACHE_NAME, 'f"{band}_r{range_index}_f{field:.2f}_n{GRID_RAYS}.npz")'),
+    _survey("kernel cache file named without its key's digest (band, range, field only)",
+            "optics", _OPTICS, 'f"f{key[\'field_angle_deg\']:.3f}_{digest}.npz")',
+            'f"f{key[\'field_angle_deg\']:.3f}.npz")', audit=True),
+    _survey("kernel cache key without the ray count", "optics", _OPTICS,
+            "return dict(trace, wavelength_nm=BAND_WAVELENGTH_NM[band],",
+            'return dict({k: v for k, v in trace.items() if k != "n_rays"}, '
+            "wavelength_nm=BAND_WAVELENGTH_NM[band],"),
+    _survey("kernel cache key's field to 0.01 deg (nodes 0.002 apart)", "optics", _OPTICS,
+            "return dict(trace, wavelength_nm=BAND_WAVELENGTH_NM[band],",
+            'return dict(trace, field_angle_deg=round(trace["field_angle_deg"], 2), '
+            "wavelength_nm=BAND_WAVELENGTH_NM[band],"),
     _survey("kernel's range scaling inverted", "optics", _OPTICS,
             "zoom = RANGE_BIN_FACTOR ** range_index / range_km",
             "zoom = range_km / RANGE_BIN_FACTOR ** range_index"),

@@ -200,3 +200,20 @@ def test_the_command_says_it_in_one_line_and_goes_on(traces, tmp_path, monkeypat
     assert status == 0 and "FWHM" in out and len(traces) == 1
     [line] = err.splitlines()
     assert line.startswith("inject profile: warning: kernel cache folder ")
+
+
+def test_field_nodes_0_002_deg_apart_are_two_files(traces, tmp_path):
+    """Beyond 1.9 deg the field nodes are 0.002 deg apart (1.902, 1.904): each is traced and
+    kept in its own file, neither read back for the other."""
+    nodes = optics.FIELD_NODES_DEG
+    a = int(np.flatnonzero(np.isclose(nodes, 1.902))[0])
+    assert nodes[a + 1] == pytest.approx(1.904, abs=1e-9)
+    first = _grid_kernel("g", 500, a)
+    _new_run()
+    second = _grid_kernel("g", 500, a + 1)
+    assert [c["field_angle_deg"] for c in traces] == pytest.approx([1.902, 1.904], abs=1e-9)
+    assert first.image[0, 0] == 1 and second.image[0, 0] == 2
+    assert len(_files(tmp_path)) == 2
+    _new_run()
+    assert _grid_kernel("g", 500, a).image[0, 0] == 1  # each read back as its own
+    assert _grid_kernel("g", 500, a + 1).image[0, 0] == 2 and len(traces) == 2
