@@ -36,7 +36,14 @@ from inject.render import (
 )
 from inject.stars import add_star_field
 from inject.streak import StreakModel
-from inject.trajectory import Polyline, Segment, clip_path, clip_segment
+from inject.trajectory import (
+    Polyline,
+    Segment,
+    clip_path,
+    clip_segment,
+    path_distance,
+)
+from inject.truth import vertices
 
 #: Random streams, one per purpose, spawned from the scene seed (numpy SeedSequence). The
 #: pixel noise (``noise``: the sky's and dark current's Poisson draws, ``signal_noise``: the
@@ -257,9 +264,23 @@ def _render_polyline_track(image, model, track, budget, cache=PROFILE_CACHE):
         inside = [_along(poly, steps, vertex_models, fluxes, s)[2] for s in (s0, s1)]
         inside += list(fluxes[(cum > s0) & (cum < s1)])
         row.update(flux_per_px_e=flux, flux_per_px_min_e=float(min(inside)),
-                   flux_per_px_max_e=float(max(inside)))
+                   flux_per_px_max_e=float(max(inside)),
+                   vertices=_part_vertices(poly, cum, (s0, s1), ends))
     row["n_vertices"] = len(poly.xs)
     return row
+
+
+def _part_vertices(poly, cum, stretch, ends):
+    """The vertices of the stretch ``(s0, s1)`` (length along the polyline, ``cum`` at each
+    vertex) that ends at ``ends = (x0, y0, x1, y1)``: its ends and the polyline's vertices
+    between them, repeated ones once."""
+    s0, s1 = stretch
+    inner = [(poly.xs[k], poly.ys[k]) for k in range(len(poly.xs)) if s0 < cum[k] < s1]
+    out = []
+    for point in [tuple(ends[:2]), *inner, tuple(ends[2:])]:
+        if not out or point != out[-1]:
+            out.append((float(point[0]), float(point[1])))
+    return tuple(out) if len(out) > 1 else (out[0], out[0])
 
 
 def _vertex_fields(model, track, poly, k, vertex):
@@ -321,11 +342,7 @@ def _saturates_here(row, saturated):
     pixel within three FWHM (plus two pixels of bleed) of the part of the track described."""
     if row["flags"] & FLAG_OFF_IMAGE or not len(saturated[0]):
         return False
-    y, x = (np.asarray(v, float) for v in saturated)
-    x0, y0, x1, y1 = row["x0"], row["y0"], row["x1"], row["y1"]
-    dx, dy = x1 - x0, y1 - y0
-    t = np.clip(((x - x0) * dx + (y - y0) * dy) / max(dx * dx + dy * dy, 1e-12), 0.0, 1.0)
-    distance = np.hypot(x - (x0 + t * dx), y - (y0 + t * dy))
+    distance = path_distance(vertices(row), saturated[1], saturated[0])
     return bool(np.any(distance <= 3 * row["fwhm_arcsec"] / row["pixel_scale_arcsec"] + 2))
 
 
@@ -353,6 +370,7 @@ def _truth_row(model, track, ends, charge, expected, budget):
         "flux_per_px_min_e": model.flux_per_px, "flux_per_px_max_e": model.flux_per_px,
         "pixel_scale_arcsec": model.pixel_scale,
         "charge_in_image_e": float(charge), "n_vertices": 2, "flags": flags,
+        "vertices": ((float(x0), float(y0)), (float(x1), float(y1))),
     }
 
 
