@@ -170,6 +170,25 @@ def path_distance(path, x, y):
     return best
 
 
+def blurred_path(xs, ys, s, offsets, weights):
+    """Points of a polyline averaged along it: at each length ``s`` along the polyline ``(xs,
+    ys)``, the mean of its points at ``s + offsets`` with ``weights`` (beyond its ends, its
+    ends).
+
+    A streak swept along the polyline, blurred along it by a profile whose marginal along the
+    track is ``weights`` at ``offsets`` (px, summing to 1), has its ridge there (to first order
+    in the turns: straight pieces are kept, corners are rounded).
+
+    Returns
+    -------
+    x, y : ndarray
+        Of ``s``'s shape.
+    """
+    cum = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(xs), np.diff(ys)))])
+    at = np.asarray(s, float)[..., None] + np.asarray(offsets, float)
+    return (np.interp(at, cum, xs) @ weights, np.interp(at, cum, ys) @ weights)
+
+
 def _coordinates(name, values):
     """Vertex coordinates as a tuple of floats, raising :class:`InputError` unless ``values``
     is a 1-D sequence of finite numbers."""

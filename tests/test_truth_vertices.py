@@ -15,12 +15,13 @@ from inject.io.fits import read_truth
 ROOT = Path(__file__).resolve().parents[1]
 QUIET = {"stars": False, "sky": False, "noise": False}
 
-#: The arc: centre and radius (px), vertices every 2 deg from 20 to 160 deg, its top at y = 80
-#: in a 240 x 160 image. (The ridge rounds each corner by about the along-track blur times the
-#: tangent of half the turn: 0.04 px at 2 deg for this streak's 7 px FWHM.)
+#: The arc: centre and radius (px), vertices every ``step`` deg from 20 to 160 deg, its top at
+#: y = 80 in a 240 x 160 image.
 CENTRE, RADIUS = (120.0, -220.0), 300.0
-STEP_DEG = 2.0
-ARC_DEG = np.arange(20.0, 161.0, STEP_DEG)
+
+
+def _arc_deg(step):
+    return np.arange(20.0, 161.0, step)
 
 
 def _write(tmp_path, raw, cli, name="scene"):
@@ -32,10 +33,10 @@ def _write(tmp_path, raw, cli, name="scene"):
     return out
 
 
-def _arc_scene():
+def _arc_scene(step=2.0):
     raw = apply_overrides(DEFAULT_SCENE, ["detector.nx=240", "detector.ny=160"])
     cx, cy = CENTRE
-    a = np.radians(ARC_DEG)
+    a = np.radians(_arc_deg(step))
     raw["satellites"][0]["track"] = {"vertices": [
         {"x": float(cx + RADIUS * np.cos(t)), "y": float(cy + RADIUS * np.sin(t))} for t in a]}
     return {**raw, **QUIET}
@@ -82,34 +83,34 @@ def _vertices_of(path, row=0):
     return np.array(mine["x"]), np.array(mine["y"])
 
 
-def test_an_arc_s_ridge_is_the_path_through_its_vertices(tmp_path, cli):
-    """A circular arc's part on the image: its interior vertices are the arc's own (at the
-    radius from the centre), its ends TRUTH's; the model's ridge, found column by column, is
-    within 0.1 px of the path through them, while TRUTH's chord misses it by the arc's
-    sagitta over the part (tens of px)."""
-    out = _write(tmp_path, _arc_scene(), cli)
+@pytest.mark.parametrize("step", [2.0, 10.0])
+def test_an_arc_s_ridge_is_the_path_through_its_vertices(tmp_path, cli, step):
+    """A circular arc's part on the image, its vertices every 2 or 10 deg: the model's ridge,
+    found column by column, is within 0.1 px of the path through TRUTH_VERTICES, whose ends
+    are TRUTH's and whose points lie between the arc and its polygon; TRUTH's chord misses
+    the ridge by the arc's sagitta over the part (tens of px). At 10 deg the ridge rounds the
+    polygon's corners (0.2 px inside them), and the vertices follow it."""
+    out = _write(tmp_path, _arc_scene(step), cli)
     with fits.open(out) as hdus:
         model = np.asarray(hdus["STREAK_MODEL"].data, float)
         row = hdus["TRUTH"].data[0]
     xs, ys = _vertices_of(out)
     assert (xs[0], ys[0], xs[-1], ys[-1]) == (row["x0"], row["y0"], row["x1"], row["y1"])
+    # Inside the circle by at most a piece's sagitta, R (1 - cos(step / 2)), and a little
+    # more at the rounded corners.
     radius = np.hypot(xs - CENTRE[0], ys - CENTRE[1])
-    np.testing.assert_allclose(radius[1:-1], RADIUS, rtol=1e-12)
-    # The ends lie on the pieces the part enters and leaves by: inside the circle by at most
-    # a piece's sagitta, R (1 - cos(step / 2)).
-    assert np.all((radius[[0, -1]] <= RADIUS) & (radius[[0, -1]]
-                                                 >= RADIUS * np.cos(np.radians(STEP_DEG / 2))))
-    # Every arc vertex between the part's ends is there, in order (the ends' angles from the
-    # centre bound them).
-    ends = np.degrees(np.arctan2(ys[[0, -1]] - CENTRE[1], xs[[0, -1]] - CENTRE[0]))
-    inner = ARC_DEG[(ARC_DEG > ends.min()) & (ARC_DEG < ends.max())]
-    inside = np.degrees(np.arctan2(ys[1:-1] - CENTRE[1], xs[1:-1] - CENTRE[0]))
-    np.testing.assert_allclose(np.sort(inside), inner, atol=1e-9)
+    assert np.all(radius <= RADIUS + 1e-9)
+    assert np.all(radius >= RADIUS * np.cos(np.radians(step / 2)) - 0.5)
     rx, ry = _column_ridge(model)
     assert len(rx) > 150
     assert _distance_to_path(rx, ry, xs, ys).max() < 0.1
     chord = _distance_to_path(rx, ry, xs[[0, -1]], ys[[0, -1]])
     assert chord.max() > 20.0
+    a = np.radians(_arc_deg(step))
+    polygon = _distance_to_path(rx, ry, CENTRE[0] + RADIUS * np.cos(a),
+                                CENTRE[1] + RADIUS * np.sin(a))
+    if step == 10.0:
+        assert polygon.max() > 0.15
 
 
 def test_a_real_pass_s_ridge_is_the_path_through_its_vertices(tmp_path, cli):
@@ -140,7 +141,7 @@ def test_vertices_round_trip_through_the_reader_and_the_csv(tmp_path, cli):
     """The FITS table read back by :func:`inject.io.fits.read_truth` and the CSV beside
     ``--truth``'s give the same vertices, for a straight track (its two ends) and a polyline,
     numbered by TRUTH row."""
-    raw = _arc_scene()
+    raw = _arc_scene(10.0)
     raw["satellites"].append({**raw["satellites"][0],
                               "track": {"x0": 10.0, "y0": 20.0, "angle": 30.0}})
     out = _write(tmp_path, raw, cli)
@@ -156,4 +157,25 @@ def test_vertices_round_trip_through_the_reader_and_the_csv(tmp_path, cli):
         assert set(mine["satellite"]) == {row["satellite"]}
         assert tuple(zip(mine["x"].tolist(), mine["y"].tolist())) == row["vertices"]
     assert Table.read(tmp_path / "scene.csv", format="ascii.csv")["n_vertices"].tolist() == [
-        len(ARC_DEG), 2]
+        len(_arc_deg(10.0)), 2]
+
+
+def test_add_streak_keeps_the_input_s_vertices_and_adds_its_own(tmp_path, cli):
+    """add-streak into a file with a polyline: TRUTH_VERTICES keeps the input's rows as they
+    were and adds the new streak's two ends as row 1, satellite 1."""
+    source = _write(tmp_path, _arc_scene(10.0), cli)
+    out = tmp_path / "plus.fits"
+    status, _, err = cli("add-streak", source, "-o", out, "--height", "550", "--zenith", "60",
+                         "--mag", "9", "--x0", "20", "--y0", "30", "--angle", "15",
+                         "--track-length", "100", "--seed", "1")
+    assert status == 0, err
+    before, after = Table.read(source, hdu="TRUTH_VERTICES"), Table.read(out,
+                                                                           hdu="TRUTH_VERTICES")
+    assert len(after) == len(before) + 2
+    assert all(np.array_equal(after[c][:len(before)], before[c]) for c in before.colnames)
+    added = after[len(before):]
+    assert list(added["row"]) == [1, 1] and list(added["satellite"]) == [1, 1]
+    truth = Table.read(out, hdu="TRUTH")
+    assert (added["x"][0], added["y"][0], added["x"][1], added["y"][1]) == pytest.approx(
+        (truth["x0"][1], truth["y0"][1], truth["x1"][1], truth["y1"][1]))
+    assert (truth["x0"][1], truth["y0"][1]) == pytest.approx((20.0, 30.0))
