@@ -9,8 +9,7 @@ import yaml
 from astropy.io import fits
 from astropy.table import Table
 
-from inject import DEFAULT_SCENE, apply_overrides
-from inject.io.fits import read_truth
+from inject import DEFAULT_SCENE, apply_overrides, read_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 QUIET = {"stars": False, "sky": False, "noise": False}
@@ -138,7 +137,7 @@ def test_a_real_pass_s_ridge_is_the_path_through_its_vertices(tmp_path, cli):
 
 
 def test_vertices_round_trip_through_the_reader_and_the_csv(tmp_path, cli):
-    """The FITS table read back by :func:`inject.io.fits.read_truth` and the CSV beside
+    """The FITS table read back by :func:`inject.read_truth` and the CSV beside
     ``--truth``'s give the same vertices, for a straight track (its two ends) and a polyline,
     numbered by TRUTH row."""
     raw = _arc_scene(10.0)
