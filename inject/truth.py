@@ -14,10 +14,11 @@ charge per pixel of track over it; for a straight track of one model the three a
 
 A row's ends describe a bent track (a polyline, an orbit's pass) only by its chord: the
 vertices of the same part (:func:`vertices`) are the ``TRUTH_VERTICES`` table, one record per
-vertex (:data:`VERTEX_COLUMNS`), from where the part enters to where it leaves, every vertex of
-the track in between; the renderer sweeps straight pieces between a track's vertices, so the
-piecewise-linear path through them is the streak's ridge. A straight track has two: its row's
-ends.
+vertex (:data:`VERTEX_COLUMNS`), from where the part enters to where it leaves, the track's
+vertices in between; the renderer sweeps straight pieces between a track's vertices, so the
+piecewise-linear path through them is the streak's ridge (where the profile rounds a sharp
+corner, points of the rounded ridge stand for its vertex). A straight track has two: its
+row's ends.
 """
 import math
 
