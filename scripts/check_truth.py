@@ -403,9 +403,10 @@ def load_yaml(path):
 
 
 def is_ccd_scene(raw):
-    """A CCD scene: no focal-plane key (``detectors``, ``cutout``) and no track in
-    focal-plane mm (``x0_mm``, ``length_mm``, vertices with ``x_mm``)."""
-    if not isinstance(raw, dict) or {"detectors", "cutout"} & set(raw):
+    """A CCD scene: no focal-plane key (``detectors``, ``cutout``), no constellation of
+    ``inject survey`` (``shells``) and no track in focal-plane mm (``x0_mm``, ``length_mm``,
+    vertices with ``x_mm``)."""
+    if not isinstance(raw, dict) or {"detectors", "cutout", "shells"} & set(raw):
         return False
     for sat in raw.get("satellites") or []:
         track = (sat or {}).get("track") or {}

@@ -268,6 +268,7 @@ def test_scene_kinds_and_ccd_scenes_of_the_samples():
     fields = ROOT / "sample_fields"
     assert ct.is_ccd_scene(ct.load_yaml(fields / "default.yaml"))
     assert not ct.is_ccd_scene(ct.load_yaml(fields / "focal_paper_550km.yaml"))
+    assert not ct.is_ccd_scene(ct.load_yaml(fields / "constellation_550km.yaml"))
     passing = ct.load_yaml(fields / "pass_example.yaml")
     assert ct.is_ccd_scene(passing) and ct.satellite_kinds(passing) == ["orbit"]
     assert ct.satellite_kinds(ct.load_yaml(fields / "several_streaks.yaml")) == ["straight"] * 6
