@@ -24,7 +24,7 @@ and checks, for every FITS file and every TRUTH row:
    ring's width even when TRUTH is exact); the same centroids' distance from the row's chord
    ``(x0, y0)-(x1, y1)`` is reported beside it;
 3. ``flux_per_px_e`` times the length of that path inside the image against the model's
-   charge for that streak (pixels nearest its line), relative; for tracks whose model varies
+   charge for that streak (pixels nearest its path), relative; for tracks whose model varies
    along them (polylines, orbits) also whether that charge lies between ``flux_per_px_min_e``
    and ``flux_per_px_max_e`` times the length;
 4. whether every TRUTH table has the same columns (names and FITS formats);
@@ -221,9 +221,9 @@ def ridge(model, line, own=None, level=RIDGE_LEVEL, half=RIDGE_HALF_WINDOW, skip
 
     The image is cut across the track: along columns when the path's chord (its first vertex
     to its last) is closer to the x axis, along rows otherwise, at every column (row) between
-    the path's ends. In each cut whose
-    maximum exceeds ``level`` of the streak's peak, the ridge is the centroid of the
-    contiguous pixels around the maximum that exceed ``level`` of it, refined over a window
+    the path's ends. In each cut whose maximum exceeds ``level`` of the streak's peak, the
+    ridge is the centroid of the contiguous pixels around the maximum that exceed ``level`` of
+    it, refined over a window
     :data:`WINDOW_GROWTH` times as wide; cuts whose window touches the image's edge, the
     search window or another streak's pixels are left out, as are cuts within
     ``skip_end_px`` of the path's ends along its chord (an end cap's along-track fall shifts
