@@ -223,11 +223,10 @@ def ridge(model, line, own=None, level=RIDGE_LEVEL, half=RIDGE_HALF_WINDOW, skip
     to its last) is closer to the x axis, along rows otherwise, at every column (row) between
     the path's ends. In each cut whose maximum exceeds ``level`` of the streak's peak, the
     ridge is the centroid of the contiguous pixels around the maximum that exceed ``level`` of
-    it, refined over a window
-    :data:`WINDOW_GROWTH` times as wide; cuts whose window touches the image's edge, the
-    search window or another streak's pixels are left out, as are cuts within
-    ``skip_end_px`` of the path's ends along its chord (an end cap's along-track fall shifts
-    the centroid of a slanted cut).
+    it, refined over a window :data:`WINDOW_GROWTH` times as wide; cuts whose window touches
+    the image's edge, the search window or another streak's pixels are left out, as are cuts
+    within ``skip_end_px`` of the path's ends along its chord (an end cap's along-track fall
+    shifts the centroid of a slanted cut).
 
     Parameters
     ----------
