@@ -115,7 +115,11 @@ def test_an_arc_s_ridge_is_the_path_through_its_vertices(tmp_path, cli, step):
 def test_a_real_pass_s_ridge_is_the_path_through_its_vertices(tmp_path, cli):
     """The pass of pass_example.yaml's TLE on a 512 x 512 CCD: the model's ridge within 0.1 px
     of the path through TRUTH_VERTICES, whose ends are TRUTH's and whose interior vertices
-    lie on the pass's 0.1 s samples' path (one per sample on the part)."""
+    are the pass's samples (computed here, every 0.1 s, in field angles: 0.2" pixels about
+    the CCD's centre)."""
+    from inject import Exposure, Orbit, Pointing, compute_pass
+    from inject.orbits.passes import TRACK_STEP_S
+
     raw = {**yaml.safe_load((ROOT / "sample_fields" / "pass_example.yaml").read_text()),
            **QUIET, "detector": {"type": "itl", "nx": 512, "ny": 512},
            "time": "2026-06-15T23:29:58.5", "exptime": 3.0}  # a sample on the CCD
@@ -128,6 +132,14 @@ def test_a_real_pass_s_ridge_is_the_path_through_its_vertices(tmp_path, cli):
     xs, ys = _vertices_of(out)
     assert (xs[0], ys[0], xs[-1], ys[-1]) == (row["x0"], row["y0"], row["x1"], row["y1"])
     assert len(xs) >= 3
+    dense = compute_pass(Orbit.read_tle(raw["satellites"][0]["orbit"]["tle"]),
+                         Exposure(raw["time"], raw["exptime"]),
+                         Pointing(raw["pointing"]["ra"], raw["pointing"]["dec"], 0.0),
+                         step_s=TRACK_STEP_S)
+    px = 255.5 + dense.field_x_deg * 3600 / 0.2
+    py = 255.5 + dense.field_y_deg * 3600 / 0.2
+    for x, y in zip(xs[1:-1], ys[1:-1]):
+        assert np.nanmin(np.hypot(px - x, py - y)) < 1e-6
     # The path's length is TRUTH's length_px (the part's along the track).
     assert np.hypot(np.diff(xs), np.diff(ys)).sum() == pytest.approx(row["length_px"],
                                                                      rel=1e-12)
