@@ -43,8 +43,8 @@ demo: $(STAMP)
 	@echo "    the paper's satellite (about 10-30 s)"
 	$(BIN)/inject simulate sample_fields/default.yaml -o out/default.fits --exr out/default.exr \
 		--png out/default.png --truth out/default_truth.csv --overwrite
-	@echo "outputs: out/default.fits (IMAGE MASK VARIANCE STREAK_MODEL TRUTH), out/default.exr,"
-	@echo "         out/default.png (quicklook), out/default_truth.csv"
+	@echo "outputs: out/default.fits (IMAGE MASK VARIANCE STREAK_MODEL TRUTH TRUTH_VERTICES), out/default.exr,"
+	@echo "         out/default.png (quicklook), out/default_truth.csv, out/default_truth_vertices.csv"
 	@echo "to run inject yourself: .venv/bin/inject --help, or: source .venv/bin/activate; inject --help"
 
 focalplane: $(STAMP)

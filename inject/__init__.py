@@ -46,6 +46,7 @@ _API = {
     "parse_focal_scene": "inject.exposure.scene", "make_plan": "inject.exposure.plan",
     "simulate_ccd": "inject.exposure.ccd",
     "read_exposure": "inject.io.reader", "write_exposure": "inject.io.fits",
+    "read_truth": "inject.io.fits",
     "write_exr": "inject.io.exr",
     "mask_image": "inject.masking", "MaskingError": "inject.masking",
 }

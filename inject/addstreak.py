@@ -12,13 +12,14 @@ needs it); their other cards stay. The input file is never modified.
 """
 import numpy as np
 from astropy.io import fits
-from astropy.table import Table
 
 from inject.errors import FileFormatError, InputError
-from inject.io.fits import truth_table
+from inject.io.fits import read_truth, truth_table, vertices_table
 from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, STREAK_MASK_SIGMA
 from inject.render import Budget
 from inject.scene import render_tracks
+from inject.trajectory import path_distance
+from inject.truth import vertices
 from inject.validate import positive
 
 
@@ -211,10 +212,7 @@ def _flag_saturated(truth, models, saturated):
     saturated."""
     ys, xs = np.nonzero(saturated)
     for row, model in zip(truth, models):
-        x0, y0, x1, y1 = row["x0"], row["y0"], row["x1"], row["y1"]
-        dx, dy = x1 - x0, y1 - y0
-        t = np.clip(((xs - x0) * dx + (ys - y0) * dy) / max(dx * dx + dy * dy, 1e-12), 0, 1)
-        distance = np.hypot(xs - x0 - t * dx, ys - y0 - t * dy)
+        distance = path_distance(vertices(row), xs, ys)
         if np.any(distance <= 3 * row["fwhm_arcsec"] / model.pixel_scale + 2):
             row["flags"] |= FLAG_SATURATED
 
@@ -245,23 +243,22 @@ def _check_arguments(exposure, models, tracks, rng):
 
 
 def _append_truth(exposure, rows):
+    """TRUTH and TRUTH_VERTICES with ``rows`` after the input's (its own TRUTH's rows completed
+    to today's columns, with their vertices, or their ends from a file written before
+    TRUTH_VERTICES; the new streaks numbered after them), each replacing the input's table in
+    its place or appended (so that the HDUs after it are still copied byte for byte)."""
     hdus = exposure.hdus
-    names = [hdu.name for hdu in hdus]
-    new = truth_table(rows)
-    x0, y0 = exposure.xy0
-    new.header["PARENTX0"] = (x0, "LSST parent x of array x 0 (x0.. are array px)")
-    new.header["PARENTY0"] = (y0, "LSST parent y of array y 0")
-    if "TRUTH" in names:
-        # The input's rows first, completed to today's columns; the new streaks are numbered
-        # after them.
-        old = Table(hdus["TRUTH"].data)
-        earlier = [{k: row[k].item() if hasattr(row[k], "item") else row[k]
-                    for k in old.colnames} for row in old]
+    earlier = read_truth(hdus)
+    if earlier:
         for k, row in enumerate(rows):
             row["satellite"] = len(earlier) + k
-        combined = truth_table(earlier + list(rows))
-        for key in ("PARENTX0", "PARENTY0"):
-            combined.header[key] = (new.header[key], new.header.comments[key])
-        hdus[names.index("TRUTH")] = combined
-    else:
-        hdus.append(new)
+    rows = earlier + list(rows)
+    x0, y0 = exposure.xy0
+    for table in (truth_table(rows), vertices_table(rows)):
+        table.header["PARENTX0"] = (x0, "LSST parent x of array x 0 (x0.. are array px)")
+        table.header["PARENTY0"] = (y0, "LSST parent y of array y 0")
+        names = [hdu.name for hdu in hdus]
+        if table.name in names:
+            hdus[names.index(table.name)] = table
+        else:
+            hdus.append(table)

@@ -23,7 +23,7 @@ from inject.maskplanes import (
     STREAK_MASK_FRACTION,
     STREAK_MASK_SIGMA,
 )
-from inject.profile import Seeing
+from inject.profile import Seeing, line_spread
 from inject.render import (
     AUTO_MIN_TOLERANCE,
     PROFILE_CACHE,
@@ -36,7 +36,15 @@ from inject.render import (
 )
 from inject.stars import add_star_field
 from inject.streak import StreakModel
-from inject.trajectory import Polyline, Segment, clip_path, clip_segment
+from inject.trajectory import (
+    Polyline,
+    Segment,
+    blurred_path,
+    clip_path,
+    clip_segment,
+    path_distance,
+)
+from inject.truth import vertices
 
 #: Random streams, one per purpose, spawned from the scene seed (numpy SeedSequence). The
 #: pixel noise (``noise``: the sky's and dark current's Poisson draws, ``signal_noise``: the
@@ -257,9 +265,90 @@ def _render_polyline_track(image, model, track, budget, cache=PROFILE_CACHE):
         inside = [_along(poly, steps, vertex_models, fluxes, s)[2] for s in (s0, s1)]
         inside += list(fluxes[(cum > s0) & (cum < s1)])
         row.update(flux_per_px_e=flux, flux_per_px_min_e=float(min(inside)),
-                   flux_per_px_max_e=float(max(inside)))
+                   flux_per_px_max_e=float(max(inside)),
+                   vertices=_part_vertices(poly, cum, (s0, s1), ends, vertex_models))
     row["n_vertices"] = len(poly.xs)
     return row
+
+
+#: A corner of a polyline whose ridge the blur rounds by more than this (px) is described by
+#: points of the rounded ridge (:func:`_corner`) instead of its vertex.
+CORNER_TOLERANCE_PX = 0.01
+#: Turns below this (deg) are not examined: a profile's mean distance along the track would
+#: have to exceed 20 px for the rounding, ``tan(turn / 2)`` times it, to reach the tolerance.
+CORNER_MIN_TURN_DEG = 0.05
+
+
+def _part_vertices(poly, cum, stretch, ends, models):
+    """The vertices of the stretch ``(s0, s1)`` (length along the polyline, ``cum`` at each
+    vertex) that ends at ``ends = (x0, y0, x1, y1)``: its ends and the polyline's vertices
+    between them (repeated ones once), a sharp corner replaced by points of the ridge that the
+    profile of ``models`` (one per vertex) rounds it to (:func:`_corner`)."""
+    s0, s1 = stretch
+    points = [tuple(ends[:2])]
+    for k in range(len(poly.xs)):
+        if s0 < cum[k] < s1:
+            points += _corner(poly, cum, k, models[k], stretch) or [(poly.xs[k], poly.ys[k])]
+    points.append(tuple(ends[2:]))
+    out = []
+    for point in points:
+        if not out or point != out[-1]:
+            out.append((float(point[0]), float(point[1])))
+    return tuple(out) if len(out) > 1 else (out[0], out[0])
+
+
+def _corner(poly, cum, k, model, stretch):
+    """Points of the ridge around vertex ``k`` of a polyline, or None where it turns so little
+    that the ridge passes within :data:`CORNER_TOLERANCE_PX` of the vertex.
+
+    The streak is the profile swept along straight pieces, so near a vertex a cut across the
+    track collects the light of both pieces: the ridge is the polyline averaged along its
+    length by the profile's marginal along the track (:func:`inject.trajectory.blurred_path`),
+    which passes inside the vertex by about ``tan(turn / 2)`` times that marginal's mean
+    distance. It is sampled every half that distance, out to where it rejoins the pieces
+    (within half the tolerance), and no further than halfway to the neighbouring vertices or
+    beyond the stretch described.
+    """
+    before = [j for j in range(k) if cum[j] < cum[k]]
+    after = [j for j in range(k + 1, len(cum)) if cum[j] > cum[k]]
+    if not before or not after:
+        return None
+    a, b = before[-1], after[0]
+    turn = np.arctan2(poly.ys[b] - poly.ys[k], poly.xs[b] - poly.xs[k]) - np.arctan2(
+        poly.ys[k] - poly.ys[a], poly.xs[k] - poly.xs[a])
+    turn = abs((turn + np.pi) % (2 * np.pi) - np.pi)
+    if np.degrees(turn) < CORNER_MIN_TURN_DEG:
+        return None
+    offsets, weights, mean = _along_track(model)
+    slope = np.tan(turn / 2)
+    if slope * mean <= CORNER_TOLERANCE_PX:
+        return None
+    step = mean / 2
+    reach = min(cum[k] - cum[a], cum[b] - cum[k]) / 2
+    reach = min(reach, cum[k] - stretch[0], stretch[1] - cum[k])
+    j = 1
+    while j * step < reach and slope * np.sum(
+            weights * np.maximum(np.abs(offsets) - j * step, 0.0)) > CORNER_TOLERANCE_PX / 2:
+        j += 1
+    s = cum[k] + step * np.arange(-j, j + 1)
+    s = s[np.abs(s - cum[k]) < reach]
+    x, y = blurred_path(poly.xs, poly.ys, s, offsets, weights)
+    return list(zip(x.tolist(), y.tolist()))
+
+
+@lru_cache(maxsize=64)
+def _along_track(model):
+    """The marginal of a model's profile along the track (pixel response included): offsets
+    (px, about its mean), weights (summing to 1) and its mean distance (px)."""
+    import galsim
+
+    spread = line_spread(model.profile.rotate(90 * galsim.degrees), model.pixel_scale,
+                         pixel_angle_deg=0.0)
+    offsets = np.asarray(spread.offset_arcsec) / model.pixel_scale
+    weights = np.clip(np.asarray(spread.lsf), 0.0, None)
+    weights = weights / weights.sum()
+    offsets = offsets - offsets @ weights
+    return offsets, weights, float(np.abs(offsets) @ weights)
 
 
 def _vertex_fields(model, track, poly, k, vertex):
@@ -321,11 +410,7 @@ def _saturates_here(row, saturated):
     pixel within three FWHM (plus two pixels of bleed) of the part of the track described."""
     if row["flags"] & FLAG_OFF_IMAGE or not len(saturated[0]):
         return False
-    y, x = (np.asarray(v, float) for v in saturated)
-    x0, y0, x1, y1 = row["x0"], row["y0"], row["x1"], row["y1"]
-    dx, dy = x1 - x0, y1 - y0
-    t = np.clip(((x - x0) * dx + (y - y0) * dy) / max(dx * dx + dy * dy, 1e-12), 0.0, 1.0)
-    distance = np.hypot(x - (x0 + t * dx), y - (y0 + t * dy))
+    distance = path_distance(vertices(row), saturated[1], saturated[0])
     return bool(np.any(distance <= 3 * row["fwhm_arcsec"] / row["pixel_scale_arcsec"] + 2))
 
 
@@ -353,6 +438,7 @@ def _truth_row(model, track, ends, charge, expected, budget):
         "flux_per_px_min_e": model.flux_per_px, "flux_per_px_max_e": model.flux_per_px,
         "pixel_scale_arcsec": model.pixel_scale,
         "charge_in_image_e": float(charge), "n_vertices": 2, "flags": flags,
+        "vertices": ((float(x0), float(y0)), (float(x1), float(y1))),
     }
 
 

@@ -143,6 +143,52 @@ class Polyline:
         return out
 
 
+def path_distance(path, x, y):
+    """Distance (px) from points to the nearest point of a piecewise-linear path.
+
+    Parameters
+    ----------
+    path : sequence of (float, float)
+        The path's vertices, at least one (a single point's distance is to it).
+    x, y : array_like
+        The points.
+
+    Returns
+    -------
+    ndarray
+        The distances, of the points' broadcast shape.
+    """
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    (ax, ay), best = path[0], None
+    for bx, by in path[1:] if len(path) > 1 else path:
+        dx, dy = bx - ax, by - ay
+        length2 = dx * dx + dy * dy
+        t = 0.0 if length2 == 0 else np.clip(((x - ax) * dx + (y - ay) * dy) / length2, 0, 1)
+        d = np.hypot(x - ax - t * dx, y - ay - t * dy)
+        best = d if best is None else np.minimum(best, d)
+        ax, ay = bx, by
+    return best
+
+
+def blurred_path(xs, ys, s, offsets, weights):
+    """Points of a polyline averaged along it: at each length ``s`` along the polyline ``(xs,
+    ys)``, the mean of its points at ``s + offsets`` with ``weights`` (beyond its ends, its
+    ends).
+
+    A streak swept along the polyline, blurred along it by a profile whose marginal along the
+    track is ``weights`` at ``offsets`` (px, summing to 1), has its ridge there (to first order
+    in the turns: straight pieces are kept, corners are rounded).
+
+    Returns
+    -------
+    x, y : ndarray
+        Of ``s``'s shape.
+    """
+    cum = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(xs), np.diff(ys)))])
+    at = np.asarray(s, float)[..., None] + np.asarray(offsets, float)
+    return (np.interp(at, cum, xs) @ weights, np.interp(at, cum, ys) @ weights)
+
+
 def _coordinates(name, values):
     """Vertex coordinates as a tuple of floats, raising :class:`InputError` unless ``values``
     is a 1-D sequence of finite numbers."""

@@ -11,6 +11,14 @@ varies along it (a polyline, an orbit's pass) is described by the values at the 
 part (along the track), and ``flux_per_px_min_e``/``flux_per_px_max_e`` give the range of the
 charge per pixel of track over it; for a straight track of one model the three are equal.
 ``charge_in_image_e`` is the charge the image received.
+
+A row's ends describe a bent track (a polyline, an orbit's pass) only by its chord: the
+vertices of the same part (:func:`vertices`) are the ``TRUTH_VERTICES`` table, one record per
+vertex (:data:`VERTEX_COLUMNS`), from where the part enters to where it leaves, the track's
+vertices in between; the renderer sweeps straight pieces between a track's vertices, so the
+piecewise-linear path through them is the streak's ridge (where the profile rounds a sharp
+corner, points of the rounded ridge stand for its vertex). A straight track has two: its
+row's ends.
 """
 import math
 
@@ -56,3 +64,30 @@ def complete(rows):
     -1 for integers, NaN for floats; keys outside the table are dropped)."""
     return [{name: row.get(name, _default(dtype)) for name, (dtype, _, _) in TRUTH_COLUMNS.items()}
             for row in rows]
+
+
+#: Column -> (numpy dtype, unit, description) of the ``TRUTH_VERTICES`` table, in table order.
+VERTEX_COLUMNS = {
+    "row": ("i4", "", "index of the TRUTH row (0 for the first)"),
+    "satellite": ("i4", "", "the row's satellite column"),
+    "vertex": ("i4", "", "index of the vertex along the part, from where it enters"),
+    "x": ("f8", "pix", "vertex x (the same ends as the TRUTH row's x0, x1)"),
+    "y": ("f8", "pix", "vertex y"),
+}
+
+
+def vertices(row):
+    """The vertices ``((x, y), ...)`` of the part of the track a TRUTH row describes: the
+    row's ``vertices`` when it has them, else its ends ``(x0, y0), (x1, y1)`` (a straight
+    track's, or a row read from a file without ``TRUTH_VERTICES``)."""
+    path = row.get("vertices")
+    if path is None or len(path) < 2:
+        return ((float(row["x0"]), float(row["y0"])), (float(row["x1"]), float(row["y1"])))
+    return tuple((float(x), float(y)) for x, y in path)
+
+
+def vertex_records(rows):
+    """The ``TRUTH_VERTICES`` records of TRUTH rows: one dict of :data:`VERTEX_COLUMNS` per
+    vertex, rows in order, each row's vertices in order along its part."""
+    return [{"row": i, "satellite": int(row.get("satellite", -1)), "vertex": k, "x": x, "y": y}
+            for i, row in enumerate(rows) for k, (x, y) in enumerate(vertices(row))]

@@ -16,13 +16,15 @@ DIR``, default this repository) this script runs ``python -m inject`` with DIR f
 and checks, for every FITS file and every TRUTH row:
 
 1. ``sum(STREAK_MODEL)`` against ``sum(TRUTH.charge_in_image_e)`` (relative);
-2. the distance (px) from TRUTH's line ``(x0, y0)-(x1, y1)`` to the model's ridge: along each
-   column (or row, for steep tracks) the streak crosses, the centroid of the model across the
-   streak where it is above :data:`RIDGE_LEVEL` of that cut's maximum (the maximum itself is
-   reported too: a defocused streak's cross-section has two horns, so its maximum lies off
-   the line by up to half the ring's width even when TRUTH is exact);
-3. ``flux_per_px_e`` times the length of TRUTH's line inside the image against the model's
-   charge for that streak (pixels nearest its line), relative; for tracks whose model varies
+2. the distance (px) from the path through the row's TRUTH_VERTICES (its line ``(x0, y0)-(x1,
+   y1)`` in a file without them) to the model's ridge: along each column (or row, for steep
+   tracks) the streak crosses, the centroid of the model across the streak where it is above
+   :data:`RIDGE_LEVEL` of that cut's maximum (the maximum itself is reported too: a defocused
+   streak's cross-section has two horns, so its maximum lies off the line by up to half the
+   ring's width even when TRUTH is exact); the same centroids' distance from the row's chord
+   ``(x0, y0)-(x1, y1)`` is reported beside it;
+3. ``flux_per_px_e`` times the length of that path inside the image against the model's
+   charge for that streak (pixels nearest its path), relative; for tracks whose model varies
    along them (polylines, orbits) also whether that charge lies between ``flux_per_px_min_e``
    and ``flux_per_px_max_e`` times the length;
 4. whether every TRUTH table has the same columns (names and FITS formats);
@@ -76,6 +78,8 @@ LIMITS = {
     "model_truth_rel": 1e-5,
     # The centroid of a well-sampled symmetric cross-section lies on the line to ~0.01 px.
     "ridge_straight_px": 0.25,
+    # A bent track's ridge from the path through its TRUTH_VERTICES.
+    "ridge_varying_px": 0.1,
     # flux x length is exact for a line crossing straight image edges; corners add ~1e-4.
     "flux_length_straight_rel": 1e-3,
     # Slack on the [min, max] range of a varying track's charge per pixel.
@@ -169,18 +173,41 @@ def segment_distance(px, py, x0, y0, x1, y1):
     return np.hypot(px - (x0 + t * dx), py - (y0 + t * dy))
 
 
+def as_path(line):
+    """A path's vertices ``((x, y), ...)``: ``line`` itself, or its two ends when it is a
+    segment ``(x0, y0, x1, y1)``."""
+    if len(line) == 4 and all(np.ndim(v) == 0 for v in line):
+        return ((float(line[0]), float(line[1])), (float(line[2]), float(line[3])))
+    return tuple((float(x), float(y)) for x, y in line)
+
+
+def path_distance(px, py, path):
+    """Distance from points ``(px, py)`` to the nearest point of a path (vertices, or a
+    segment ``(x0, y0, x1, y1)``)."""
+    path = as_path(path)
+    return np.min([segment_distance(px, py, *a, *b) for a, b in zip(path[:-1], path[1:])],
+                  axis=0)
+
+
+def path_length_inside(path, shape):
+    """Length of a path (vertices, or a segment) inside the pixel area of an image of
+    ``shape``: :func:`clipped_length` of each piece."""
+    path = as_path(path)
+    return sum(clipped_length(*a, *b, shape) for a, b in zip(path[:-1], path[1:]))
+
+
 def nearest_line_labels(shape, lines, guard=0.0, chunk=256):
     """For every pixel of an image of ``shape``, the index of the nearest of ``lines``
-    (``(x0, y0, x1, y1)`` segments), int8; -1 where another line is less than ``guard`` px
-    farther (the band around the boundaries, and the crossings, where both streaks are
-    bright). Computed in chunks of rows."""
+    (``(x0, y0, x1, y1)`` segments or paths of vertices), int8; -1 where another line is less
+    than ``guard`` px farther (the band around the boundaries, and the crossings, where both
+    streaks are bright). Computed in chunks of rows."""
     ny, nx = shape
     labels = np.zeros(shape, np.int8)
     x = np.arange(nx, dtype=float)
     for start in range(0, ny, chunk):
         y = np.arange(start, min(ny, start + chunk), dtype=float)
         gx, gy = np.meshgrid(x, y)
-        d = np.array([segment_distance(gx, gy, *line) for line in lines])
+        d = np.array([path_distance(gx, gy, line) for line in lines])
         part = np.argmin(d, axis=0).astype(np.int8)
         if guard > 0 and len(lines) > 1:
             two = np.partition(d, 1, axis=0)
@@ -190,23 +217,23 @@ def nearest_line_labels(shape, lines, guard=0.0, chunk=256):
 
 
 def ridge(model, line, own=None, level=RIDGE_LEVEL, half=RIDGE_HALF_WINDOW, skip_end_px=0.0):
-    """Distances (px) from a streak's line to the ridge of its model.
+    """Distances (px) from a streak's path to the ridge of its model.
 
-    The image is cut across the track: along columns when the line is closer to the x axis,
-    along rows otherwise, at every column (row) between the line's ends. In each cut whose
-    maximum exceeds ``level`` of the streak's peak, the ridge is the centroid of the
-    contiguous pixels around the maximum that exceed ``level`` of it, refined over a window
-    :data:`WINDOW_GROWTH` times as wide; cuts whose window touches the image's edge, the
-    search window or another streak's pixels are left out, as are cuts within
-    ``skip_end_px`` of the line's ends (an end cap's along-track fall shifts the centroid of
-    a slanted cut).
+    The image is cut across the track: along columns when the path's chord (its first vertex
+    to its last) is closer to the x axis, along rows otherwise, at every column (row) between
+    the path's ends. In each cut whose maximum exceeds ``level`` of the streak's peak, the
+    ridge is the centroid of the contiguous pixels around the maximum that exceed ``level`` of
+    it, refined over a window :data:`WINDOW_GROWTH` times as wide; cuts whose window touches
+    the image's edge, the search window or another streak's pixels are left out, as are cuts
+    within ``skip_end_px`` of the path's ends along its chord (an end cap's along-track fall
+    shifts the centroid of a slanted cut).
 
     Parameters
     ----------
     model : ndarray
         The streak model, ``[y, x]``.
     line : tuple
-        ``(x0, y0, x1, y1)``, px.
+        The path: ``((x, y), ...)`` its vertices, or ``(x0, y0, x1, y1)`` a segment, px.
     own : ndarray of bool, optional
         The pixels that belong to this streak (others' are masked out); None: all.
 
@@ -214,20 +241,24 @@ def ridge(model, line, own=None, level=RIDGE_LEVEL, half=RIDGE_HALF_WINDOW, skip
     -------
     dict
         ``cuts`` (used), ``centroid_px`` and ``argmax_px`` (largest distance of the centroid
-        and of the parabola-refined maximum), ``peak`` (the largest maximum of a cut clear
+        and of the parabola-refined maximum from the path), ``chord_px`` (largest distance
+        of the centroid from the path's chord), ``peak`` (the largest maximum of a cut clear
         of edges and other streaks; else the largest model value of the streak's pixels).
     """
-    x0, y0, x1, y1 = line
+    path = as_path(line)
+    (x0, y0), (x1, y1) = path[0], path[-1]
     img = np.asarray(model, float)
     mask = own
     if abs(y1 - y0) > abs(x1 - x0):  # steep: cut along rows, as columns of the transpose
         img = img.T
         mask = None if own is None else own.T
+        path = tuple((y, x) for x, y in path)
         x0, y0, x1, y1 = y0, x0, y1, x1
     n_rows, n_cols = img.shape
     data = img if mask is None else np.where(mask, img, 0.0)
     peak = float(data.max()) if data.size else 0.0
-    out = {"cuts": 0, "centroid_px": math.nan, "argmax_px": math.nan, "peak": peak}
+    out = {"cuts": 0, "centroid_px": math.nan, "argmax_px": math.nan, "chord_px": math.nan,
+           "peak": peak}
     lo = max(0, math.ceil(min(x0, x1)))
     hi = min(n_cols - 1, math.floor(max(x0, x1)))
     if peak <= 0 or hi < lo:
@@ -293,8 +324,9 @@ def ridge(model, line, own=None, level=RIDGE_LEVEL, half=RIDGE_HALF_WINDOW, skip
     argmax = top + np.clip(shift, -0.5, 0.5)
     cx = cols[valid].astype(float)
     out["cuts"] = int(valid.sum())
-    out["centroid_px"] = float(segment_distance(cx, centroid[valid], x0, y0, x1, y1).max())
-    out["argmax_px"] = float(segment_distance(cx, argmax[valid], x0, y0, x1, y1).max())
+    out["centroid_px"] = float(path_distance(cx, centroid[valid], path).max())
+    out["argmax_px"] = float(path_distance(cx, argmax[valid], path).max())
+    out["chord_px"] = float(segment_distance(cx, centroid[valid], x0, y0, x1, y1).max())
     return out
 
 
@@ -370,9 +402,10 @@ def load_yaml(path):
 
 
 def is_ccd_scene(raw):
-    """A CCD scene: no focal-plane key (``detectors``, ``cutout``) and no track in
-    focal-plane mm (``x0_mm``, ``length_mm``, vertices with ``x_mm``)."""
-    if not isinstance(raw, dict) or {"detectors", "cutout"} & set(raw):
+    """A CCD scene: no focal-plane key (``detectors``, ``cutout``), no constellation of
+    ``inject survey`` (``shells``) and no track in focal-plane mm (``x0_mm``, ``length_mm``,
+    vertices with ``x_mm``)."""
+    if not isinstance(raw, dict) or {"detectors", "cutout", "shells"} & set(raw):
         return False
     for sat in raw.get("satellites") or []:
         track = (sat or {}).get("track") or {}
@@ -438,7 +471,7 @@ def check_file(path, scene, group, kinds, rel):
 
     record = {"file": rel, "scene": scene, "group": group, "rows": None, "error": "",
               "model_truth_rel": None, "model_sum": None, "truth_sum": None, "schema": None,
-              "streaks": []}
+              "vertices": False, "streaks": []}
     if not Path(path).exists():
         record["error"] = "no file"
         return record
@@ -473,17 +506,33 @@ def check_file(path, scene, group, kinds, rel):
                     if truth_sum else (0.0 if record["model_sum"] == 0 else math.inf)
         if not record["rows"]:
             return record
-        lines = [tuple(float(r[c]) for c in ("x0", "y0", "x1", "y1")) for r in rows]
+        record["vertices"] = "TRUTH_VERTICES" in names
+        paths = truth_paths(rows, hdus["TRUTH_VERTICES"].data if record["vertices"] else None)
         labels = guarded = None
-        if model is not None and len(lines) > 1:
-            labels = nearest_line_labels(shape, lines)
-            guarded = nearest_line_labels(shape, lines, guard=RIDGE_GUARD_PX)
+        if model is not None and len(paths) > 1:
+            labels = nearest_line_labels(shape, paths)
+            guarded = nearest_line_labels(shape, paths, guard=RIDGE_GUARD_PX)
         for i, r in enumerate(rows):
-            record["streaks"].append(_check_streak(r, columns, i, lines[i], model, labels,
+            record["streaks"].append(_check_streak(r, columns, i, paths[i], model, labels,
                                                    guarded, shape, kinds))
     if model is not None and len(record["streaks"]) > 1:
         _shared_image(record)
     return record
+
+
+def truth_paths(rows, table=None):
+    """Each TRUTH row's path: its vertices in ``table`` (the TRUTH_VERTICES data, records
+    ``row, vertex, x, y``), else (no table, or no vertices for the row) its ends."""
+    paths = []
+    for i, r in enumerate(rows):
+        path = as_path(tuple(float(r[c]) for c in ("x0", "y0", "x1", "y1")))
+        if table is not None:
+            mine = table[table["row"] == i]
+            mine = mine[np.argsort(mine["vertex"], kind="stable")]
+            if len(mine) >= 2:
+                path = tuple(zip(mine["x"].tolist(), mine["y"].tolist()))
+        paths.append(path)
+    return paths
 
 
 def _shared_image(record):
@@ -506,7 +555,7 @@ def _value(row, columns, name):
     return float(row[name]) if name in columns else math.nan
 
 
-def _check_streak(r, columns, i, line, model, labels, guarded, shape, kinds):
+def _check_streak(r, columns, i, path, model, labels, guarded, shape, kinds):
     sat = int(r["satellite"]) if "satellite" in columns else i
     n_vertices = int(r["n_vertices"]) if "n_vertices" in columns else None
     kind = kinds[sat] if 0 <= sat < len(kinds) else (
@@ -516,8 +565,9 @@ def _check_streak(r, columns, i, line, model, labels, guarded, shape, kinds):
          "flux_per_px_e": _value(r, columns, "flux_per_px_e"),
          "flux_min_e": _value(r, columns, "flux_per_px_min_e"),
          "flux_max_e": _value(r, columns, "flux_per_px_max_e"),
-         "length_in_px": clipped_length(*line, shape), "model_charge_e": None,
-         "ridge_px": None, "argmax_px": None, "cuts": 0, "flux_length_rel": None,
+         "length_in_px": path_length_inside(path, shape), "model_charge_e": None,
+         "vertices": len(path), "ridge_px": None, "ridge_chord_px": None, "argmax_px": None,
+         "cuts": 0, "flux_length_rel": None,
          "in_range": None, "partition_rel": None, "note": ""}
     if model is None:
         s["note"] = "no STREAK_MODEL"
@@ -527,13 +577,13 @@ def _check_streak(r, columns, i, line, model, labels, guarded, shape, kinds):
     peak_truth = _value(r, columns, "peak_e_per_px")
     fwhm_px = _value(r, columns, "fwhm_arcsec") / _value(r, columns, "pixel_scale_arcsec") \
         if "pixel_scale_arcsec" in columns else _value(r, columns, "fwhm_arcsec") / 0.2
-    found = ridge(model, line, None if guarded is None else guarded == i,
+    found = ridge(model, path, None if guarded is None else guarded == i,
                   skip_end_px=3 * fwhm_px + 2)
     if found["peak"] < RIDGE_LEVEL * peak_truth or s["model_charge_e"] <= 0:
         s["note"] = "wings only" if found["peak"] > 0 else "no model charge"
         return s
-    s["ridge_px"], s["argmax_px"], s["cuts"] = (found["centroid_px"], found["argmax_px"],
-                                                found["cuts"])
+    s["ridge_px"], s["ridge_chord_px"], s["argmax_px"], s["cuts"] = (
+        found["centroid_px"], found["chord_px"], found["argmax_px"], found["cuts"])
     if s["length_in_px"] > 0:
         expected = s["flux_per_px_e"] * s["length_in_px"]
         s["flux_length_rel"] = expected / s["model_charge_e"] - 1
@@ -845,11 +895,15 @@ def summarise(records, focal):
                                  or abs(r["model_truth_rel"]) > LIMITS["model_truth_rel"]],
         "ridge_straight_px": _abs_max([s["ridge_px"] for s in straight]),
         "ridge_varying_px": _abs_max([s["ridge_px"] for s in varying]),
+        "ridge_varying_chord_px": _abs_max([s["ridge_chord_px"] for s in varying]),
+        "files_without_vertices": [r["file"] for r in files if r["rows"] and not r["vertices"]],
+        "ridge_by_input": ridge_by_input(records),
         "argmax_straight_px": _abs_max([s["argmax_px"] for s in straight]),
         "argmax_varying_px": _abs_max([s["argmax_px"] for s in varying]),
         "ridge_failures": [f"{r['file']}#{s['row']}" for r, s in streaks
-                           if s["kind"] == "straight" and s["ridge_px"] is not None
-                           and s["ridge_px"] > LIMITS["ridge_straight_px"]],
+                           if s["ridge_px"] is not None and s["ridge_px"] > LIMITS[
+                               "ridge_straight_px" if s["kind"] == "straight"
+                               else "ridge_varying_px"]],
         "flux_length_straight_rel": _abs_max([s["flux_length_rel"] for s in straight]),
         "flux_length_varying_rel": _abs_max([s["flux_length_rel"] for s in varying]),
         "flux_length_failures": [f"{r['file']}#{s['row']}" for r, s in streaks
@@ -892,6 +946,24 @@ def summarise(records, focal):
     return summary
 
 
+def ridge_by_input(records):
+    """Per input (the command and scene that wrote the files) with bent tracks (polylines,
+    orbits): the streaks, the most vertices of one, and the worst ridge distance from the
+    chord and from the path through the vertices."""
+    out = {}
+    for r in records:
+        for s in r["streaks"]:
+            if s["kind"] == "straight" or s["ridge_px"] is None:
+                continue
+            entry = out.setdefault(f"{r['group']} {r['scene']}", {
+                "streaks": 0, "vertices": 0, "chord_px": None, "vertices_px": None})
+            entry["streaks"] += 1
+            entry["vertices"] = max(entry["vertices"], s["vertices"])
+            entry["chord_px"] = _abs_max([entry["chord_px"], s["ridge_chord_px"]])
+            entry["vertices_px"] = _abs_max([entry["vertices_px"], s["ridge_px"]])
+    return out
+
+
 def _schema_difference(common, other):
     if common is None:
         return "no common schema"
@@ -921,21 +993,21 @@ def table_rows(records):
         head = [r["scene"], r["file"], "-" if r["rows"] is None else str(r["rows"]),
                 _fmt(r["model_truth_rel"])]
         if not r["streaks"]:
-            rows.append(head + ["-", "-", "-", "-", r["error"]])
+            rows.append(head + ["-", "-", "-", "-", "-", r["error"]])
             continue
         for s in r["streaks"]:
             flux = _fmt(s["flux_length_rel"])
             if s["in_range"] is not None and s["kind"] != "straight":
                 flux += " (in range)" if s["in_range"] else " (OUT of range)"
             note = "; ".join(dict.fromkeys(x for x in (r["error"], s["note"]) if x))
-            rows.append(head + [_fmt(s["ridge_px"], ".3f"), _fmt(s["argmax_px"], ".2f"), flux,
-                                s["kind"], note])
+            rows.append(head + [_fmt(s["ridge_px"], ".3f"), _fmt(s["ridge_chord_px"], ".3f"),
+                                _fmt(s["argmax_px"], ".2f"), flux, s["kind"], note])
             head = [r["scene"], r["file"], "", ""]
     return rows
 
 
-HEADER = ["scene", "file", "rows", "model-vs-TRUTH rel", "ridge max px", "peak max px",
-          "flux x length rel", "track kind", "note"]
+HEADER = ["scene", "file", "rows", "model-vs-TRUTH rel", "ridge max px", "chord max px",
+          "peak max px", "flux x length rel", "track kind", "note"]
 
 
 def markdown(label, checkout, records, focal, summary):
@@ -975,10 +1047,12 @@ def summary_lines(summary):
            f"{LIMITS['model_truth_rel']:g}); failing or not computable: "
            f"{len(s['model_truth_failures'])}",
            f"(2) ridge: straight {_fmt(s['ridge_straight_px'], '.3f')} px (limit "
-           f"{LIMITS['ridge_straight_px']:g}), varying {_fmt(s['ridge_varying_px'], '.3f')} px; "
-           f"peak position: straight {_fmt(s['argmax_straight_px'], '.2f')}, varying "
-           f"{_fmt(s['argmax_varying_px'], '.2f')} px; straight failing "
-           f"{len(s['ridge_failures'])}",
+           f"{LIMITS['ridge_straight_px']:g}), varying {_fmt(s['ridge_varying_px'], '.3f')} px "
+           f"(limit {LIMITS['ridge_varying_px']:g}; from TRUTH's chord "
+           f"{_fmt(s['ridge_varying_chord_px'], '.3f')} px); peak position: straight "
+           f"{_fmt(s['argmax_straight_px'], '.2f')}, varying "
+           f"{_fmt(s['argmax_varying_px'], '.2f')} px; failing {len(s['ridge_failures'])}; "
+           f"files without TRUTH_VERTICES {len(s['files_without_vertices'])}",
            f"(3) flux x length: straight worst |rel| {_fmt(s['flux_length_straight_rel'])} "
            f"(limit {LIMITS['flux_length_straight_rel']:g}, failing "
            f"{len(s['flux_length_failures'])}); varying worst |rel| "
@@ -1005,8 +1079,22 @@ def summary_lines(summary):
     return out
 
 
+def ridge_markdown(summary):
+    """The bent tracks' ridge per input, from the chord and from the vertices."""
+    rows = summary["ridge_by_input"]
+    if not rows:
+        return []
+    lines = ["", "### Ridge of bent tracks (polylines, orbits) per input", "",
+             "| input | streaks | most vertices | worst from chord px | worst from vertices px |",
+             "|---|---|---|---|---|"]
+    lines += [f"| {name} | {e['streaks']} | {e['vertices']} | {_fmt(e['chord_px'], '.3f')} | "
+              f"{_fmt(e['vertices_px'], '.3f')} |" for name, e in rows.items()]
+    return lines
+
+
 def summary_markdown(summary):
     lines = ["### Worst values", ""] + [f"* {x}" for x in summary_lines(summary)]
+    lines += ridge_markdown(summary)
     details = []
     for key, title in (("model_truth_failures", "model vs TRUTH failing"),
                        ("ridge_failures", "ridge failing"),

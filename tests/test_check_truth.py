@@ -128,13 +128,77 @@ def test_power_law_tail_integrates_the_lsf_beyond_the_table():
     assert ct._tail_at(lsf, 20.0) == pytest.approx(exact, rel=1e-7)
 
 
-def _write(path, model, rows, shape):
+#: A bent path across a 100 x 300 image: up 10 px from (-50, 40) to (150, 50), down again to
+#: (350, 40); its chord, y = 40, is 10 px from its vertex.
+BENT = ((-50.0, 40.0), (150.0, 50.0), (350.0, 40.0))
+
+
+def _bent_streak(shape, sigma=2.0):
+    """A streak whose cross-section is a Gaussian of the distance to :data:`BENT`."""
+    ny, nx = shape
+    y, x = np.mgrid[:ny, :nx].astype(float)
+    d = np.min([ct.segment_distance(x, y, *a, *b) for a, b in zip(BENT[:-1], BENT[1:])],
+               axis=0)
+    return np.exp(-0.5 * (d / sigma) ** 2)
+
+
+def test_ridge_of_a_bent_streak_is_its_path_not_its_chord():
+    found = ct.ridge(_bent_streak((100, 300)), BENT)
+    assert found["cuts"] > 250
+    assert found["centroid_px"] < 0.02
+    # The chord runs 10 px below the vertex, measured across it (cos of the 2.86 deg slope
+    # of the pieces does not enter: the column through the vertex is vertical).
+    assert found["chord_px"] == pytest.approx(10.0, abs=0.02)
+
+
+def test_truth_paths_take_the_vertices_of_each_row():
+    rows = [{"x0": 0.0, "y0": 1.0, "x1": 4.0, "y1": 1.0}, {"x0": 5.0, "y0": 6.0, "x1": 7.0,
+                                                          "y1": 8.0}]
+    table = np.array([(0, 2, 4.0, 1.0), (0, 0, 0.0, 1.0), (0, 1, 2.0, 3.0)],
+                     dtype=[("row", "i4"), ("vertex", "i4"), ("x", "f8"), ("y", "f8")])
+    assert ct.truth_paths(rows, table) == [((0.0, 1.0), (2.0, 3.0), (4.0, 1.0)),
+                                           ((5.0, 6.0), (7.0, 8.0))]
+    assert ct.truth_paths(rows)[0] == ((0.0, 1.0), (4.0, 1.0))
+    # Inside a 5 px wide image (x from -0.5 to 4.5) both pieces, sqrt(8) each; inside a 3 px
+    # wide one the first and a quarter of the second (x from 2 to 2.5 of 2 to 4).
+    path = ct.truth_paths(rows, table)[0]
+    assert ct.path_length_inside(path, (10, 5)) == pytest.approx(2 * math.sqrt(8))
+    assert ct.path_length_inside(path, (10, 3)) == pytest.approx(1.25 * math.sqrt(8))
+
+
+def _write(path, model, rows, shape, vertices=None):
     columns = [fits.Column(name=k, format="D" if isinstance(v, float) else "J",
                            array=np.array([r[k] for r in rows]))
                for k, v in rows[0].items()]
-    fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(np.zeros(shape, np.float32), name="IMAGE"),
-                  fits.ImageHDU(model.astype(np.float32), name="STREAK_MODEL"),
-                  fits.BinTableHDU.from_columns(columns, name="TRUTH")]).writeto(path)
+    hdus = [fits.PrimaryHDU(), fits.ImageHDU(np.zeros(shape, np.float32), name="IMAGE"),
+            fits.ImageHDU(model.astype(np.float32), name="STREAK_MODEL"),
+            fits.BinTableHDU.from_columns(columns, name="TRUTH")]
+    if vertices is not None:
+        rows = [(i, k, x, y) for i, path in enumerate(vertices) for k, (x, y) in enumerate(path)]
+        hdus.append(fits.BinTableHDU(np.array(rows, dtype=[
+            ("row", "i4"), ("vertex", "i4"), ("x", "f8"), ("y", "f8")]), name="TRUTH_VERTICES"))
+    fits.HDUList(hdus).writeto(path)
+
+
+def test_check_file_measures_a_bent_streak_against_its_vertices(tmp_path):
+    """The bent streak's row has its chord as x0..y1 and its path in TRUTH_VERTICES: the
+    ridge is on the path, 10 px from the chord; the length inside the 300 px wide image is
+    along the path, 300 / cos(atan(10 / 200))."""
+    shape = (100, 300)
+    model = _bent_streak(shape)
+    row = {"satellite": 0, "x0": -50.0, "y0": 40.0, "x1": 350.0, "y1": 40.0,
+           "flux_per_px_e": 1.0, "fwhm_arcsec": 0.94, "peak_e_per_px": 1.0,
+           "pixel_scale_arcsec": 0.2, "charge_in_image_e": float(model.sum()), "n_vertices": 3}
+    _write(tmp_path / "bent.fits", model, [row], shape, vertices=[BENT])
+    rec = ct.check_file(tmp_path / "bent.fits", "s", "g", ["polyline"], "bent.fits")
+    (s,) = rec["streaks"]
+    assert rec["vertices"] and s["vertices"] == 3
+    assert s["ridge_px"] < 0.02 and s["ridge_chord_px"] == pytest.approx(10.0, abs=0.02)
+    assert s["length_in_px"] == pytest.approx(300.0 / math.cos(math.atan(0.05)))
+    summary = ct.summarise([rec], [])
+    assert summary["ridge_by_input"]["g s"]["chord_px"] == s["ridge_chord_px"]
+    assert summary["ridge_by_input"]["g s"]["vertices_px"] == s["ridge_px"]
+    assert not summary["ridge_failures"] and not summary["files_without_vertices"]
 
 
 def test_check_file_against_a_streak_of_known_charge(tmp_path):
@@ -204,6 +268,7 @@ def test_scene_kinds_and_ccd_scenes_of_the_samples():
     fields = ROOT / "sample_fields"
     assert ct.is_ccd_scene(ct.load_yaml(fields / "default.yaml"))
     assert not ct.is_ccd_scene(ct.load_yaml(fields / "focal_paper_550km.yaml"))
+    assert not ct.is_ccd_scene(ct.load_yaml(fields / "constellation_550km.yaml"))
     passing = ct.load_yaml(fields / "pass_example.yaml")
     assert ct.is_ccd_scene(passing) and ct.satellite_kinds(passing) == ["orbit"]
     assert ct.satellite_kinds(ct.load_yaml(fields / "several_streaks.yaml")) == ["straight"] * 6

@@ -63,7 +63,7 @@ def test_afw_exposure_streak_mask_variance(afw_exposure, tmp_path):
     assert main(["add-streak", str(afw_exposure), "-o", str(out), *STREAK_ARGS, "--parent",
                  "--x0", str(XY0[0] + 30.0), "--y0", str(XY0[1] + 40.0), "--seed", "3"]) == 0
     before, after = _hdu_bytes(afw_exposure), _hdu_bytes(out)
-    assert len(after) == len(before) + 2  # + TRUTH and STREAK_MODEL
+    assert len(after) == len(before) + 3  # + TRUTH, TRUTH_VERTICES and STREAK_MODEL
     for index in (0, 4, 5):  # primary and archive tables (heap included): byte for byte
         assert after[index] == before[index]
     with fits.open(afw_exposure) as old, fits.open(out) as new:

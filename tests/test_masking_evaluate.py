@@ -24,6 +24,7 @@ from inject.masking.evaluate import (
     evaluate,
     inject_masker,
     load_masker,
+    match_streaks,
     score_image,
     summarise,
 )
@@ -83,6 +84,51 @@ def test_scores_of_a_streak_of_known_cross_section():
                                                rel=1e-3)
     assert row["peak_sb"] == pytest.approx(v.max() / sigma, rel=1e-4)
     assert row["int_snr"] == pytest.approx(np.sqrt(shape[1] * (v ** 2).sum()) / sigma, rel=1e-4)
+
+
+#: A bent truth path on a 100 x 200 image: up 10 px to the middle, down again.
+BENT = {"x0": -0.5, "y0": 50.0, "x1": 199.5, "y1": 50.0, "angle_deg": 0.0, "length_px": 201.0,
+        "fwhm_arcsec": 1.2, "peak_e_per_px": 100.0,
+        "vertices": ((-0.5, 50.0), (99.5, 60.0), (199.5, 50.0))}
+
+
+def test_a_detection_is_scored_against_the_truth_path_not_its_chord():
+    """The chord of the bent path (its ends' line, where TRUTH's x0..y1 put it) is 10 px
+    below the path's middle: measured there, against the first piece (rising 10 px over
+    100), it is 1000 / hypot(100, 10) = 9.950 px to the right of the path, 5.71 deg off. A
+    line along the second piece through the middle matches it exactly."""
+    shape = (100, 200)
+    chord = {"x0": -0.5, "y0": 50.0, "x1": 199.5, "y1": 50.0}
+    matches, false = match_streaks([chord], [BENT], shape, max_angle_deg=6.0,
+                                   max_offset_px=10.0)
+    (m,) = matches
+    assert m.found_index == 0 and not false
+    assert m.offset_px == pytest.approx(-1000 / np.hypot(100, 10), rel=1e-12)
+    assert m.angle_error_deg == pytest.approx(np.degrees(np.arctan(0.1)), rel=1e-12)
+    matches, false = match_streaks([chord], [BENT], shape)  # 0.5 deg, 5 px: not this one
+    assert matches[0].found_index is None and false == [0]
+    second = {"x0": 99.5, "y0": 60.0, "x1": 199.5, "y1": 50.0}
+    (m,), _ = match_streaks([second], [BENT], shape)
+    assert m.found_index == 0 and abs(m.offset_px) < 1e-9 and m.angle_error_deg < 1e-9
+
+
+def test_the_core_of_a_bent_streak_follows_its_path():
+    """The core is the pixels within half the FWHM (3 px) of the path's pieces: a mask of the
+    pixels within 3 px of the path (by distance, computed here) covers it, one of the chord's
+    band covers under half of it; and every charged pixel belongs to the streak."""
+    from inject import SceneResult
+    shape = (100, 200)
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    rise = np.where(xx <= 99.5, (xx + 0.5) / 10.0, (199.5 - xx) / 10.0)
+    across = np.abs(yy - 50.0 - rise) * np.cos(np.arctan(0.1))  # distance to the path
+    model = np.exp(-0.5 * (across / 2.0) ** 2)
+    sim = SceneResult(image=model, mask=np.zeros(shape, np.int32), variance=model,
+                      streak_model=model, truth=[BENT], sky_level=0.0, noise_sigma=0.01)
+    image, (row,) = score_image(sim, MaskerOutput(across <= 3.0 + 1e-9))
+    assert row["core_cover"] == 1.0 and row["found"]
+    chord_band = np.abs(yy - 50.0) <= 3.0
+    _, (row,) = score_image(sim, MaskerOutput(chord_band))
+    assert row["core_cover"] < 0.5 and not row["found"]
 
 
 def test_empty_and_misplaced_masks(bright):

@@ -164,8 +164,8 @@ def test_streak_free_model_is_not_allocated_and_reads_back_as_zeros(tmp_path, sm
     digest = write_exposure(path, sc, res, sc.detector.gain)
     assert digest == hashlib.sha256(path.read_bytes()).hexdigest()
     with fits.open(path) as hdus:
-        assert [h.name for h in hdus][1:6] == ["IMAGE", "MASK", "VARIANCE", "STREAK_MODEL",
-                                               "TRUTH"]
+        assert [h.name for h in hdus][1:7] == ["IMAGE", "MASK", "VARIANCE", "STREAK_MODEL",
+                                               "TRUTH", "TRUTH_VERTICES"]
         model = hdus["STREAK_MODEL"]
         assert type(model) is fits.ImageHDU and model.header["BITPIX"] == -32
         assert model.data.shape == sc.detector.shape and not model.data.any()
@@ -198,7 +198,8 @@ def test_streamed_planes_give_the_bytes_of_astropys_write(tmp_path, overrides):
         copy["STREAK_MODEL"].data = np.array(res.streak_model, np.float32)
         copy["IMAGE"].data = np.array(res.image, np.float32)
         copy.writeto(dense)
-    assert names[1:6] == ["IMAGE", "MASK", "VARIANCE", "STREAK_MODEL", "TRUTH"]
+    assert names[1:7] == ["IMAGE", "MASK", "VARIANCE", "STREAK_MODEL", "TRUTH",
+                          "TRUTH_VERTICES"]
     assert ("RAW" in names) == ("detector.layout=raw" in overrides)
     assert streamed.read_bytes() == dense.read_bytes()
 

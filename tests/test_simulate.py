@@ -34,7 +34,7 @@ def test_streak_only_scene(scene_file, tmp_path):
     assert main(["simulate", str(scene_file), "-o", str(out)]) == 0
     with fits.open(out) as hdus:
         assert [h.name for h in hdus] == ["PRIMARY", "IMAGE", "MASK", "VARIANCE",
-                                          "STREAK_MODEL", "TRUTH"]
+                                          "STREAK_MODEL", "TRUTH", "TRUTH_VERTICES"]
         image, model = hdus["IMAGE"].data, hdus["STREAK_MODEL"].data
         assert image.dtype.newbyteorder("=") == np.float32 and image.shape == (300, 400)
         np.testing.assert_array_equal(image, model)  # no sky, stars or noise: model alone

@@ -133,7 +133,7 @@ def test_the_compressed_files_read_back_in_astropy_with_their_cut_out_origin(ren
         box = json.loads((folder / f"{name}.mask.json").read_text())["box"]
         with fits.open(path) as hdus:
             assert [h.name for h in hdus] == ["PRIMARY", "IMAGE", "MASK", "VARIANCE",
-                                              "STREAK_MODEL", "TRUTH"]
+                                              "STREAK_MODEL", "TRUTH", "TRUTH_VERTICES"]
             assert all(isinstance(hdus[k], fits.CompImageHDU) for k in range(1, 5))
             image = hdus["IMAGE"]
             assert image.data.shape == (CUTOUT, CUTOUT)

@@ -20,7 +20,9 @@ def add_simulate_parser(sub):
     p.add_argument("--png", metavar="OUT.png",
                    help="also write a quicklook picture: PNG, or the format its extension "
                         "names (.jpg, .pdf, .svg, ...)")
-    p.add_argument("--truth", metavar="OUT.csv", help="also write the truth table as CSV")
+    p.add_argument("--truth", metavar="OUT.csv",
+                   help="also write the truth table as CSV, and its tracks' vertices beside it "
+                        "(OUT_vertices.csv)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     # default=[]: without it argparse lists this optional positional as "required".
     p.add_argument("overrides", nargs="*", default=[], metavar="key.path=value",
@@ -48,6 +50,10 @@ def run_simulate(args):
     outputs = {option: path for option, path in (("-o", args.output), ("--exr", args.exr),
                                                  ("--png", args.png), ("--truth", args.truth))
                if path}
+    if args.truth:
+        from inject.io.fits import vertices_csv_path
+
+        outputs["--truth (vertices)"] = vertices_csv_path(args.truth)
     for option, path in outputs.items():
         if os.path.exists(path) and os.path.samefile(path, args.scene):
             raise InputError(option, path, "would replace the scene file")

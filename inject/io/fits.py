@@ -1,5 +1,5 @@
-"""FITS output in LSST afw's MaskedImage layout: IMAGE, MASK, VARIANCE, then STREAK_MODEL and
-TRUTH (and RAW).
+"""FITS output in LSST afw's MaskedImage layout: IMAGE, MASK, VARIANCE, then STREAK_MODEL,
+TRUTH and TRUTH_VERTICES (and RAW).
 
 HDUs 1-3 follow what afw writes (``MaskedImage::writeFits``, ``ExposureInfo::_startWriteFits``,
 ``Fits::writeImage``) so that afw and LSST's pure-Python ``lsst-images`` read the file as a
@@ -22,7 +22,7 @@ import inject
 from inject.errors import OutputError
 from inject.io.atomic import atomic_path
 from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, mask_header
-from inject.truth import TRUTH_COLUMNS, complete
+from inject.truth import TRUTH_COLUMNS, VERTEX_COLUMNS, complete, vertex_records
 
 #: Extension types of afw's MaskedImage HDUs 1-3, in that order.
 MASKED_IMAGE_TYPES = ("IMAGE", "MASK", "VARIANCE")
@@ -164,22 +164,71 @@ def plane_header(exttype, xy0=(0, 0), wcs_header=None):
     return hdr
 
 
+def _table(records, spec, name):
+    """A binary-table HDU of ``records`` with the columns of ``spec`` (name -> (dtype, unit,
+    description)), in their order and types, with their units, whether there are records or
+    not."""
+    # TUNITn for the units FITS knows; "electron" is none of them (readers would warn), so
+    # the charge columns say it in their names (``_e``).
+    columns = [fits.Column(name=column, format={"i4": "J", "f8": "D"}[dtype],
+                           unit=unit if unit and unit != "electron" else None,
+                           array=np.array([r[column] for r in records], dtype=dtype))
+               for column, (dtype, unit, _) in spec.items()]
+    return fits.BinTableHDU.from_columns(columns, name=name)
+
+
 def truth_table(rows):
     """The TRUTH binary-table HDU: the columns of :data:`inject.truth.TRUTH_COLUMNS`, in their
     order and types, with their units, whether there are rows or not."""
-    rows = complete(rows)
-    # TUNITn for the units FITS knows; "electron" is none of them (readers would warn), so
-    # the charge columns say it in their names (``_e``).
-    columns = [fits.Column(name=name, format={"i4": "J", "f8": "D"}[dtype],
-                           unit=unit if unit and unit != "electron" else None,
-                           array=np.array([row[name] for row in rows], dtype=dtype))
-               for name, (dtype, unit, _) in TRUTH_COLUMNS.items()]
-    hdu = fits.BinTableHDU.from_columns(columns, name="TRUTH")
+    hdu = _table(complete(rows), TRUTH_COLUMNS, "TRUTH")
     hdu.header["INJVER"] = version_card()  # also in the files add-streak writes into
     hdu.header["FLAG_OFF"] = (FLAG_OFF_IMAGE, "flag bit: track misses the image")
     hdu.header["FLAG_CLP"] = (FLAG_CLIPPED, "flag bit: part of the streak is off the image")
     hdu.header["FLAG_SAT"] = (FLAG_SATURATED, "flag bit: streak saturates")
     return hdu
+
+
+def vertices_table(rows):
+    """The TRUTH_VERTICES binary-table HDU of TRUTH rows: the columns of
+    :data:`inject.truth.VERTEX_COLUMNS`, one record per vertex of each row's part of its track
+    (:func:`inject.truth.vertex_records`), whether there are rows or not."""
+    hdu = _table(vertex_records(rows), VERTEX_COLUMNS, "TRUTH_VERTICES")
+    hdu.header["INJVER"] = version_card()
+    return hdu
+
+
+def read_truth(source):
+    """The TRUTH rows of a FITS file, each with its ``vertices`` from TRUTH_VERTICES.
+
+    Parameters
+    ----------
+    source : str, os.PathLike or astropy.io.fits.HDUList
+        The file, or its HDUs.
+
+    Returns
+    -------
+    list of dict
+        One per TRUTH row, its columns as Python numbers, and ``vertices``: ``((x, y), ...)``
+        in order along the part, or the row's ends ``(x0, y0), (x1, y1)`` when the file has
+        no TRUTH_VERTICES (written before it existed); empty without a TRUTH table.
+    """
+    if not isinstance(source, fits.HDUList):
+        with fits.open(source) as hdus:
+            return read_truth(hdus)
+    names = [hdu.name for hdu in source]
+    if "TRUTH" not in names:
+        return []
+    table = Table(source["TRUTH"].data)
+    rows = [{k: row[k].item() if hasattr(row[k], "item") else row[k] for k in table.colnames}
+            for row in table]
+    if "TRUTH_VERTICES" in names:
+        points = Table(source["TRUTH_VERTICES"].data)
+        for i, row in enumerate(rows):
+            mine = points[points["row"] == i]
+            mine = mine[np.argsort(mine["vertex"], kind="stable")]
+            if len(mine):
+                row["vertices"] = tuple(zip(mine["x"].tolist(), mine["y"].tolist()))
+    return rows
 
 
 def raw_header(sections, bias):
@@ -197,11 +246,20 @@ def raw_header(sections, bias):
     return hdr
 
 
+def vertices_csv_path(path):
+    """Where :func:`write_truth_csv` writes the vertices beside the truth CSV ``path``:
+    ``_vertices`` before its extension (``truth.csv`` -> ``truth_vertices.csv``)."""
+    stem, ext = os.path.splitext(os.fspath(path))
+    return f"{stem}_vertices{ext}"
+
+
 def write_truth_csv(path, rows, overwrite=False):
-    """The truth table as CSV (one row per streak), written atomically."""
-    table = Table(truth_table(rows).data)
-    with atomic_path(path, overwrite) as tmp:
-        table.write(tmp, format="ascii.csv", overwrite=True)
+    """The truth table as CSV (one row per streak) at ``path``, and its TRUTH_VERTICES as CSV
+    at :func:`vertices_csv_path`, each written atomically."""
+    for target, hdu in ((path, truth_table(rows)), (vertices_csv_path(path),
+                                                    vertices_table(rows))):
+        with atomic_path(target, overwrite) as tmp:
+            Table(hdu.data).write(tmp, format="ascii.csv", overwrite=True)
 
 
 class _DigestStream:
@@ -279,7 +337,7 @@ def _write_hdus(stream, hdus, planes):
     Headers are astropy's (verified, ``EXTEND`` set, BITPIX and NAXISn from the data);
     ``planes`` maps the index of an image HDU to the array whose data it holds (the HDU
     itself holds a :func:`_stand_in`), streamed by :func:`_write_image_data`. Other HDUs
-    with data (the TRUTH table) are small: astropy writes them after an empty primary HDU,
+    with data (the TRUTH tables) are small: astropy writes them after an empty primary HDU,
     whose block is dropped.
     """
     hdus.verify("exception")
@@ -381,6 +439,7 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
     hdus.extend(fits.ImageHDU(_stand_in(a, dtype), header=h, name=n) for a, dtype, h, n in planes)
     hdus["STREAK_MODEL"].header["BUNIT"] = "electron"
     hdus.append(truth_table(result.truth))
+    hdus.append(vertices_table(result.truth))
     data = {k + 1: plane[0] for k, plane in enumerate(planes)}
     if result.raw is not None:
         data[len(hdus)] = result.raw

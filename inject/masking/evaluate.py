@@ -18,30 +18,82 @@ from inject.errors import InjectError, InputError
 from inject.masking import MaskerOutput, MaskingError, external
 from inject.masking.geometry import Line, angle_difference, band_pixels
 from inject.masking.run import analyse
-from inject.trajectory import Segment
+from inject.trajectory import clip_segment, path_distance
+from inject.truth import vertices
+
+
+def truth_path(row, shape):
+    """The pieces of a TRUTH row's path (:func:`inject.truth.vertices`) inside an image of
+    ``shape``, in order along the track.
+
+    Returns
+    -------
+    list of Line
+        Each piece between two vertices clipped to the image's pixel area; empty when the path
+        misses the image.
+    """
+    ny, nx = shape
+    pieces = []
+    points = vertices(row)
+    for (ax, ay), (bx, by) in zip(points[:-1], points[1:]):
+        part = clip_segment(ax, ay, bx, by, (-0.5, nx - 0.5), (-0.5, ny - 0.5))
+        if part is not None and part[:2] != part[2:]:
+            pieces.append(Line(*part))
+    return pieces
 
 
 def truth_line(row, shape):
-    """The part of a TRUTH row's track inside an image of ``shape``, or None if it misses.
-
-    The row's ``x0, y0`` and ``angle_deg`` start the track and ``length_px`` bounds it (a
-    crossing track's row already runs from edge to edge, beyond the image).
-    """
-    seg = Segment(row["x0"], row["y0"], row["angle_deg"], row["length_px"])
-    clipped = seg.clip(shape)
-    if clipped is None:
+    """The straight line from where a TRUTH row's path enters an image of ``shape`` to where
+    it last leaves it (for a bent track, its chord: :func:`truth_path` has its pieces), or
+    None if it misses."""
+    pieces = truth_path(row, shape)
+    if not pieces:
         return None
-    c, s = seg.direction
-    t0, t1 = clipped
-    return Line(seg.x0 + t0 * c, seg.y0 + t0 * s, seg.x0 + t1 * c, seg.y0 + t1 * s)
+    return Line(pieces[0].x0, pieces[0].y0, pieces[-1].x1, pieces[-1].y1)
+
+
+def _middle(pieces):
+    """The point halfway along a path's pieces (by length)."""
+    lengths = np.array([piece.length for piece in pieces])
+    k = min(int(np.searchsorted(np.cumsum(lengths), 0.5 * lengths.sum())), len(pieces) - 1)
+    rest = 0.5 * lengths.sum() - lengths[:k].sum()
+    (ux, uy), piece = pieces[k].direction, pieces[k]
+    return piece.x0 + rest * ux, piece.y0 + rest * uy
+
+
+def path_offset(line, pieces, at):
+    """A straight line's offset from a path, and the path's piece it is measured against.
+
+    The point of ``line`` nearest ``at`` is taken to the nearest point of the path: the
+    distance between them, signed as the side of that piece it lies on (positive on its left,
+    as :meth:`Line.coordinates`). At a vertex, of the two pieces as near, the one closer to
+    ``line``'s direction.
+
+    Returns
+    -------
+    offset : float
+        Pixels.
+    piece : Line
+        The nearest piece.
+    """
+    t, _ = line.coordinates(*at)
+    cx, cy = line.centre
+    ux, uy = line.direction
+    x, y = cx + t * ux, cy + t * uy
+    distance = [float(path_distance(((p.x0, p.y0), (p.x1, p.y1)), x, y)) for p in pieces]
+    k = min(range(len(pieces)), key=lambda i: (
+        round(distance[i], 9), angle_difference(line.angle_deg, pieces[i].angle_deg)))
+    side = pieces[k].coordinates(x, y)[1]
+    return float(np.copysign(distance[k], side)), pieces[k]
 
 
 @dataclass
 class Match:
     """A truth streak and the detection matched to it (None if missed).
 
-    ``angle_error_deg`` and ``offset_px`` (cross-track distance of the detected line from the
-    true one at the centre of the true streak's part in the image) are NaN when missed.
+    ``angle_error_deg`` and ``offset_px`` (:func:`path_offset`: the distance of the detected
+    line from the true path, taken from the middle of the path's part in the image, and the
+    angle to the path's piece there) are NaN when missed.
     """
 
     truth_index: int
@@ -53,7 +105,9 @@ class Match:
 def match_streaks(found, truth, shape, max_angle_deg=0.5, max_offset_px=5.0):
     """Match detected streaks (dicts with ``x0, y0, x1, y1``) to TRUTH rows, one to one.
 
-    Each truth streak, in order, takes the closest unused detection within the tolerances.
+    Each truth streak, in order, takes the closest unused detection within the tolerances: the
+    angle to the truth's path and the offset from it (:func:`path_offset`), both where the
+    detection passes the middle of the path's part in the image.
 
     Returns
     -------
@@ -65,15 +119,16 @@ def match_streaks(found, truth, shape, max_angle_deg=0.5, max_offset_px=5.0):
     lines = [Line(s["x0"], s["y0"], s["x1"], s["y1"]) for s in found]
     used, matches = set(), []
     for i, row in enumerate(truth):
-        true = truth_line(row, shape)
-        if true is None:
+        pieces = truth_path(row, shape)
+        if not pieces:
             continue
+        middle = _middle(pieces)
         best = None
         for j, line in enumerate(lines):
             if j in used:
                 continue
-            da = angle_difference(line.angle_deg, true.angle_deg)
-            off = line.offset_from(true, at=true.centre)
+            off, piece = path_offset(line, pieces, middle)
+            da = angle_difference(line.angle_deg, piece.angle_deg)
             if da <= max_angle_deg and abs(off) <= max_offset_px:
                 if best is None or abs(off) < abs(best[2]):
                     best = (j, da, off)
@@ -191,18 +246,11 @@ def load_masker(spec):
     return Masker(func, spec)
 
 
-def _distance_to(line, xx, yy):
-    """Distance of points from a line segment's infinite line, and whether they lie within
-    its extent along it."""
-    t, d = line.coordinates(xx, yy)
-    return np.abs(d), np.abs(t) <= 0.5 * line.length
-
-
 def streak_regions(streak_model, truth, shape, pixel_scale=0.2):
     """Which truth streak each pixel of a streak-model image belongs to, and each one's core.
 
-    Pixels with charge go to the nearest truth line (exact for one streak; for crossing
-    streaks the charge near the crossing is shared out by distance).
+    Pixels with charge go to the nearest truth path (:func:`inject.truth.vertices`; exact for
+    one streak; for crossing streaks the charge near the crossing is shared out by distance).
 
     Returns
     -------
@@ -210,22 +258,25 @@ def streak_regions(streak_model, truth, shape, pixel_scale=0.2):
         Index of the truth row owning each pixel, -1 for none (no charge, or a row whose track
         misses the image).
     cores : dict
-        ``{row index: (yy, xx)}`` pixels within half the true FWHM of the line, inside its
-        extent.
+        ``{row index: (yy, xx)}`` pixels within half the true FWHM of the path's pieces in the
+        image, each once.
     """
     owner = np.full(shape, -1, dtype=np.int32)
-    lines = {i: truth_line(row, shape) for i, row in enumerate(truth)}
-    lines = {i: line for i, line in lines.items() if line is not None}
+    paths = {i: truth_path(row, shape) for i, row in enumerate(truth)}
     yy, xx = np.nonzero(streak_model > 0)
     best = np.full(yy.size, np.inf)
     cores = {}
-    for i, line in lines.items():
-        d, inside = _distance_to(line, xx, yy)
+    for i, pieces in paths.items():
+        if not pieces:
+            continue
+        d = path_distance(vertices(truth[i]), xx, yy)
         closer = d < best
         owner[yy[closer], xx[closer]] = i
         best[closer] = d[closer]
         half = max(0.5, 0.5 * truth[i]["fwhm_arcsec"] / pixel_scale)
-        cores[i] = band_pixels(shape, line, half)
+        flat = np.unique(np.concatenate([np.ravel_multi_index(band_pixels(shape, piece, half),
+                                                              shape) for piece in pieces]))
+        cores[i] = np.unravel_index(flat, shape)
     return owner, cores
 
 
