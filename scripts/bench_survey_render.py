@@ -3,8 +3,8 @@ measured, throughput on a process pool and on a Dask LocalCluster, and the CCD f
 compression.
 
 For each constellation: the night is planned once (``inject survey``); its streaked visits go
-to a smaller database (the constellation's epoch pinned to the night's first visit, so the
-plan of the sample is the night's), which is rendered with ``--render --cutouts`` on a
+to a smaller database (the constellation files state their shells' epoch, so the plan of the
+sample is the night's), which is rendered with ``--render --cutouts`` on a
 process pool and again on a Dask LocalCluster (``--scheduler local``), both with
 ``--workers``. It prints, per streak, the planned and measured FWHM, mask width and pixels
 (on the rendered cut-outs), the medians of their ratios, and the CCDs per second of each
@@ -59,15 +59,6 @@ def survey(*argv):
 def read_csv(path):
     with open(path, newline="") as stream:
         return list(csv.DictReader(stream))
-
-
-def pinned(constellation, epoch, folder):
-    """A copy of a constellation file with ``epoch`` set (shells only: a relative ``tle``
-    path would not follow it)."""
-    text = Path(constellation).read_text()
-    path = Path(folder) / Path(constellation).name
-    path.write_text(text + f"\nepoch: {epoch}\n")
-    return path
 
 
 def sample_database(db, ids, path):
@@ -305,15 +296,13 @@ def main():
         paired(args.visits, ROOT / args.constellations[0], args.paired, args.cutout,
                "lossless", args.rounds, work / "paired")
         return
-    from inject.survey.visits import read_visits
 
-    epoch = read_visits(args.visits)[0].start.utc.isot
     print(f"{args.visits}; --workers {args.workers}, cut-outs {args.cutout} px; in {work}")
     for constellation in args.constellations:
         name = Path(constellation).stem
         folder = work / name
         folder.mkdir(exist_ok=True)
-        const = pinned(ROOT / constellation, epoch, folder)
+        const = ROOT / constellation
         plan_dir = folder / "plan"
         if not (plan_dir / "streaks.csv").exists():
             survey(args.visits, "-o", plan_dir, "--constellation", const, "--no-plots")

@@ -326,9 +326,7 @@ MUTATIONS = [
 # --- the survey and the optics -------------------------------------------------------------
 # These bugs exist only in the package in folders (``flat`` is None). Their tests are picked
 # by globs (TESTS["survey"], TESTS["optics"]), so test files added later are run too. The
-# anchors are formulas and constants; those in inject/survey/render.py (the rendered CCDs'
-# time card, the cut-out box's clipping) sit in code that is moving to inject/exposure/ and
-# may need their ``path`` updated (``--check`` says so).
+# anchors are formulas and constants (``--check`` says when one no longer applies).
 
 def _survey(name, area, path, old, new, audit=False):
     """A mutation of the survey or the optics: one patch, the area's own test group."""
@@ -340,7 +338,8 @@ _OUT = "inject/survey/outputs.py"
 _VISITS = "inject/survey/visits.py"
 _PRE = "inject/survey/prefilter.py"
 _CONST = "inject/survey/constellation.py"
-_RENDER = "inject/survey/render.py"  # moving to inject/exposure/: anchors may need moving
+_RENDER = "inject/survey/render.py"
+_COMPARE = "inject/survey/compare.py"
 _CLI = "inject/cli/survey.py"
 _OPTICS = "inject/optics.py"
 
@@ -363,7 +362,7 @@ SURVEY_MUTATIONS = [
             "hours = night_hours([p.visit for p in plans], site_lon_deg)\n    counts",
             "hours = night_hours([p.visit for p in plans], -site_lon_deg)\n    counts",
             audit=True),
-    _survey("cut-out box's row clipping off by one", "survey", _RENDER,
+    _survey("cut-out box's row clipping off by one", "survey", _COMPARE,
             "keep = (rows >= y0) & (rows < y0 + ny)",
             "keep = (rows >= y0) & (rows <= y0 + ny)", audit=True),
     # --- visits ---------------------------------------------------------------------------------

@@ -269,7 +269,7 @@ def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, re
              "plan_seconds_per_visit": round(elapsed / len(visits), 4)}
     measured = None
     if rendered is not None:
-        from inject.survey.render import measured_columns, render_summary
+        from inject.survey.compare import measured_columns, render_summary
 
         measured = measured_columns(plans, rendered.measured)
         about["render"] = render_summary(plans, measured, rendered, _render_options(args))

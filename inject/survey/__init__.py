@@ -9,7 +9,9 @@
 - :mod:`~inject.survey.plan`: per visit, the sunlit crossings of the science CCDs, each with its
   length, magnitude, FWHM, peak surface brightness, mask width and the pixels its mask takes.
 - :mod:`~inject.survey.render`: ``--render``: the streaked CCDs of each visit rendered as a
-  focal-plane scene of the visit, masked, and the measurements matched to the plan.
+  focal-plane scene of the visit on the focal plane's runner.
+- :mod:`~inject.survey.compare`: what the masker measures on a rendered CCD, matched to the
+  planned tracks, and the ``measured_*`` columns of ``streaks.csv``.
 - :mod:`~inject.survey.outputs`: ``streaks.csv``, ``visits.csv``, ``summary.json`` and the
   plots, written together (:func:`inject.io.atomic.output_group`).
 

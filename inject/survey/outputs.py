@@ -138,7 +138,7 @@ def write_outputs(paths, plans, summary_map, overwrite=False, plots=True, measur
     rows = [row for p in plans for row in p.streak_rows()]
     fields = STREAK_FIELDS
     if measured is not None:
-        from inject.survey.render import MEASURED_FIELDS as extra
+        from inject.survey.compare import MEASURED_FIELDS as extra
 
         fields = STREAK_FIELDS + extra
         rows = [{**row, **dict.fromkeys(extra),

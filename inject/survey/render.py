@@ -37,9 +37,6 @@ import numpy as np
 from inject import __version__
 from inject.errors import OrbitWarning
 
-# streaks.csv's measured columns and summary.json's render block, by their usual names.
-from inject.survey.compare import MEASURED_FIELDS, measured_columns, render_summary  # noqa: F401
-
 #: Side of a cut-out (px) by default.
 DEFAULT_CUTOUT_PX = 1024
 #: Folder of the visits' CCD files in OUTDIR.
