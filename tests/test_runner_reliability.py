@@ -544,3 +544,40 @@ def test_a_run_of_another_inject_version_is_not_resumed_without_overwrite(tmp_pa
     assert [r["detector"] for r in result.rendered] == ["R22_S12"]
     assert runner.read_manifest(out)["R22_S12"]["inject_version"] == \
         inject.__version__ + ".post1"
+
+
+class _WorkerOfAnotherVersion:
+    """An executor whose tasks run where inject's version reads otherwise than in the caller
+    (a commit during a run in a checkout, or midnight on a dirty tree)."""
+
+    def __init__(self, version):
+        self.version = version
+        self.pool = ThreadPoolExecutor(1)
+
+    def submit(self, function, *args):
+        def elsewhere():
+            saved = runner.__version__
+            runner.__version__ = self.version
+            try:
+                return function(*args)
+            finally:
+                runner.__version__ = saved
+        return self.pool.submit(elsewhere)
+
+    def shutdown(self, *args, **kwargs):
+        self.pool.shutdown(*args, **kwargs)
+
+
+def test_a_worker_records_and_claims_with_the_runs_version(tmp_path):
+    """A worker whose own version differs from the run's writes the run's version and is not
+    stopped as another run. Before: each CCD came back 'claimed' and the run stopped."""
+    import inject
+
+    out = str(tmp_path)
+    executor = _WorkerOfAnotherVersion(inject.__version__ + ".d20991231")
+    try:
+        result = runner.run(make_plan(X), out, executor, ccds=[fp.ccd("R22_S12")])
+    finally:
+        executor.shutdown()
+    assert [r["detector"] for r in result.rendered] == ["R22_S12"]
+    assert runner.read_manifest(out)["R22_S12"]["inject_version"] == inject.__version__

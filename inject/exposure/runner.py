@@ -117,6 +117,10 @@ class Task:
         what it returns comes back as the result's ``measured``.
     planned : object
         What ``measure`` needs from the caller.
+    version : str or None
+        The inject version of the run (the caller's, read once): the worker records it and
+        claims with it. A checkout's version follows its commits and, on a dirty tree, the
+        date, so a worker reading its own could call its run's rows another version's.
     """
 
     fscene: object
@@ -128,6 +132,7 @@ class Task:
     compression: str | None = None
     measure: object = None
     planned: object = None
+    version: str | None = None
 
 
 def render_ccd(task):
@@ -169,7 +174,8 @@ def render_ccd(task):
         row = {"detector": ccd.name, "id": ccd.id, "vendor": ccd.vendor,
                "file": os.path.basename(path), "sha256": digest, "streaks": len(streaks),
                "seconds": round(end - start, 3), "status": "done",
-               "scene_sha256": task.fscene.digest, "inject_version": __version__, "error": ""}
+               "scene_sha256": task.fscene.digest,
+               "inject_version": task.version or __version__, "error": ""}
         claimed = commit(task.outdir, row, part if task.keep else None)
     finally:
         with contextlib.suppress(FileNotFoundError):
@@ -200,7 +206,7 @@ def commit(outdir, row, part=None):
     with deferred(), _manifest_lock(outdir):
         rows = read_manifest(outdir)
         try:
-            check_claim(outdir, rows, row["scene_sha256"])
+            check_claim(outdir, rows, row["scene_sha256"], row["inject_version"])
         except OutputError as err:
             return str(err)
         if part is not None:
@@ -345,35 +351,37 @@ def update_manifest(outdir, new_rows, digest=None):
         _write_manifest(outdir, rows)
 
 
-def _other_scenes(rows, digest):
+def _other_scenes(rows, digest, version=None):
     """``{(digest, version): [row, ...]}`` of the manifest rows of another run: of another
-    scene, or made by another inject version (its files may differ from this one's)."""
+    scene, or made by another inject version than ``version`` (default this process's: its
+    files may differ from this one's)."""
     out = {}
     for row in rows.values():
         theirs = (row.get("scene_sha256") or "?", row.get("inject_version") or "?")
-        if theirs != (digest, __version__):
+        if theirs != (digest, version or __version__):
             out.setdefault(theirs, []).append(row)
     return out
 
 
-def _describe(other, rows):
+def _describe(other, rows, mine=None):
     counts = {}
     for row in rows:
         counts[row.get("status") or "?"] = counts.get(row.get("status") or "?", 0) + 1
     states = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
     digest, version = other
-    by = f" by inject {version}" if version != __version__ else ""
+    by = f" by inject {version}" if version != (mine or __version__) else ""
     return f"the run of scene {digest[:12]}{by} ({states})"
 
 
-def check_claim(outdir, rows, digest):
+def check_claim(outdir, rows, digest, version=None):
     """Raise :class:`~inject.errors.OutputError` if the manifest ``rows`` hold another run's
     rows: another run took the directory after this one began (the runner removed or refused
-    any other run's rows at its start). Call it under the manifest's lock."""
-    others = _other_scenes(rows, digest)
+    any other run's rows at its start). ``version``: the run's (default this process's). Call
+    it under the manifest's lock."""
+    others = _other_scenes(rows, digest, version)
     if others:
         other, theirs = next(iter(others.items()))
-        raise OutputError(f"{outdir}: {_describe(other, theirs)} has taken this directory "
+        raise OutputError(f"{outdir}: {_describe(other, theirs, version)} has taken this directory "
                           f"since this run began; this run stopped and left that run's files "
                           f"as they are")
 
@@ -668,7 +676,8 @@ class Batch:
 
         streaks = tuple(plan.streaks(ccd))
         box = None if self.cutout is None else cutout_box(ccd, streaks, self.cutout)
-        return Task(plan.fscene, ccd.name, self.outdir, streaks, box=box, **self.task)
+        return Task(plan.fscene, ccd.name, self.outdir, streaks, box=box, version=__version__,
+                    **self.task)
 
 
 def _claim(batch, overwrite):
