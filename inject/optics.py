@@ -13,16 +13,17 @@ The model is batoid's baffled telescope (``LSST_r_baffles.yaml``: the centre cap
 vanes, the top-end-assembly, M1, M2 and M1/M3 baffles) with the camera (L1, L2, filter, L3,
 detector) of the band's own model (``LSST_{band}.yaml``), in vacuum as the band's model is;
 both files ship with batoid, nothing is downloaded. The telescope is focused at infinity (the
-design's detector position). The spider vanes' orientation is that of the model's frame: the
-camera rotator and the telescope's rotation about its axis are not followed.
+design's detector position) unless a focus offset moves the detector. The spider vanes'
+orientation is that of the model's frame: the camera rotator and the telescope's rotation about
+its axis are not followed.
 
 Geometric optics only: each ray lands where the optics send it (no diffraction; at 0.2" pixels
 and seeing of 0.5" and more, diffraction's ~0.01" is far below the scales here). The kernel is
 integrated over the band: the camera's focus moves with wavelength, and a defocused ring
 magnifies it (in g at 1294 km the streak's FWHM with seeing goes from 1.70" at 420 nm to 1.32"
-at 540 nm). The rays are split among :data:`N_WAVELENGTHS` wavelengths at equal-weight
-quantiles of the photons the detector counts from the satellite (:func:`band_wavelengths`:
-the band's throughput times the Sun's spectrum).
+at 540 nm). The rays are split among :data:`N_WAVELENGTHS` wavelengths, slices of equal
+photons of what the detector counts from the satellite (:func:`band_wavelengths`: the band's
+throughput times the Sun's spectrum).
 """
 import copy
 import functools
@@ -269,11 +270,12 @@ class TracedKernel:
         plateau, arcsec: the traced counterparts of the annulus's ``R_i / r`` and ``R_o / r``
         (NaN when the kernel has no hole, at very large range).
     transmitted : float
-        Light reaching the detector relative to a star at the same field position (the flat
-        field divides the star's vignetting out, so this is what the image keeps).
+        Light reaching the detector relative to a star of the same spectrum at the same field
+        position (the flat field divides the star's vignetting out, so this is what the image
+        keeps); each wavelength's own, weighted by its photons.
     star_throughput : float
-        The star's rays reaching the detector over those entering M1's clear annulus (what the
-        spider vanes, baffles and vignetting take).
+        The star's light reaching the detector over that entering M1's clear annulus (what the
+        spider vanes, baffles and vignetting take), over the wavelengths traced.
     band : str
     range_km : float
     field_angle_deg, field_position_angle_deg : float
