@@ -16,7 +16,7 @@ from inject.camera.detector import DETECTORS, Detector, detector_from_spec
 from inject.camera.wcs import Pointing
 from inject.errors import InjectError, InputError, SceneError
 from inject.instrument import LSST
-from inject.optics import FIELD_MAX_DEG, FOCUS_MAX_UM
+from inject.optics import FIELD_MAX_DEG, check_focus_offset
 from inject.photometry import band, electron_rate, sky_per_pixel
 from inject.satellite import Shape, shape_from_dict
 from inject.schema import check_keys, number, ranged
@@ -286,15 +286,16 @@ def parse_focus_offset(value, pupil="rubin"):
     Raises
     ------
     SceneError
-        Not a number, beyond :data:`inject.optics.FOCUS_MAX_UM`, or not 0 with a ``pupil``
+        Not a number, beyond :data:`inject.optics.FOCUS_MAX_UM` micron, or not 0 with a ``pupil``
         other than ``rubin`` (the annulus is the design's focus).
     """
     if value is None:
         return 0.0
     focus = number("focus_offset_um", value)
-    if not abs(focus) <= FOCUS_MAX_UM:
-        raise SceneError(f"focus_offset_um={focus}: must be within [-{FOCUS_MAX_UM:g}, "
-                         f"{FOCUS_MAX_UM:g}] micron")
+    try:
+        check_focus_offset(focus)
+    except InjectError as err:
+        raise SceneError(str(err)) from None
     if focus and pupil != "rubin":
         raise SceneError(f"focus_offset_um={focus}: only with pupil: rubin (pupil: {pupil} is "
                          "the design's focus)")

@@ -485,8 +485,9 @@ def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=
     the sky through the local Jacobian of the star's centroid with field angle (plate scale and
     distortion at that field position) and measured from the centroid of a star of the same
     spectrum, so the kernel says how the point's image differs from a star's, not where the
-    star is. The Jacobian is taken at the photon-weighted mean wavelength: over a band it
-    changes by less than 1e-4 (the plate scale's colour), against the kernel's percent.
+    star is. The Jacobian is taken at the photon-weighted mean wavelength: across a band it
+    changes by less than 1e-5 to 1.5 deg (3e-4 at 2 deg, where the baffles clip the star),
+    against the kernel's percent.
     """
     check_band(band)
     range_km = positive("range_km", range_km, scalar=True)
