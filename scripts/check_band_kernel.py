@@ -230,21 +230,19 @@ def check(bands, n_ref, rays):
 def timing(band, baseline, repeat=3):
     """Seconds to trace one grid kernel (550 km, zenith 70, on axis and at 1.5 deg): one
     wavelength and the band, and an earlier optics module, alternated."""
-    spec = importlib.util.spec_from_file_location("baseline_optics", baseline) if baseline else None
-    old = None
-    if spec:
+    r_km = float(slant_range(550.0, ZENITH_DEG))
+
+    def trace(module=None, **kw):
+        return lambda f: (module or sys.modules[__name__]).traced_kernel(
+            band, r_km, f, VANE_OFFSET_DEG, n_rays=GRID_RAYS, **kw)
+
+    runs = {"one wavelength": trace(wavelength_nm=BAND_WAVELENGTH_NM[band]),
+            f"{N_WAVELENGTHS} wavelengths": trace()}
+    if baseline:
+        spec = importlib.util.spec_from_file_location("baseline_optics", baseline)
         old = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(old)
-    r_km = float(slant_range(550.0, ZENITH_DEG))
-    runs = {"one wavelength": lambda f: traced_kernel(band, r_km, f, VANE_OFFSET_DEG,
-                                                      n_rays=GRID_RAYS,
-                                                      wavelength_nm=BAND_WAVELENGTH_NM[band]),
-            f"{N_WAVELENGTHS} wavelengths": lambda f: traced_kernel(band, r_km, f,
-                                                                   VANE_OFFSET_DEG,
-                                                                   n_rays=GRID_RAYS)}
-    if old:
-        runs["baseline module"] = lambda f: old.traced_kernel(band, r_km, f, VANE_OFFSET_DEG,
-                                                              n_rays=GRID_RAYS)
+        runs["baseline module"] = trace(old)
     times = {name: [] for name in runs}
     for field in FIELDS_DEG:
         for run in runs.values():
