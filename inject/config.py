@@ -16,7 +16,7 @@ from inject.camera.detector import DETECTORS, Detector, detector_from_spec
 from inject.camera.wcs import Pointing
 from inject.errors import InjectError, InputError, SceneError
 from inject.instrument import LSST
-from inject.optics import FIELD_MAX_DEG
+from inject.optics import FIELD_MAX_DEG, check_focus_offset
 from inject.photometry import band, electron_rate, sky_per_pixel
 from inject.satellite import Shape, shape_from_dict
 from inject.schema import check_keys, number, ranged
@@ -44,7 +44,7 @@ SIMULATE_BYTES_PER_PIXEL = 64
 COMMON_KEYS = frozenset({"seed", "band", "exptime", "seeing", "zenith", "sky", "stars", "noise",
                          "satellites", "pointing", "dark_current", "cosmic_rays", "units", "time",
                          "site", "shadow_atmosphere_km", "pupil"})
-SCENE_KEYS = COMMON_KEYS | {"detector", "field"}
+SCENE_KEYS = COMMON_KEYS | {"detector", "field", "focus_offset_um"}
 #: Keys of a focal-plane scene.
 FOCAL_KEYS = COMMON_KEYS | {"detectors", "cutout"}
 #: A satellite's model keys, whatever its track is given as.
@@ -130,6 +130,10 @@ class Scene:
     #: the field for ``pupil: rubin`` (None: on the optical axis); the position angle is the
     #: outward field radius's direction on the image, from the pixel rows' +x.
     field: tuple | None = None
+    #: A CCD scene's ``focus_offset_um``: the detector's shift from the design's focus along
+    #: the optical axis for ``pupil: rubin``, micron (0: focused at infinity; negative: towards
+    #: the camera's last lens, where a star is defocused as a point at finite range is).
+    focus_offset_um: float = 0.0
 
 
 def _check_detector(spec):
@@ -276,6 +280,28 @@ def parse_field(value, pupil="rubin"):
     return (angle, number("field.position_angle", value.get("position_angle", 0.0)))
 
 
+def parse_focus_offset(value, pupil="rubin"):
+    """A CCD scene's ``focus_offset_um``, micron (0 when not given).
+
+    Raises
+    ------
+    SceneError
+        Not a number, beyond :data:`inject.optics.FOCUS_MAX_UM` micron, or not 0 with a ``pupil``
+        other than ``rubin`` (the annulus is the design's focus).
+    """
+    if value is None:
+        return 0.0
+    focus = number("focus_offset_um", value)
+    try:
+        check_focus_offset(focus)
+    except InjectError as err:
+        raise SceneError(str(err)) from None
+    if focus and pupil != "rubin":
+        raise SceneError(f"focus_offset_um={focus}: only with pupil: rubin (pupil: {pupil} is "
+                         "the design's focus)")
+    return focus
+
+
 def satellite_list(raw):
     """A scene's ``satellites:`` list (empty when absent)."""
     satellites = raw.get("satellites", [])
@@ -391,7 +417,9 @@ def parse_scene(raw, charge_check=True):
         track = parse_track(f"{where}.track", spec["track"])
         parsed.append(parse_satellite(where, spec, track))
     scene = Scene(detector=detector, satellites=tuple(parsed),
-                  field=parse_field(raw.get("field"), common["pupil"]), **common)
+                  field=parse_field(raw.get("field"), common["pupil"]),
+                  focus_offset_um=parse_focus_offset(raw.get("focus_offset_um"),
+                                                     common["pupil"]), **common)
     if charge_check:
         check_charge(scene)
     ny, nx = detector.shape

@@ -13,12 +13,17 @@ The model is batoid's baffled telescope (``LSST_r_baffles.yaml``: the centre cap
 vanes, the top-end-assembly, M1, M2 and M1/M3 baffles) with the camera (L1, L2, filter, L3,
 detector) of the band's own model (``LSST_{band}.yaml``), in vacuum as the band's model is;
 both files ship with batoid, nothing is downloaded. The telescope is focused at infinity (the
-design's detector position). The spider vanes' orientation is that of the model's frame: the
-camera rotator and the telescope's rotation about its axis are not followed.
+design's detector position) unless a focus offset moves the detector. The spider vanes'
+orientation is that of the model's frame: the camera rotator and the telescope's rotation about
+its axis are not followed.
 
 Geometric optics only: each ray lands where the optics send it (no diffraction; at 0.2" pixels
-and seeing of 0.5" and more, diffraction's ~0.01" is far below the scales here), at one
-wavelength per band (the band's effective wavelength, :data:`BAND_WAVELENGTH_NM`).
+and seeing of 0.5" and more, diffraction's ~0.01" is far below the scales here). The kernel is
+integrated over the band: the camera's focus moves with wavelength, and a defocused ring
+magnifies it (in g at 1294 km the streak's FWHM with seeing goes from 1.70" at 420 nm to 1.32"
+at 540 nm). The rays are split among :data:`N_WAVELENGTHS` wavelengths, slices of equal
+photons of what the detector counts from the satellite (:func:`band_wavelengths`: the band's
+throughput times the Sun's spectrum).
 """
 import copy
 import functools
@@ -40,7 +45,21 @@ from inject.validate import finite, positive
 
 #: Effective wavelength of each band, nm: the throughput-weighted values of LSST throughputs
 #: v1.9 with the fiducial atmosphere at airmass 1.2, as Rubin's wavefront code (ts_wep) uses.
+#: A monochromatic trace (``traced_kernel(..., wavelength_nm=...)``) for comparisons; scenes
+#: trace over the band.
 BAND_WAVELENGTH_NM = {"u": 370.9, "g": 476.7, "r": 619.4, "i": 753.9, "z": 866.8, "y": 973.9}
+
+#: The satellite's default spectrum: sunlight reflected without colour, the Sun as a blackbody
+#: of its effective temperature, K (IAU 2015 nominal value).
+SUN_TEMPERATURE_K = 5772.0
+
+#: Wavelengths a kernel is traced at, the rays divided equally among them. The streak's FWHM and
+#: peak with seeing are within 0.3% of a fine integration over the band from here
+#: (docs/explanation/physics.md).
+N_WAVELENGTHS = 8
+
+# Sampling of the band's photon spectrum for its quantiles, nm.
+_SPECTRUM_STEP_NM = 0.1
 
 #: Largest field angle traced, deg: the science CCDs' outer corners are at 2.048 deg, where the
 #: baffles leave a star 1% of its light (none reaches the detector from 2.06 deg).
@@ -72,6 +91,21 @@ def check_field_angle(value):
     if not 0 <= field <= FIELD_MAX_DEG:
         raise InputError("field_angle_deg", value, f"must be within [0, {FIELD_MAX_DEG}] deg")
     return field
+
+
+#: Largest detector shift from the design's focus accepted, micron (a star's image is then a
+#: donut 17" across, that of a point 100 km away).
+FOCUS_MAX_UM = 1000.0
+
+
+def check_focus_offset(value):
+    """``value`` checked as a detector shift from the design's focus, micron: a finite number
+    within [-:data:`FOCUS_MAX_UM`, :data:`FOCUS_MAX_UM`] (InputError otherwise)."""
+    focus = finite("focus_offset_um", value, scalar=True)
+    if not abs(focus) <= FOCUS_MAX_UM:
+        raise InputError("focus_offset_um", value,
+                         f"must be within [-{FOCUS_MAX_UM:g}, {FOCUS_MAX_UM:g}] micron")
+    return focus
 
 
 def _batoid():
@@ -137,6 +171,83 @@ def telescope(band):
     return _batoid().parse.parse_optic(config)
 
 
+def _throughput_path(band):
+    return os.path.join(galsim.meta_data.share_dir, "bandpasses", f"LSST_{band}.dat")
+
+
+@functools.lru_cache(maxsize=6)
+def _throughput_identity(band):
+    """GalSim's version and a digest of ``band``'s throughput file (the cache key holds it)."""
+    with open(_throughput_path(band), "rb") as f:
+        digest = hashlib.sha256(f.read()).hexdigest()[:16]
+    return f"galsim {galsim.__version__} LSST_{band}.dat {digest}"
+
+
+def photon_spectrum(band, temperature_k=SUN_TEMPERATURE_K):
+    """Photons the detector counts per nm from a blackbody seen through ``band``.
+
+    The band's total throughput (GalSim's ``LSST_{band}.dat``: LSST's mirrors, lenses, filter,
+    detector and the atmosphere at airmass 1.2) times the blackbody's ``F_lambda`` times
+    ``lambda`` (energy to photons), normalised to a unit integral.
+
+    Parameters
+    ----------
+    band : str
+        LSST band, ``u g r i z y``.
+    temperature_k : float
+        The source's blackbody temperature, K (default: the Sun's).
+
+    Returns
+    -------
+    wavelength_nm, density : ndarray
+        Wavelengths every :data:`_SPECTRUM_STEP_NM` nm over the band's extent, and the
+        normalised photon density there, per nm.
+    """
+    check_band(band)
+    temperature_k = positive("temperature_k", temperature_k, scalar=True)
+    throughput = galsim.Bandpass(_throughput_path(band), "nm")
+    wave = np.arange(throughput.blue_limit, throughput.red_limit + _SPECTRUM_STEP_NM / 2,
+                     _SPECTRUM_STEP_NM)
+    # Planck's F_lambda times lambda, up to a constant: lambda^-4 / (exp(hc / lambda k T) - 1).
+    hc_over_k_nm_k = 1.438776877e7
+    photons = throughput(wave) * wave ** -4.0 / np.expm1(hc_over_k_nm_k / (wave * temperature_k))
+    return wave, photons / np.trapezoid(photons, wave)
+
+
+@functools.lru_cache(maxsize=64)
+def band_wavelengths(band, n, temperature_k=SUN_TEMPERATURE_K):
+    """The wavelengths a kernel is traced at over ``band``, and their weights.
+
+    The band's photon spectrum (:func:`photon_spectrum`) cut into ``n`` slices of equal photon
+    counts; each slice is traced at its mean wavelength and carries 1/n of the light. With
+    ``n`` = 1 this is the band's photon-weighted mean wavelength for that spectrum.
+
+    Parameters
+    ----------
+    band : str
+    n : int
+        Number of wavelengths.
+    temperature_k : float
+        The satellite's blackbody temperature, K.
+
+    Returns
+    -------
+    wavelength_nm, weight : tuple of float
+    """
+    n = int(positive("n_wavelengths", n, scalar=True))
+    wave, density = photon_spectrum(band, temperature_k)
+
+    def cumulative(f):
+        return np.concatenate([[0.0], np.cumsum(0.5 * (f[1:] + f[:-1]) * np.diff(wave))])
+
+    total = np.trapezoid(density, wave)
+    cdf, moment = cumulative(density) / total, cumulative(density * wave) / total
+    # Slice edges at equal steps of the cumulative photons (both linear between fine samples).
+    edges = np.interp(np.linspace(0.0, 1.0, n + 1), cdf, wave)
+    means = np.diff(np.interp(edges, wave, moment)) / np.diff(np.interp(edges, wave, cdf))
+    return tuple(float(w) for w in means), (1.0 / n,) * n
+
+
 @dataclass(frozen=True)
 class TracedKernel:
     """The image of a point at finite range, in arcsec on the sky, relative to a star.
@@ -159,11 +270,12 @@ class TracedKernel:
         plateau, arcsec: the traced counterparts of the annulus's ``R_i / r`` and ``R_o / r``
         (NaN when the kernel has no hole, at very large range).
     transmitted : float
-        Light reaching the detector relative to a star at the same field position (the flat
-        field divides the star's vignetting out, so this is what the image keeps).
+        Light reaching the detector relative to a star of the same spectrum at the same field
+        position (the flat field divides the star's vignetting out, so this is what the image
+        keeps); each wavelength's own, weighted by its photons.
     star_throughput : float
-        The star's rays reaching the detector over those entering M1's clear annulus (what the
-        spider vanes, baffles and vignetting take).
+        The star's light reaching the detector over that entering M1's clear annulus (what the
+        spider vanes, baffles and vignetting take), over the wavelengths traced.
     band : str
     range_km : float
     field_angle_deg, field_position_angle_deg : float
@@ -171,6 +283,8 @@ class TracedKernel:
         Rays traced (those entering M1's clear annulus, widened by a margin).
     focus_offset_um : float
         The detector's shift from the design's focus (:func:`traced_kernel`), micron.
+    wavelengths_nm, wavelength_weights : tuple of float
+        The wavelengths traced and the share of the light each carries.
     """
 
     image: np.ndarray
@@ -186,6 +300,8 @@ class TracedKernel:
     field_position_angle_deg: float
     n_traced: int
     focus_offset_um: float = 0.0
+    wavelengths_nm: tuple = ()
+    wavelength_weights: tuple = ()
 
     def profile(self, gsparams=GSPARAMS):
         """The kernel as a GalSim profile (arcsec) with flux :attr:`transmitted`."""
@@ -228,19 +344,19 @@ def _field_direction(theta_x, theta_y):
     return np.asarray(_batoid().utils.fieldToDirCos(theta_x, theta_y), dtype=float)
 
 
-def _pupil_points(optic, n_rays):
+def _pupil_points(optic, n_rays, seed=_PUPIL_SEED):
     """Stratified points over M1's clear annulus (widened by a margin) on the stop plane, m.
 
     One point drawn uniformly in each cell of a square grid of ``sqrt(n_rays)`` cells across
-    the pupil (a fixed seed: the same points every time). A plain grid aliases with the 5 cm
-    spider vanes at 45 deg: it saw them block 1.81% of the annulus instead of 1.91%.
+    the pupil (a fixed ``seed``: the same points every time). A plain grid aliases with the
+    5 cm spider vanes at 45 deg: it saw them block 1.81% of the annulus instead of 1.91%.
     """
     nx = max(int(np.sqrt(n_rays)), 8)
     size = optic.pupilSize
     cell = size / nx
     centres = (np.arange(nx) + 0.5) * cell - size / 2
     x, y = np.meshgrid(centres, centres)
-    rng = np.random.default_rng(_PUPIL_SEED)
+    rng = np.random.default_rng(seed)
     x = x.ravel() + rng.uniform(-0.5, 0.5, x.size) * cell
     y = y.ravel() + rng.uniform(-0.5, 0.5, y.size) * cell
     m1 = optic["M1"].obscuration.original  # the clear annulus is the negation of an annulus
@@ -295,12 +411,12 @@ def _jacobian(optic, wavelength_m, theta):
     return np.column_stack(columns)
 
 
-def _edges(dx, dy, centre, scale):
+def _edges(dx, dy, weights, centre, scale):
     """Inner and outer half-plateau radii of the rays' azimuthally averaged surface density."""
     r = np.hypot(dx - centre[0], dy - centre[1])
     step = scale
     edges = np.arange(0.0, r.max() + 2 * step, step)
-    counts, _ = np.histogram(r, edges)
+    counts, _ = np.histogram(r, edges, weights=weights)
     mid = 0.5 * (edges[1:] + edges[:-1])
     density = counts / (2 * np.pi * mid * step)
     # The plateau: the median over the radii holding the middle half of the light.
@@ -324,13 +440,15 @@ def _edges(dx, dy, centre, scale):
 
 
 def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=0.0,
-                  n_rays=N_RAYS, pixel_scale=KERNEL_SCALE_ARCSEC, focus_offset_um=0.0):
+                  n_rays=N_RAYS, pixel_scale=KERNEL_SCALE_ARCSEC, focus_offset_um=0.0,
+                  n_wavelengths=N_WAVELENGTHS, temperature_k=SUN_TEMPERATURE_K,
+                  wavelength_nm=None):
     """Trace a point at ``range_km`` through Rubin's telescope: the real defocus kernel.
 
     Parameters
     ----------
     band : str
-        LSST band (``u g r i z y``): its camera (filter) model and effective wavelength.
+        LSST band (``u g r i z y``): its camera (filter) model and throughput.
     range_km : float
         Distance from the telescope's entrance pupil to the point, km.
     field_angle_deg : float
@@ -338,9 +456,9 @@ def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=
     field_position_angle_deg : float
         Direction of the field position in the focal plane, deg from batoid's +x.
     n_rays : int
-        Rays over the pupil's square, one in each cell of a ``sqrt(n_rays)`` grid (those
-        outside M1's clear annulus are not traced); the star used for the normalisation goes
-        through the same pupil points.
+        Rays over the pupil's square, divided equally among the wavelengths; at each, one in
+        each cell of a square grid (those outside M1's clear annulus are not traced). The
+        star used for the normalisation goes through the same pupil points.
     pixel_scale : float
         Sampling of the returned image, arcsec.
     focus_offset_um : float
@@ -348,6 +466,12 @@ def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=
         focused at infinity). A negative shift moves it towards the light arriving from L3,
         where a star is out of focus the way a point at finite range is (-50 um looks like a
         point about 2000 km away).
+    n_wavelengths : int
+        Wavelengths over the band (:func:`band_wavelengths`).
+    temperature_k : float
+        The satellite's spectrum: a blackbody of this temperature, K (default: the Sun's).
+    wavelength_nm : float, optional
+        Trace at this one wavelength instead of over the band, nm.
 
     Returns
     -------
@@ -355,12 +479,15 @@ def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=
 
     Notes
     -----
-    The rays fill the entrance pupil uniformly (stratified), so each carries the same flux
-    (the 8.4 m pupil seen from hundreds of km is a uniform beam to 1e-10). Their landing points
-    are mapped back to the sky through the local Jacobian of the star's centroid with field
-    angle (plate scale and distortion at that field position) and measured from the star's
-    centroid, so the kernel says how the point's image differs from a star's, not where the
-    star is.
+    The rays fill the entrance pupil uniformly (stratified), so at one wavelength each carries
+    the same flux (the 8.4 m pupil seen from hundreds of km is a uniform beam to 1e-10); each
+    wavelength's rays carry its share of the photons. Their landing points are mapped back to
+    the sky through the local Jacobian of the star's centroid with field angle (plate scale and
+    distortion at that field position) and measured from the centroid of a star of the same
+    spectrum, so the kernel says how the point's image differs from a star's, not where the
+    star is. The Jacobian is taken at the photon-weighted mean wavelength: across a band it
+    changes by less than 1e-5 to 1.5 deg (3e-4 at 2 deg, where the baffles clip the star),
+    against the kernel's percent.
     """
     check_band(band)
     range_km = positive("range_km", range_km, scalar=True)
@@ -368,38 +495,55 @@ def traced_kernel(band, range_km, field_angle_deg=0.0, field_position_angle_deg=
     pa = finite("field_position_angle_deg", field_position_angle_deg, scalar=True)
     n_rays = int(positive("n_rays", n_rays, scalar=True))
     scale = positive("pixel_scale", pixel_scale, scalar=True)
-    focus = finite("focus_offset_um", focus_offset_um, scalar=True)
+    focus = check_focus_offset(focus_offset_um)
+    if wavelength_nm is None:
+        waves, weights = band_wavelengths(band, n_wavelengths, temperature_k)
+    else:
+        waves, weights = (positive("wavelength_nm", wavelength_nm, scalar=True),), (1.0,)
 
     optic = telescope(band)
     if focus:
         optic = optic.withGloballyShiftedOptic(_DETECTOR, [0.0, 0.0, focus * 1e-6])
-    wavelength_m = BAND_WAVELENGTH_NM[band] * 1e-9
     theta = np.radians(field) * np.array([np.cos(np.radians(pa)), np.sin(np.radians(pa))])
 
-    *points, n_clear = _pupil_points(optic, n_rays)
-    sx, sy = _landed(optic, _pupil_rays(optic, wavelength_m, points, theta))
-    px, py = _landed(optic, _pupil_rays(optic, wavelength_m, points, theta, source_km=range_km))
-    if len(sx) == 0 or len(px) == 0:
+    # Per wavelength: its own stratified pupil points, a star and the point through them. Each
+    # ray entering M1's clear annulus carries weight / n_clear of the light M1 receives.
+    star, point, n_traced = [], [], 0
+    for k, (wave, weight) in enumerate(zip(waves, weights)):
+        *points, n_clear = _pupil_points(optic, max(n_rays // len(waves), 64), _PUPIL_SEED + k)
+        n_traced += len(points[0])
+        ray_weight = weight / n_clear
+        sx, sy = _landed(optic, _pupil_rays(optic, wave * 1e-9, points, theta))
+        px, py = _landed(optic, _pupil_rays(optic, wave * 1e-9, points, theta,
+                                            source_km=range_km))
+        star.append((sx, sy, np.full(len(sx), ray_weight)))
+        point.append((px, py, np.full(len(px), ray_weight)))
+    sx, sy, sw = (np.concatenate(a) for a in zip(*star))
+    px, py, pw = (np.concatenate(a) for a in zip(*point))
+    if sw.sum() == 0 or pw.sum() == 0:
         raise InputError("field_angle_deg", field_angle_deg, "no light reaches the detector")
 
     # Focal plane -> field angle (arcsec) about the star's centroid.
-    inverse = np.linalg.inv(_jacobian(optic, wavelength_m, theta)) * ARCSEC_PER_RAD
-    dx, dy = inverse @ np.vstack([px - sx.mean(), py - sy.mean()])
+    mean_wave = float(np.dot(waves, weights) / np.sum(weights))
+    inverse = np.linalg.inv(_jacobian(optic, mean_wave * 1e-9, theta)) * ARCSEC_PER_RAD
+    star_centre = np.array([np.average(sx, weights=sw), np.average(sy, weights=sw)])
+    dx, dy = inverse @ (np.vstack([px, py]) - star_centre[:, None])
 
-    transmitted = len(px) / len(sx)
-    centroid = (float(dx.mean()), float(dy.mean()))
+    transmitted = pw.sum() / sw.sum()
+    centroid = (float(np.average(dx, weights=pw)), float(np.average(dy, weights=pw)))
     half = int(np.ceil((np.abs(np.concatenate([dx, dy])).max() + 4 * scale) / scale))
     n = 2 * half + 1
     bins = (np.arange(n + 1) - n / 2) * scale
-    counts, _, _ = np.histogram2d(dy, dx, bins=(bins, bins))
-    image = counts * (transmitted / len(px)) / scale ** 2
-    inner, outer = _edges(dx, dy, centroid, scale)
+    light, _, _ = np.histogram2d(dy, dx, bins=(bins, bins), weights=pw)
+    image = light / sw.sum() / scale ** 2
+    inner, outer = _edges(dx, dy, pw, centroid, scale)
     return TracedKernel(image=image, scale=scale, centroid=centroid,
                         inner_radius=float(inner), outer_radius=float(outer),
-                        transmitted=float(transmitted), star_throughput=len(sx) / n_clear,
+                        transmitted=float(transmitted), star_throughput=float(sw.sum()),
                         band=band, range_km=range_km, field_angle_deg=field,
-                        field_position_angle_deg=pa, n_traced=len(points[0]),
-                        focus_offset_um=focus)
+                        field_position_angle_deg=pa, n_traced=n_traced,
+                        focus_offset_um=focus, wavelengths_nm=tuple(waves),
+                        wavelength_weights=tuple(weights))
 
 
 # -------------------------------------------------------------------------------------------
@@ -430,9 +574,10 @@ VANE_OFFSET_DEG = 22.5
 
 #: Version of the kernel files and of the code that traces them: files of another version are
 #: not read (they stay in their own folder). Bump it when a change to this module changes the
-#: kernels traced from the same inputs; the inputs themselves (band, wavelength, range, field,
-#: vanes, rays, sampling, focus, pupil points, optics model) are in each file's key.
-CACHE_VERSION = 2
+#: kernels traced from the same inputs; the inputs themselves (band, wavelengths and their
+#: weights, the throughput and spectrum they come from, range, field, vanes, rays, sampling,
+#: focus, pupil points, optics model) are in each file's key.
+CACHE_VERSION = 3
 
 #: Errors that say a cache file is damaged (truncated, a bad CRC, not an npz, arrays missing):
 #: the kernel is traced again and the file rewritten.
@@ -456,24 +601,29 @@ def cache_dir():
     return os.path.join(root, "kernels", f"v{CACHE_VERSION}")
 
 
-def _grid_trace(band, range_index, field_index):
+def _grid_trace(band, range_index, field_index, focus_offset_um=0.0):
     """The arguments of :func:`traced_kernel` for the grid node ``(range_index, field_index)``:
     range :data:`RANGE_BIN_FACTOR` ** ``range_index`` km, field angle
     ``FIELD_NODES_DEG[field_index]``, the radius at :data:`VANE_OFFSET_DEG` from the vanes,
-    :data:`GRID_RAYS` rays, :data:`KERNEL_SCALE_ARCSEC` sampling, focused at infinity."""
+    :data:`GRID_RAYS` rays over :data:`N_WAVELENGTHS` wavelengths of the Sun's spectrum,
+    :data:`KERNEL_SCALE_ARCSEC` sampling, the detector ``focus_offset_um`` from the design's
+    position."""
     return dict(band=band, range_km=RANGE_BIN_FACTOR ** range_index,
                 field_angle_deg=float(FIELD_NODES_DEG[field_index]),
                 field_position_angle_deg=VANE_OFFSET_DEG, n_rays=GRID_RAYS,
-                pixel_scale=KERNEL_SCALE_ARCSEC, focus_offset_um=0.0)
+                pixel_scale=KERNEL_SCALE_ARCSEC, focus_offset_um=float(focus_offset_um),
+                n_wavelengths=N_WAVELENGTHS, temperature_k=SUN_TEMPERATURE_K)
 
 
 def _cache_key(trace):
     """Everything a kernel traced with the arguments ``trace`` depends on.
 
     The arguments of :func:`traced_kernel` (band, range, field angle, the radius's angle to
-    the vanes, rays, sampling, focus), the band's wavelength, the pupil points' seed and
-    margin, the plate-scale Jacobian's step and grid, and the optics model's identity
-    (:func:`_model_identity`). The code that traces is :data:`CACHE_VERSION`'s.
+    the vanes, rays, sampling, focus, number of wavelengths, the spectrum's temperature), the
+    wavelengths and their weights, the band's throughput file (:func:`_throughput_identity`),
+    the pupil points' seed and margin, the plate-scale Jacobian's step and grid, and the optics
+    model's identity (:func:`_model_identity`). The code that traces is
+    :data:`CACHE_VERSION`'s.
 
     Returns
     -------
@@ -481,7 +631,9 @@ def _cache_key(trace):
         JSON-ready; its digest names the cache file.
     """
     band = trace["band"]
-    return dict(trace, wavelength_nm=BAND_WAVELENGTH_NM[band], pupil_seed=_PUPIL_SEED,
+    waves, weights = band_wavelengths(band, trace["n_wavelengths"], trace["temperature_k"])
+    return dict(trace, wavelengths_nm=list(waves), wavelength_weights=list(weights),
+                throughput=_throughput_identity(band), pupil_seed=_PUPIL_SEED,
                 pupil_margin_m=_PUPIL_MARGIN_M, jacobian_step_rad=_JACOBIAN_STEP_RAD,
                 jacobian_grid=_JACOBIAN_GRID, model=_model_identity(band))
 
@@ -494,8 +646,9 @@ def _cache_path(folder, key):
     """The file in ``folder`` of the kernel of ``key`` (:func:`_cache_key`): its band, range
     and field for the reader, and a digest of the whole key."""
     digest = hashlib.sha256(_key_text(key).encode()).hexdigest()[:20]
+    focus = f"_dz{key['focus_offset_um']:+g}um" if key["focus_offset_um"] else ""
     return os.path.join(folder, f"{key['band']}_{key['range_km']:.1f}km_"
-                                f"f{key['field_angle_deg']:.3f}_{digest}.npz")
+                                f"f{key['field_angle_deg']:.3f}{focus}_{digest}.npz")
 
 
 def _save(path, kernel, key):
@@ -547,7 +700,8 @@ def _load(path, key):
         star_throughput=star_throughput, band=key["band"], range_km=key["range_km"],
         field_angle_deg=key["field_angle_deg"],
         field_position_angle_deg=key["field_position_angle_deg"], n_traced=n_traced,
-        focus_offset_um=key["focus_offset_um"])
+        focus_offset_um=key["focus_offset_um"], wavelengths_nm=tuple(key["wavelengths_nm"]),
+        wavelength_weights=tuple(key["wavelength_weights"]))
 
 
 #: Whether this process has said that the cache folder cannot be written.
@@ -567,13 +721,13 @@ def _unwritable(folder, err):
 
 
 @functools.lru_cache(maxsize=64)  # images of ~500 x 500 at 350 km: about 130 MB at most
-def _grid_kernel(band, range_index, field_index):
+def _grid_kernel(band, range_index, field_index, focus_offset_um=0.0):
     """The kernel traced at a grid node, from the disk cache when it holds it.
 
     A damaged cache file is traced again and rewritten; a folder that cannot be written keeps
     the kernel in memory only (one :class:`~inject.errors.InputWarning` per process).
     """
-    trace = _grid_trace(band, range_index, field_index)
+    trace = _grid_trace(band, range_index, field_index, focus_offset_um)
     folder = cache_dir()
     if folder is None:
         return traced_kernel(**trace)
@@ -594,7 +748,7 @@ def _padded(image, n):
     return np.pad(image, pad) if pad else image
 
 
-def kernel(band, range_km, field_angle_deg=0.0):
+def kernel(band, range_km, field_angle_deg=0.0, focus_offset_um=0.0):
     """The traced kernel of a point at ``range_km`` and ``field_angle_deg``, from the grid.
 
     The kernel traced at the nearest range node (:data:`RANGE_BIN_FACTOR`) scaled as 1/range,
@@ -608,6 +762,8 @@ def kernel(band, range_km, field_angle_deg=0.0):
     range_km : float
     field_angle_deg : float
         Within [0, :data:`FIELD_MAX_DEG`].
+    focus_offset_um : float
+        The detector's shift from the design's position, micron (:func:`traced_kernel`).
 
     Returns
     -------
@@ -618,6 +774,7 @@ def kernel(band, range_km, field_angle_deg=0.0):
     check_band(band)
     range_km = positive("range_km", range_km, scalar=True)
     field = check_field_angle(field_angle_deg)
+    focus = check_focus_offset(focus_offset_um)
     range_index = int(round(np.log(range_km) / np.log(RANGE_BIN_FACTOR)))
     low = min(int(np.searchsorted(FIELD_NODES_DEG, field, side="right")) - 1,
               len(FIELD_NODES_DEG) - 1)
@@ -625,9 +782,9 @@ def kernel(band, range_km, field_angle_deg=0.0):
     if low + 1 < len(FIELD_NODES_DEG):
         weight = (field - FIELD_NODES_DEG[low]) / (FIELD_NODES_DEG[low + 1] - FIELD_NODES_DEG[low])
     weight = 0.0 if weight < 1e-9 else float(weight)
-    nodes = [(_grid_kernel(band, range_index, low), 1.0 - weight)]
+    nodes = [(_grid_kernel(band, range_index, low, focus), 1.0 - weight)]
     if weight > 0:
-        nodes.append((_grid_kernel(band, range_index, low + 1), weight))
+        nodes.append((_grid_kernel(band, range_index, low + 1, focus), weight))
     n = max(k.image.shape[0] for k, _ in nodes)
     image = sum(w * _padded(k.image, n) for k, w in nodes)
     # 1/range: the node's kernel seen from range_km instead of the node's range.
@@ -643,4 +800,6 @@ def kernel(band, range_km, field_angle_deg=0.0):
                         star_throughput=mixed["star_throughput"], band=band, range_km=range_km,
                         field_angle_deg=field,
                         field_position_angle_deg=base.field_position_angle_deg,
-                        n_traced=base.n_traced, focus_offset_um=base.focus_offset_um)
+                        n_traced=base.n_traced, focus_offset_um=base.focus_offset_um,
+                        wavelengths_nm=base.wavelengths_nm,
+                        wavelength_weights=base.wavelength_weights)

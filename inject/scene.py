@@ -90,7 +90,8 @@ def streak_models(scene):
                         seeing=Seeing(scene.seeing), telescope=telescope,
                         ref_range_km=s.ref_range, pupil=scene.pupil,
                         field_angle_deg=field_angle,
-                        field_position_angle_deg=radius - s.track.angle)
+                        field_position_angle_deg=radius - s.track.angle,
+                        focus_offset_um=scene.focus_offset_um)
             for s in scene.satellites]
 
 

@@ -60,6 +60,10 @@ class StreakModel:
         counter-clockwise from the direction of motion (0: the satellite moves outward along
         the radius; 90: across it). Kept to whole degrees (the FWHM moves by < 0.05% a
         degree at 1.5 deg).
+    focus_offset_um : float
+        With ``pupil="rubin"``: the detector's shift from the design's position along the
+        optical axis, micron (0: focused at infinity; negative: towards the light arriving
+        from the camera's last lens, :func:`inject.optics.traced_kernel`).
 
     Raises
     ------
@@ -82,6 +86,7 @@ class StreakModel:
     pupil: str = "annulus"
     field_angle_deg: float = 0.0
     field_position_angle_deg: float = 0.0
+    focus_offset_um: float = 0.0
 
     def __post_init__(self):
         # Wrong types would otherwise fail much later, as an AttributeError or TypeError.
@@ -104,6 +109,10 @@ class StreakModel:
             raise InputError("pupil", self.pupil, "choose " + " or ".join(PUPILS))
         optics.check_field_angle(self.field_angle_deg)
         finite("field_position_angle_deg", self.field_position_angle_deg, scalar=True)
+        optics.check_focus_offset(self.focus_offset_um)
+        if self.pupil == "annulus" and self.focus_offset_um != 0:
+            raise InputError("focus_offset_um", self.focus_offset_um,
+                             "only applies to pupil rubin (the annulus is the design's focus)")
         # Touch the cached geometry: validates height and zenith now rather than on first use.
         _ = self.geometry
 
@@ -120,13 +129,13 @@ class StreakModel:
         geometry, shape, seeing and telescope; not the magnitude or band, which only scale
         the charge; the range override (the defocus) but not the angular speed's. Models
         with equal keys share swept profiles (:mod:`inject.render`). With the traced pupil,
-        also the band (its optics), the field angle and the radius's direction."""
+        also the band (its optics), the field angle, the radius's direction and the focus."""
         key = (self.height_km, self.zenith_deg, self.phi_deg, self.shape, self.seeing,
                self.telescope, self.range_km)
         if self.pupil == "annulus":
             return key
         return key + (self.pupil, self.band_name, float(self.field_angle_deg),
-                      self._radius_direction)
+                      self._radius_direction, float(self.focus_offset_um))
 
     @property
     def _radius_direction(self):
@@ -160,7 +169,8 @@ class StreakModel:
         """The :class:`inject.optics.TracedKernel` of ``pupil="rubin"`` (None for the annulus)."""
         if self.pupil == "annulus":
             return None
-        return optics.kernel(self.band_name, self.geometry.range_km, self.field_angle_deg)
+        return optics.kernel(self.band_name, self.geometry.range_km, self.field_angle_deg,
+                             self.focus_offset_um)
 
     @property
     def pupil_transmission(self):
@@ -289,6 +299,7 @@ class StreakModel:
         """The defocus kernel's part of :meth:`summary`."""
         return {"pupil": self.pupil, "field_angle_deg": float(self.field_angle_deg),
                 "field_position_angle_deg": self._radius_direction,
+                "focus_offset_um": float(self.focus_offset_um),
                 "pupil_transmission": self.pupil_transmission}
 
 

@@ -12,6 +12,9 @@ Sections (all by default, or name some with ``--sections``):
     star at the same place, and the time to trace one.
 ``grid``
     The kernel grid (:func:`inject.optics.kernel`) against exact traces between its nodes.
+``focus``
+    The paper's satellite at 350 and 550 km (zenith 70 deg), on the axis: streak FWHM and peak
+    against the detector's shift from the design's focus, and where a star is sharpest.
 ``cost``
     ``inject focalplane`` on the paper's focal-plane sample (``--streak-ccds-only``), with
     ``pupil=annulus`` and ``pupil=rubin`` alternated in one run: the first rubin run with an
@@ -19,7 +22,7 @@ Sections (all by default, or name some with ``--sections``):
 
 Usage::
 
-    python scripts/bench_optics.py [--sections table kernels grid cost] [--band g]
+    python scripts/bench_optics.py [--sections table kernels grid focus cost] [--band g]
 """
 import argparse
 import os
@@ -40,7 +43,8 @@ HEIGHTS_KM = (350.0, 550.0)
 ZENITH_DEG = 70.0
 FIELD_ANGLES_DEG = (0.0, 0.75, 1.25, 1.5, 1.75)
 PIXEL_ARCSEC = 0.2
-SECTIONS = ("table", "kernels", "grid", "cost")
+SECTIONS = ("table", "kernels", "grid", "focus", "cost")
+FOCUS_UM = (-10.0, -5.0, -2.0, -1.0, 0.0, 1.0, 2.0, 5.0, 10.0)
 
 
 def table(band, seeing):
@@ -126,6 +130,43 @@ def grid(band, seeing):
     print(f"\nlargest: FWHM {100 * worst[0]:.3f}%, peak {100 * worst[1]:.3f}%")
 
 
+def _rms_radius(k):
+    """rms radius of a kernel's image about its centroid, arcsec (its pixels' scale^2/6 out)."""
+    n = k.image.shape[0]
+    c = (np.arange(n) - n // 2) * k.scale
+    x, y = np.meshgrid(c, c)
+    w = k.image / k.image.sum()
+    r2 = np.sum(w * ((x - k.centroid[0]) ** 2 + (y - k.centroid[1]) ** 2)) - k.scale ** 2 / 6
+    return float(np.sqrt(r2))
+
+
+def focus(band, seeing):
+    """Streak FWHM and peak on the axis against the focus offset; the star's sharpest focus."""
+    print("\n| focus offset | 350 km FWHM | 350 km peak | 550 km FWHM | 550 km peak | "
+          "kernel rms radius at 1293.8 km | star rms radius |")
+    print("|---|---|---|---|---|---|---|")
+    stars = []
+    r550 = float(slant_range(550.0, ZENITH_DEG))
+    for dz in FOCUS_UM:
+        cells = []
+        for height in HEIGHTS_KM:
+            m = StreakModel(height_km=height, zenith_deg=ZENITH_DEG, band_name=band,
+                            seeing=seeing, pupil="rubin", focus_offset_um=dz)
+            cells += [f"{m.fwhm_arcsec:.3f}\"", f"{m.peak_e_per_px:.0f} e-"]
+        ring = _rms_radius(traced_kernel(band, r550, 0.0, n_rays=GRID_RAYS, focus_offset_um=dz))
+        star = _rms_radius(traced_kernel(band, 1e9, 0.0, n_rays=GRID_RAYS, focus_offset_um=dz))
+        stars.append(star)
+        print(f"| {dz:+g} um | " + " | ".join(cells) + f" | {ring:.4f}\" | {star:.4f}\" |",
+              flush=True)
+    # The star's sharpest focus: a parabola through the three smallest rms radii squared.
+    i = int(np.clip(np.argmin(stars), 1, len(stars) - 2))
+    z, r2 = np.array(FOCUS_UM[i - 1:i + 2]), np.array(stars[i - 1:i + 2]) ** 2
+    a, b, c = np.polyfit(z, r2, 2)
+    best = -b / (2 * a)
+    print(f"\nan on-axis star (band-integrated) is sharpest at {best:+.2f} um: rms radius "
+          f"{np.sqrt(c - b * b / (4 * a)):.4f}\"")
+
+
 def _run(pupil, outdir, cache):
     env = dict(os.environ, INJECT_CACHE_DIR=cache)
     start = time.perf_counter()
@@ -168,6 +209,8 @@ def main():
         kernels(args.band, args.n_rays)
     if "grid" in args.sections:
         grid(args.band, seeing)
+    if "focus" in args.sections:
+        focus(args.band, seeing)
     if "cost" in args.sections:
         cost(args.repeat)
 

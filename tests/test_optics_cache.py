@@ -31,7 +31,7 @@ def traces(tmp_path, monkeypatch):
 
     def trace(band, range_km, field_angle_deg=0.0, field_position_angle_deg=0.0,
               n_rays=optics.N_RAYS, pixel_scale=optics.KERNEL_SCALE_ARCSEC,
-              focus_offset_um=0.0):
+              focus_offset_um=0.0, **spectrum):
         calls.append(dict(band=band, range_km=range_km, field_angle_deg=field_angle_deg))
         image = np.full((5, 5), float(len(calls)))
         return TracedKernel(image=image, scale=pixel_scale, centroid=(0.0, 0.0),
@@ -39,7 +39,8 @@ def traces(tmp_path, monkeypatch):
                             transmitted=float(image.sum() * pixel_scale ** 2),
                             star_throughput=1.0, band=band, range_km=range_km,
                             field_angle_deg=field_angle_deg,
-                            field_position_angle_deg=field_position_angle_deg, n_traced=n_rays)
+                            field_position_angle_deg=field_position_angle_deg, n_traced=n_rays,
+                            focus_offset_um=focus_offset_um)
 
     monkeypatch.setattr(optics, "traced_kernel", trace)
     _grid_kernel.cache_clear()
@@ -83,10 +84,14 @@ def _modified_model(monkeypatch, tmp_path):
     _another_model(monkeypatch, "datadir", str(folder))
 
 
-def _focused_elsewhere(monkeypatch, tmp_path):
-    grid_trace = optics._grid_trace
-    monkeypatch.setattr(optics, "_grid_trace",
-                        lambda *node: dict(grid_trace(*node), focus_offset_um=20.0))
+def _another_throughput(monkeypatch, tmp_path):
+    """GalSim's g throughput file with a comment added."""
+    tmp_path.mkdir()
+    path = tmp_path / "LSST_g.dat"
+    path.write_text(open(optics._throughput_path("g")).read() + "\n# edited\n")
+    monkeypatch.setattr(optics, "_throughput_path", lambda band: str(path))
+    monkeypatch.setattr(optics, "_throughput_identity",
+                        functools.lru_cache(optics._throughput_identity.__wrapped__))
 
 
 #: How to change each thing a kernel depends on, for the node NODE: a new node, or a change
@@ -94,16 +99,18 @@ def _focused_elsewhere(monkeypatch, tmp_path):
 CHANGES = {
     "band": lambda mp, tmp: ("u", 500, 0),
     "range bin": lambda mp, tmp: ("g", 501, 0),
+    "focus offset": lambda mp, tmp: ("g", 500, 0, 20.0),
     "field node": lambda mp, tmp: ("g", 500, 1),
     "vane offset": lambda mp, tmp: mp.setattr(optics, "VANE_OFFSET_DEG", 30.0),
     "rays": lambda mp, tmp: mp.setattr(optics, "GRID_RAYS", 100_000),
     "sampling": lambda mp, tmp: mp.setattr(optics, "KERNEL_SCALE_ARCSEC", 0.005),
-    "wavelength": lambda mp, tmp: mp.setitem(optics.BAND_WAVELENGTH_NM, "g", 480.0),
+    "wavelengths": lambda mp, tmp: mp.setattr(optics, "N_WAVELENGTHS", 5),
+    "spectrum": lambda mp, tmp: mp.setattr(optics, "SUN_TEMPERATURE_K", 6000.0),
+    "throughput file": _another_throughput,
     "pupil seed": lambda mp, tmp: mp.setattr(optics, "_PUPIL_SEED", 1),
     "pupil margin": lambda mp, tmp: mp.setattr(optics, "_PUPIL_MARGIN_M", 0.2),
     "jacobian step": lambda mp, tmp: mp.setattr(optics, "_JACOBIAN_STEP_RAD", 1e-4),
     "jacobian grid": lambda mp, tmp: mp.setattr(optics, "_JACOBIAN_GRID", 64),
-    "focus offset": _focused_elsewhere,
     "model files": _modified_model,
     "batoid version": lambda mp, tmp: _another_model(mp, "__version__", "99.0"),
     "format version": lambda mp, tmp: mp.setattr(optics, "CACHE_VERSION", 99),
@@ -118,7 +125,7 @@ def test_a_change_to_what_the_kernel_depends_on_is_another_file(change, traces, 
     node = CHANGES[change](monkeypatch, tmp_path / "elsewhere") or NODE
     kernel = _grid_kernel(*node)
     assert len(traces) == 2 and kernel.image[0, 0] == 2  # traced, not the first one read back
-    assert len([f for f in _files(tmp_path) if "batoid-data" not in f]) == 2
+    assert len(_files(tmp_path / "kernels")) == 2
 
 
 def _flip_a_byte_of_the_image(path):

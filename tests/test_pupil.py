@@ -16,9 +16,17 @@ from astropy.io import fits
 from inject import SceneError, make_plan, parse_focal_scene, parse_scene
 from inject.camera import layout as fp
 from inject.errors import InputError
-from inject.optics import GRID_RAYS, VANE_OFFSET_DEG, _grid_kernel, kernel, traced_kernel
+from inject.optics import (
+    BAND_WAVELENGTH_NM,
+    GRID_RAYS,
+    VANE_OFFSET_DEG,
+    _grid_kernel,
+    kernel,
+    traced_kernel,
+)
 from inject.profile import Seeing
 from inject.satellite import Disk
+from inject.scene import streak_models
 from inject.streak import StreakModel
 
 pytest.importorskip("batoid")
@@ -222,10 +230,22 @@ def test_a_ccd_scene_with_the_traced_pupil(tmp_path, cli):
 
 @pytest.mark.parametrize("keys, match", [
     ({"pupil": "ideal"}, "pupil='ideal'"), ({"field": {"angle": 3}}, r"field\.angle=3"),
-    ({"field": {"position_angle": 3}}, "angle"), ({"field": {"angle": 1, "pa": 3}}, "pa")])
+    ({"field": {"position_angle": 3}}, "angle"), ({"field": {"angle": 1, "pa": 3}}, "pa"),
+    ({"pupil": "annulus", "focus_offset_um": 5}, "focus_offset_um=5.*pupil: rubin"),
+    ({"focus_offset_um": 2000}, r"focus_offset_um=2000.*\[-1000, 1000\]"),
+    ({"focus_offset_um": "near"}, "focus_offset_um")])
 def test_bad_pupil_keys_name_the_value(keys, match):
     with pytest.raises(SceneError, match=match):
         parse_scene(_ccd_scene(**keys))
+
+
+def test_the_focus_offset_reaches_each_streak_of_a_ccd_scene():
+    scene = parse_scene(_ccd_scene(focus_offset_um=-5))
+    assert scene.focus_offset_um == -5.0
+    [model] = streak_models(scene)
+    assert model.focus_offset_um == -5.0 and model.summary()["focus_offset_um"] == -5.0
+    assert parse_scene(_ccd_scene()).focus_offset_um == 0.0
+    assert model.profile_key != streak_models(parse_scene(_ccd_scene()))[0].profile_key
 
 
 def _focal(track):
@@ -285,8 +305,9 @@ def test_every_band_has_its_camera_and_a_kernel_near_the_annulus(band):
     """Each band's filter and camera trace: on axis at 800 km the kernel's hole is wider and
     its outside narrower than the annulus's, by the telescope's aberrations (g: +0.13" and
     -0.06"; u, whose in-focus spot is 0.09" rms against 0.05-0.06" in the others: +0.24" and
-    -0.11"), and the point keeps a star's light."""
-    k = traced_kernel(band, 800.0, 0.0, n_rays=100_000)
+    -0.11"), and the point keeps a star's light. At the band's effective wavelength: over the
+    band the focus's colour blurs the edges."""
+    k = traced_kernel(band, 800.0, 0.0, n_rays=100_000, wavelength_nm=BAND_WAVELENGTH_NM[band])
     inner = 2.558 / 800e3 * 206264.806
     outer = 4.18 / 800e3 * 206264.806
     assert inner + 0.05 < k.inner_radius < inner + 0.3

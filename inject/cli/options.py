@@ -50,20 +50,26 @@ def add_satellite_options(p):
 def model_from_args(args, pixel_scale=None, pixel_scale_name="--pixel-scale"):
     """The :class:`~inject.streak.StreakModel` of the satellite options, their ranges checked
     (:data:`inject.validate.RANGES`) before any profile is built."""
-    from inject.optics import FIELD_MAX_DEG
+    from inject.optics import FIELD_MAX_DEG, FOCUS_MAX_UM
     from inject.profile import Seeing  # GalSim: when a command runs, not for --help
     from inject.streak import StreakModel
 
     if not 0 <= args.field_angle <= FIELD_MAX_DEG:  # also NaN
         raise InputError("--field-angle", args.field_angle,
                          f"must be within [0, {FIELD_MAX_DEG}] deg (LSSTCam's CCDs reach 2.048)")
+    focus = getattr(args, "focus_offset", 0.0)  # inject profile's
+    if not abs(focus) <= FOCUS_MAX_UM or (focus and args.pupil != "rubin"):
+        raise InputError("--focus-offset", focus,
+                         f"must be within [-{FOCUS_MAX_UM:g}, {FOCUS_MAX_UM:g}] micron"
+                         if args.pupil == "rubin" else
+                         "only applies to --pupil rubin (the annulus is the design's focus)")
     model = StreakModel(  # its own domain checks first (NaN, <= 0, zenith >= 90, band)
         height_km=args.height, zenith_deg=args.zenith, phi_deg=args.phi,
         shape=shape_from_args(args), mag=args.mag, band_name=args.band,
         seeing=Seeing(args.seeing, args.seeing_model),
         telescope=LSST.with_pixel_scale(pixel_scale or args.pixel_scale),
         ref_range_km=args.ref_range, pupil=args.pupil, field_angle_deg=args.field_angle,
-        field_position_angle_deg=args.field_position_angle)
+        field_position_angle_deg=args.field_position_angle, focus_offset_um=focus)
     if args.pupil == "annulus" and (args.field_angle != 0 or args.field_position_angle != 0):
         raise InputError("--field-angle/--field-position-angle",
                          (args.field_angle, args.field_position_angle),

@@ -11,6 +11,10 @@ def add_profile_parser(sub):
     p = sub.add_parser("profile", help="streak profile of one satellite in one geometry",
                        description="Geometry, photometry and cross-section of one streak.")
     add_satellite_options(p)
+    p.add_argument("--focus-offset", type=float, default=0.0, metavar="UM",
+                   help="with --pupil rubin: the detector's shift from the design's focus "
+                        "along the optical axis, micron (negative: towards the camera's last "
+                        "lens; 0: focused at infinity)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run_profile)
 
@@ -50,6 +54,7 @@ _TABLE_ROWS = (
 _PUPIL_ROWS = (
     ("field_angle_deg", "field angle", "deg", None),
     ("field_position_angle_deg", "field radius from motion", "deg", "{:.0f}"),
+    ("focus_offset_um", "detector from design focus", "um", None),
     ("pupil_transmission", "light vs a star there", "", "{:.4f}"),
 )
 
