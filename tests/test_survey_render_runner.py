@@ -6,10 +6,11 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
+from test_focalplane_run import _wait_for
+from test_runner_reliability import _Between
 from test_survey_render import _night, _run
 
 import inject
@@ -20,21 +21,6 @@ from inject.exposure import runner
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 SMALL = ("--cutout-size", "64")
-
-
-class _Between(ThreadPoolExecutor):
-    """A thread pool that runs ``between()`` at its first submission: after the run has
-    claimed its visits' folders, before any CCD is rendered."""
-
-    def __init__(self, between):
-        super().__init__(2)
-        self.between = between
-
-    def submit(self, *args, **kwargs):
-        if self.between is not None:
-            between, self.between = self.between, None
-            between()
-        return super().submit(*args, **kwargs)
 
 
 def _pools(monkeypatch, *pools):
@@ -166,14 +152,6 @@ runner.WORKER_MODULES = (*runner.WORKER_MODULES, "blocker")
 sys.exit(main(["survey", {db!r}, "-o", {out!r}, "--constellation", {const!r}, "--no-plots",
                "--render", "--cutouts", "--cutout-size", "64", "--workers", "2"]))
 """
-
-
-def _wait_for(predicate, what, limit=120.0):
-    deadline = time.monotonic() + limit
-    while not predicate():
-        if time.monotonic() > deadline:
-            pytest.fail(f"gave up waiting for {what}")
-        time.sleep(0.05)
 
 
 @pytest.mark.slow  # ~30 s: a command in a process of its own, then the rerun
