@@ -12,6 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 import yaml
+from astropy.io import fits
 
 from inject import OutputError, make_plan, parse_focal_scene
 from inject.camera import layout as fp
@@ -556,12 +557,14 @@ class _WorkerOfAnotherVersion:
 
     def submit(self, function, *args):
         def elsewhere():
-            saved = runner.__version__
-            runner.__version__ = self.version
+            import inject
+
+            saved = runner.__version__, inject.__version__
+            runner.__version__ = inject.__version__ = self.version
             try:
                 return function(*args)
             finally:
-                runner.__version__ = saved
+                runner.__version__, inject.__version__ = saved
         return self.pool.submit(elsewhere)
 
     def shutdown(self, *args, **kwargs):
@@ -581,3 +584,21 @@ def test_a_worker_records_and_claims_with_the_runs_version(tmp_path):
         executor.shutdown()
     assert [r["detector"] for r in result.rendered] == ["R22_S12"]
     assert runner.read_manifest(out)["R22_S12"]["inject_version"] == inject.__version__
+
+
+def test_a_worker_process_writes_the_runs_version_in_its_files(tmp_path, monkeypatch):
+    """A worker process (here this process, taken for one) writes the run's version in the
+    file's INJVER, not the one it would read itself."""
+    import inject
+
+    run_version = inject.__version__
+    monkeypatch.setattr(inject, "__version__", run_version + ".d20991231")
+    monkeypatch.setattr(runner.multiprocessing, "parent_process", lambda: object())
+    monkeypatch.setattr(runner, "limit_threads", lambda: None)  # this process's threads stay
+    plan = make_plan(X)
+    ccd = fp.ccd("R22_S12")
+    row = runner.render_ccd(runner.Task(X, ccd.name, str(tmp_path), tuple(plan.streaks(ccd)),
+                                        version=run_version))
+    assert row["status"] == "done" and row["inject_version"] == run_version
+    with fits.open(tmp_path / "R22_S12.fits") as hdus:
+        assert hdus[0].header["INJVER"] == run_version

@@ -118,9 +118,10 @@ class Task:
     planned : object
         What ``measure`` needs from the caller.
     version : str or None
-        The inject version of the run (the caller's, read once): the worker records it and
-        claims with it. A checkout's version follows its commits and, on a dirty tree, the
-        date, so a worker reading its own could call its run's rows another version's.
+        The inject version of the run (the caller's, read once): the worker writes it in the
+        files, records it and claims with it. A checkout's version follows its commits and,
+        on a dirty tree, the date, so a worker reading its own could call its run's rows
+        another version's.
     """
 
     fscene: object
@@ -147,6 +148,11 @@ def render_ccd(task):
     """
     if multiprocessing.parent_process() is not None:
         limit_threads()
+        if task.version is not None:
+            # A worker process writes as the run it serves (INJVER too), whatever it would read.
+            import inject
+
+            inject.__version__ = task.version
     from inject.camera import layout as fp
     from inject.exposure.ccd import ccd_cards, simulate_ccd
     from inject.io.atomic import temporary_prefix
