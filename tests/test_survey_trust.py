@@ -304,10 +304,36 @@ def test_the_summary_records_what_made_it(night):
     assert s["visits_sha256"] == _sha256(night["visits"])
     assert s["constellation_sha256"] == {os.path.abspath(night["const"]):
                                          _sha256(night["const"])}
-    assert s["pupil"] == "annulus" and s["satellites"] == 400
+    assert s["pupil"] == "annulus" and s["focus_offset_um"] == 0.0 and s["satellites"] == 400
     assert s["satellites_by_source"] == {"shells[0] s": 400}
     assert s["fallbacks"] == {"seeing_default_arcsec": 0.67, "visits_default_seeing": 0,
                               "visits_model_sky": 3}
+
+
+def test_the_focus_offset_reaches_each_streaks_model_and_the_summary(night, tmp_path,
+                                                                    monkeypatch):
+    """A constellation's ``focus_offset_um`` is in the StreakModel of each streak the plan
+    finds (visit 11's one), and in summary.json beside ``pupil``. The models are built as
+    given and then without the traced pupil: plumbing, not the kernel's physics."""
+    from inject.streak import StreakModel
+    from inject.survey import plan
+
+    given = []
+
+    def untraced(**kw):
+        given.append(kw)
+        return StreakModel(**{k: v for k, v in kw.items() if k not in (
+            "pupil", "focus_offset_um", "field_angle_deg", "field_position_angle_deg")})
+
+    monkeypatch.setattr(plan, "StreakModel", untraced)
+    const = write_const(str(tmp_path), body=f"pupil: rubin\nfocus_offset_um: -5\n"
+                                            f"epoch: {EPOCH}\nshells:\n  - {SHELL}\n")
+    alone = write_csv(tmp_path / "alone.csv", [night["rows"][1]])
+    assert survey(alone, "-o", tmp_path / "out", "--constellation", const, "--no-plots") == 0
+    assert len(given) == 1
+    assert given[0]["pupil"] == "rubin" and given[0]["focus_offset_um"] == -5.0
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert s["pupil"] == "rubin" and s["focus_offset_um"] == -5.0
 
 
 def test_the_tle_files_are_recorded_and_reread_when_edited(tmp_path):
