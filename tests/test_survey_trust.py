@@ -313,8 +313,9 @@ def test_the_summary_records_what_made_it(night):
 def test_the_focus_offset_reaches_each_streaks_model_and_the_summary(night, tmp_path,
                                                                     monkeypatch):
     """A constellation's ``focus_offset_um`` is in the StreakModel of each streak the plan
-    finds (visit 11's one), and in summary.json beside ``pupil``. The models are built as
-    given and then without the traced pupil: plumbing, not the kernel's physics."""
+    finds (visit 11's one), in summary.json beside ``pupil``, and in the visit's scene that
+    ``--render`` renders. The plan's models are built as given and then without the traced
+    pupil, the render's scene is not planned: plumbing, not the kernel's physics."""
     from inject.streak import StreakModel
     from inject.survey import plan
 
@@ -334,6 +335,25 @@ def test_the_focus_offset_reaches_each_streaks_model_and_the_summary(night, tmp_
     assert given[0]["pupil"] == "rubin" and given[0]["focus_offset_um"] == -5.0
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert s["pupil"] == "rubin" and s["focus_offset_um"] == -5.0
+    # The visit's scene of --render: its every streak's model and each CCD's FOCUSDZ.
+    from inject.camera import layout as fp
+    from inject.exposure import plan as exposure_plan
+    from inject.exposure.ccd import ccd_scene
+    from inject.io.fits import primary_header
+    from inject.survey.render import RenderOptions, VisitJob, model_keys, visit_plan
+    from inject.survey.visits import read_visits
+
+    monkeypatch.setattr(exposure_plan, "make_plan", lambda fscene: fscene)  # no kernels traced
+    [row] = read_csv(tmp_path / "out" / "streaks.csv")
+    ccds = tuple(row["ccds"].split())
+    job = VisitJob(read_visits(alone)[0], (row["satellite"],), ccds, 0.8, 100.0,
+                   float(row["alt_deg"]), "key")
+    fscene = visit_plan(const, None, model_keys(const), job, RenderOptions(stars=False))
+    assert fscene.scene.pupil == "rubin" and fscene.scene.focus_offset_um == -5.0
+    track = fscene.tracks[0]
+    model = exposure_plan.vertex_model(fscene, 0, next(v for v in track.values if v))
+    assert model.focus_offset_um == -5.0
+    assert primary_header(ccd_scene(fscene, fp.ccd(ccds[0])))["FOCUSDZ"] == -5.0
 
 
 def test_the_tle_files_are_recorded_and_reread_when_edited(tmp_path):
