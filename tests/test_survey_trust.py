@@ -316,8 +316,14 @@ def test_the_focus_offset_reaches_each_streaks_model_and_the_summary(night, tmp_
     finds (visit 11's one), in summary.json beside ``pupil``, and in the visit's scene that
     ``--render`` renders. The plan's models are built as given and then without the traced
     pupil, the render's scene is not planned: plumbing, not the kernel's physics."""
+    from inject.camera import layout as fp
+    from inject.exposure import plan as exposure_plan
+    from inject.exposure.ccd import ccd_scene
+    from inject.io.fits import primary_header
     from inject.streak import StreakModel
     from inject.survey import plan
+    from inject.survey.render import RenderOptions, VisitJob, model_keys, visit_plan
+    from inject.survey.visits import read_visits
 
     given = []
 
@@ -336,13 +342,6 @@ def test_the_focus_offset_reaches_each_streaks_model_and_the_summary(night, tmp_
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert s["pupil"] == "rubin" and s["focus_offset_um"] == -5.0
     # The visit's scene of --render: its every streak's model and each CCD's FOCUSDZ.
-    from inject.camera import layout as fp
-    from inject.exposure import plan as exposure_plan
-    from inject.exposure.ccd import ccd_scene
-    from inject.io.fits import primary_header
-    from inject.survey.render import RenderOptions, VisitJob, model_keys, visit_plan
-    from inject.survey.visits import read_visits
-
     monkeypatch.setattr(exposure_plan, "make_plan", lambda fscene: fscene)  # no kernels traced
     [row] = read_csv(tmp_path / "out" / "streaks.csv")
     ccds = tuple(row["ccds"].split())

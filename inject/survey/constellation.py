@@ -5,7 +5,8 @@
     shape: {type: box, length: 7.25, width: 2.65}   # the model keys of a scene satellite
     mag: 5.0
     ref_range: 550
-    # pupil: rubin                                  # optional, as a scene's (and focus_offset_um)
+    # pupil: rubin                                  # optional, as a scene's
+    # focus_offset_um: -20                          # optional, micron, with pupil: rubin
     # lumos: {surfaces: [...]}                      # optional, as a scene's orbit satellite
     epoch: 2026-06-15T23:00:00                      # the shells' epoch (UTC)
     shells:                                         # Walker-delta shells
