@@ -43,8 +43,8 @@ SIMULATE_BYTES_PER_PIXEL = 64
 #: and ``cutout``).
 COMMON_KEYS = frozenset({"seed", "band", "exptime", "seeing", "zenith", "sky", "stars", "noise",
                          "satellites", "pointing", "dark_current", "cosmic_rays", "units", "time",
-                         "site", "shadow_atmosphere_km", "pupil"})
-SCENE_KEYS = COMMON_KEYS | {"detector", "field", "focus_offset_um"}
+                         "site", "shadow_atmosphere_km", "pupil", "focus_offset_um"})
+SCENE_KEYS = COMMON_KEYS | {"detector", "field"}
 #: Keys of a focal-plane scene.
 FOCAL_KEYS = COMMON_KEYS | {"detectors", "cutout"}
 #: A satellite's model keys, whatever its track is given as.
@@ -130,7 +130,7 @@ class Scene:
     #: the field for ``pupil: rubin`` (None: on the optical axis); the position angle is the
     #: outward field radius's direction on the image, from the pixel rows' +x.
     field: tuple | None = None
-    #: A CCD scene's ``focus_offset_um``: the detector's shift from the design's focus along
+    #: ``focus_offset_um``: the detector's shift from the design's focus along
     #: the optical axis for ``pupil: rubin``, micron (0: focused at infinity; negative: towards
     #: the camera's last lens, where a star is defocused as a point at finite range is).
     focus_offset_um: float = 0.0
@@ -221,7 +221,7 @@ def parse_pointing(value):
 
 def parse_common(raw):
     """The keys every scene shares, checked: a mapping of :class:`Scene`'s fields but
-    ``detector`` and ``satellites`` (defaults from :data:`DEFAULT_SCENE`)."""
+    ``detector``, ``satellites`` and ``field`` (defaults from :data:`DEFAULT_SCENE`)."""
     merged = {k: v for k, v in DEFAULT_SCENE.items() if k not in ("satellites", "detector")} | raw
     try:
         band(merged["band"])
@@ -249,7 +249,8 @@ def parse_common(raw):
         sky=sky, stars=stars, noise=merged["noise"], pointing=pointing, units=units,
         **{k: ranged(k, k, merged.get(k, 0.0)) for k in ("dark_current", "cosmic_rays")},
         time=None if merged.get("time") is None else exposure_start(merged["time"]),
-        site=merged.get("site"), shadow_atmosphere_km=atmosphere, pupil=pupil, raw=raw)
+        site=merged.get("site"), shadow_atmosphere_km=atmosphere, pupil=pupil,
+        focus_offset_um=parse_focus_offset(merged.get("focus_offset_um"), pupil), raw=raw)
 
 
 def parse_field(value, pupil="rubin"):
@@ -281,7 +282,7 @@ def parse_field(value, pupil="rubin"):
 
 
 def parse_focus_offset(value, pupil="rubin"):
-    """A CCD scene's ``focus_offset_um``, micron (0 when not given).
+    """A scene's (or a constellation's) ``focus_offset_um``, micron (0 when not given).
 
     Raises
     ------
@@ -417,9 +418,7 @@ def parse_scene(raw, charge_check=True):
         track = parse_track(f"{where}.track", spec["track"])
         parsed.append(parse_satellite(where, spec, track))
     scene = Scene(detector=detector, satellites=tuple(parsed),
-                  field=parse_field(raw.get("field"), common["pupil"]),
-                  focus_offset_um=parse_focus_offset(raw.get("focus_offset_um"),
-                                                     common["pupil"]), **common)
+                  field=parse_field(raw.get("field"), common["pupil"]), **common)
     if charge_check:
         check_charge(scene)
     ny, nx = detector.shape

@@ -195,3 +195,33 @@ def test_a_ccd_counts_only_where_the_footprint_itself_reaches(gap_px, planned):
     fscene = focal(satellites=[dict(SAT, track={"x0_mm": x0, "y0_mm": y0, "angle": -45.0})])
     assert bool(ccd_streaks(fscene, ccd, (margin,))) == planned
     assert (ccd in make_plan(fscene, (margin,)).streak_ccds()) == planned
+
+
+def test_the_focus_offset_reaches_every_streak_and_the_header():
+    """``focus_offset_um`` of a focal-plane scene is in each streak's model (the plan's and
+    the CCD's renders build theirs with :func:`vertex_model`) and in each CCD's ``FOCUSDZ``."""
+    from inject.exposure.ccd import ccd_scene
+    from inject.io.fits import primary_header
+
+    fscene = focal(pupil="rubin", focus_offset_um=-5)
+    assert fscene.scene.focus_offset_um == -5.0
+    model = vertex_model(fscene, 0, fscene.tracks[0].values[0])
+    assert model.pupil == "rubin" and model.focus_offset_um == -5.0
+    scene = ccd_scene(fscene, fp.ccd("R22_S11"))
+    assert primary_header(scene)["FOCUSDZ"] == -5.0
+    assert primary_header(ccd_scene(focal(), fp.ccd("R22_S11")))["FOCUSDZ"] == 0.0
+
+
+@pytest.mark.parametrize("keys, match", [
+    ({"focus_offset_um": 5}, r"^focus_offset_um=5\.0: only with pupil: rubin \(pupil: annulus"),
+    ({"pupil": "rubin", "focus_offset_um": 2000},
+     r"^focus_offset_um=2000.*\[-1000, 1000\]")])
+def test_a_focal_plane_focus_offset_is_refused_as_a_ccd_scenes(keys, match):
+    from inject import parse_scene
+
+    with pytest.raises(SceneError, match=match) as focal_error:
+        focal(**keys)
+    ccd = {"detector": {"type": "itl", "nx": 64, "ny": 64}, "satellites": [], **keys}
+    with pytest.raises(SceneError) as ccd_error:
+        parse_scene(ccd)
+    assert str(focal_error.value) == str(ccd_error.value)

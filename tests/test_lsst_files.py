@@ -430,7 +430,7 @@ def test_date_avg_when_the_scene_has_a_start():
     scene = parse_scene(SCENE)
     timed = SimpleNamespace(**{k: getattr(scene, k) for k in (
         "band", "exptime", "pointing", "seeing", "zenith", "seed", "detector", "satellites",
-        "pupil")},
+        "pupil", "focus_offset_um")},
         time="2025-03-01T04:00:00")
     header = primary_header(timed)
     assert header["DATE-AVG"] == "2025-03-01T04:00:44.500"  # + 7.5 s + 37 s

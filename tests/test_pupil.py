@@ -16,6 +16,7 @@ from astropy.io import fits
 from inject import SceneError, make_plan, parse_focal_scene, parse_scene
 from inject.camera import layout as fp
 from inject.errors import InputError
+from inject.io.fits import primary_header
 from inject.optics import (
     BAND_WAVELENGTH_NM,
     GRID_RAYS,
@@ -244,6 +245,7 @@ def test_the_focus_offset_reaches_each_streak_of_a_ccd_scene():
     assert scene.focus_offset_um == -5.0
     [model] = streak_models(scene)
     assert model.focus_offset_um == -5.0 and model.summary()["focus_offset_um"] == -5.0
+    assert primary_header(scene)["FOCUSDZ"] == -5.0
     assert parse_scene(_ccd_scene()).focus_offset_um == 0.0
     assert model.profile_key != streak_models(parse_scene(_ccd_scene()))[0].profile_key
 

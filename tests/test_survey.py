@@ -729,6 +729,13 @@ def test_the_constellation_may_ask_for_the_traced_pupil():
     assert parse_constellation(dict(raw, pupil="rubin")).pupil == "rubin"
     with pytest.raises(SceneError, match="pupil='ideal'"):
         parse_constellation(dict(raw, pupil="ideal"))
+    assert parse_constellation(raw).focus_offset_um == 0.0
+    assert parse_constellation(dict(raw, pupil="rubin", focus_offset_um=-5)).focus_offset_um == -5
+    with pytest.raises(SceneError, match=r"^constellation: focus_offset_um=5\.0: only with "
+                                         r"pupil: rubin \(pupil: annulus"):
+        parse_constellation(dict(raw, focus_offset_um=5))
+    with pytest.raises(SceneError, match=r"focus_offset_um=2000.*\[-1000, 1000\]"):
+        parse_constellation(dict(raw, pupil="rubin", focus_offset_um=2000))
     # Samples moving outward along the radius at 45 deg, then across it at x = 200 mm.
     t = np.linspace(50.0, 250.0, 21)
     out = _field(t, t, np.arange(21), 10)

@@ -304,10 +304,55 @@ def test_the_summary_records_what_made_it(night):
     assert s["visits_sha256"] == _sha256(night["visits"])
     assert s["constellation_sha256"] == {os.path.abspath(night["const"]):
                                          _sha256(night["const"])}
-    assert s["pupil"] == "annulus" and s["satellites"] == 400
+    assert s["pupil"] == "annulus" and s["focus_offset_um"] == 0.0 and s["satellites"] == 400
     assert s["satellites_by_source"] == {"shells[0] s": 400}
     assert s["fallbacks"] == {"seeing_default_arcsec": 0.67, "visits_default_seeing": 0,
                               "visits_model_sky": 3}
+
+
+def test_the_focus_offset_reaches_each_streaks_model_and_the_summary(night, tmp_path,
+                                                                    monkeypatch):
+    """A constellation's ``focus_offset_um`` is in the StreakModel of each streak the plan
+    finds (visit 11's one), in summary.json beside ``pupil``, and in the visit's scene that
+    ``--render`` renders. The plan's models are built as given and then without the traced
+    pupil, the render's scene is not planned: plumbing, not the kernel's physics."""
+    from inject.camera import layout as fp
+    from inject.exposure import plan as exposure_plan
+    from inject.exposure.ccd import ccd_scene
+    from inject.io.fits import primary_header
+    from inject.streak import StreakModel
+    from inject.survey import plan
+    from inject.survey.render import RenderOptions, VisitJob, model_keys, visit_plan
+    from inject.survey.visits import read_visits
+
+    given = []
+
+    def untraced(**kw):
+        given.append(kw)
+        return StreakModel(**{k: v for k, v in kw.items() if k not in (
+            "pupil", "focus_offset_um", "field_angle_deg", "field_position_angle_deg")})
+
+    monkeypatch.setattr(plan, "StreakModel", untraced)
+    const = write_const(str(tmp_path), body=f"pupil: rubin\nfocus_offset_um: -5\n"
+                                            f"epoch: {EPOCH}\nshells:\n  - {SHELL}\n")
+    alone = write_csv(tmp_path / "alone.csv", [night["rows"][1]])
+    assert survey(alone, "-o", tmp_path / "out", "--constellation", const, "--no-plots") == 0
+    assert len(given) == 1
+    assert given[0]["pupil"] == "rubin" and given[0]["focus_offset_um"] == -5.0
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert s["pupil"] == "rubin" and s["focus_offset_um"] == -5.0
+    # The visit's scene of --render: its every streak's model and each CCD's FOCUSDZ.
+    monkeypatch.setattr(exposure_plan, "make_plan", lambda fscene: fscene)  # no kernels traced
+    [row] = read_csv(tmp_path / "out" / "streaks.csv")
+    ccds = tuple(row["ccds"].split())
+    job = VisitJob(read_visits(alone)[0], (row["satellite"],), ccds, 0.8, 100.0,
+                   float(row["alt_deg"]), "key")
+    fscene = visit_plan(const, None, model_keys(const), job, RenderOptions(stars=False))
+    assert fscene.scene.pupil == "rubin" and fscene.scene.focus_offset_um == -5.0
+    track = fscene.tracks[0]
+    model = exposure_plan.vertex_model(fscene, 0, next(v for v in track.values if v))
+    assert model.focus_offset_um == -5.0
+    assert primary_header(ccd_scene(fscene, fp.ccd(ccds[0])))["FOCUSDZ"] == -5.0
 
 
 def test_the_tle_files_are_recorded_and_reread_when_edited(tmp_path):

@@ -262,6 +262,7 @@ def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, re
              "constellation_file": os.path.abspath(args.constellation),
              "constellation_sha256": inputs["constellation_sha256"],
              "epoch": inputs["epoch"], "pupil": constellation.pupil,
+             "focus_offset_um": constellation.focus_offset_um,
              "satellites": len(constellation),
              "satellites_by_source": dict(constellation.sources),
              "night_visits": len(night), "job": args.job, "njobs": args.njobs,

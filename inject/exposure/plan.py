@@ -38,7 +38,8 @@ def vertex_model(fscene, i, values, pixel_scale=None):
                        ref_range_km=spec.ref_range, range_km=values.get("range"),
                        angular_speed_rad_s=values.get("angular_speed"), pupil=scene.pupil,
                        field_angle_deg=values.get("field_angle", 0.0),
-                       field_position_angle_deg=values.get("field_pa", 0.0))
+                       field_position_angle_deg=values.get("field_pa", 0.0),
+                       focus_offset_um=scene.focus_offset_um)
 
 
 @lru_cache(maxsize=64)

@@ -121,6 +121,7 @@ def primary_header(scene, primary_cards=None):
         hdr["ROTCOORD"] = ("sky", "frame of ROTPA")
     hdr["SEEING"] = (scene.seeing, "[arcsec] atmospheric FWHM (Kolmogorov)")
     hdr["PUPIL"] = (scene.pupil, "defocus kernel: annulus or rubin (traced)")
+    hdr["FOCUSDZ"] = (float(scene.focus_offset_um), "[um] detector from design focus (rubin)")
     hdr["ZENITH"] = (scene.zenith, "[deg] zenith angle of the line of sight")
     hdr["SEED"] = (scene.seed, "scene random seed")
     hdr["DETTYPE"] = (scene.detector.kind.upper(), "sensor type")

@@ -5,6 +5,8 @@
     shape: {type: box, length: 7.25, width: 2.65}   # the model keys of a scene satellite
     mag: 5.0
     ref_range: 550
+    # pupil: rubin                                  # optional, as a scene's
+    # focus_offset_um: -20                          # optional, micron, with pupil: rubin
     # lumos: {surfaces: [...]}                      # optional, as a scene's orbit satellite
     epoch: 2026-06-15T23:00:00                      # the shells' epoch (UTC)
     shells:                                         # Walker-delta shells
@@ -25,7 +27,7 @@ import warnings
 from dataclasses import dataclass, field
 from functools import cached_property
 
-from inject.config import ORBIT_SATELLITE_KEYS, parse_satellite
+from inject.config import ORBIT_SATELLITE_KEYS, parse_focus_offset, parse_satellite
 from inject.errors import InjectError, OrbitError, OrbitWarning, SceneError
 from inject.orbits.passes import EPOCH_REFUSE_DAYS, EPOCH_WARN_DAYS, Orbit, walker_shell
 from inject.schema import check_keys, load_scene_file, number
@@ -34,7 +36,8 @@ from inject.survey.visits import check_mjd
 from inject.validate import parse_time
 
 #: Keys of a constellation file.
-CONSTELLATION_KEYS = (ORBIT_SATELLITE_KEYS - {"orbit"}) | {"shells", "tle", "epoch", "pupil"}
+CONSTELLATION_KEYS = (ORBIT_SATELLITE_KEYS - {"orbit"}) | {"shells", "tle", "epoch", "pupil",
+                                                           "focus_offset_um"}
 #: Keys of a shell (``raan0`` and ``name`` optional).
 SHELL_KEYS = ("height", "inclination", "planes", "per_plane", "phasing", "raan0", "name")
 #: The lowest shell, km: below ~150 km a satellite re-enters within days (the atmosphere's
@@ -65,6 +68,9 @@ class Constellation:
         Each shell (``shells[i] name``) and the TLE file, with its number of satellites.
     tle_files : tuple of str
         The TLE files read (absolute paths).
+    focus_offset_um : float
+        The detector's shift from the design's focus for ``pupil: rubin``, micron, as a
+        scene's ``focus_offset_um`` (:func:`inject.config.parse_focus_offset`).
     """
 
     satellite: object
@@ -75,6 +81,7 @@ class Constellation:
     epoch: object = None
     sources: tuple = ()
     tle_files: tuple = ()
+    focus_offset_um: float = 0.0
 
     def __len__(self):
         return len(self.orbits)
@@ -211,6 +218,10 @@ def parse_constellation(raw, default_epoch=None, folder=".", source="constellati
     pupil = raw.get("pupil", "annulus")
     if not isinstance(pupil, str) or pupil not in PUPILS:
         raise SceneError(f"{source}: pupil={pupil!r}: choose " + " or ".join(PUPILS))
+    try:
+        focus = parse_focus_offset(raw.get("focus_offset_um"), pupil)
+    except SceneError as err:
+        raise SceneError(f"{source}: {err}") from None
     lumos = raw.get("lumos")
     if lumos is not None:
         from inject.orbits.lumos import surfaces
@@ -244,7 +255,7 @@ def parse_constellation(raw, default_epoch=None, folder=".", source="constellati
         tle_files.append(path)
     _check_unique(source, orbits)
     return Constellation(satellite, lumos, tuple(orbits), source, pupil, epoch, tuple(sources),
-                         tuple(tle_files))
+                         tuple(tle_files), focus)
 
 
 def _elements(orbit):

@@ -472,7 +472,7 @@ def plan_visit(visit, constellation, site=RUBIN, prefilter=None):
         if not crossings:
             continue
         streak, widths = _streak(orbit.name, p, crossings, spec, visit, seeing, sigmas,
-                                 constellation.pupil)
+                                 constellation.pupil, constellation.focus_offset_um)
         mine = {}
         for piece, _, _ in crossings:
             for ccd in reached_ccds(xd[piece], yd[piece], max(widths.values())):
@@ -499,9 +499,11 @@ def _field(xd, yd, piece, n):
             "field_position_angle_deg": math.degrees(radius - heading)}
 
 
-def _streak(name, p, crossings, spec, visit, seeing, sigmas, pupil="annulus"):
+def _streak(name, p, crossings, spec, visit, seeing, sigmas, pupil="annulus",
+            focus_offset_um=0.0):
     """A :class:`Streak` from its crossing parts (the model at the middle of the samples on
-    the CCDs crossed) and its mask width (px) on each sensor type."""
+    the CCDs crossed, with the constellation's ``pupil`` and ``focus_offset_um``) and its mask
+    width (px) on each sensor type."""
     inside = []
     lengths = {}
     xd, yd = p.focal_mm()
@@ -524,7 +526,8 @@ def _streak(name, p, crossings, spec, visit, seeing, sigmas, pupil="annulus"):
                         shape=spec.shape, mag=v["mag"], band_name=visit.band,
                         seeing=Seeing(seeing), telescope=LSST, ref_range_km=spec.ref_range,
                         range_km=v["range"], angular_speed_rad_s=v["angular_speed"],
-                        pupil=pupil, **(_field(xd, yd, piece, n) if pupil != "annulus" else {}))
+                        pupil=pupil, focus_offset_um=focus_offset_um,
+                        **(_field(xd, yd, piece, n) if pupil != "annulus" else {}))
     widths = {vendor: mask_width_px(model, sigma) for vendor, sigma in sigmas.items()}
     total_mm = sum(lengths.values())
     mean_width = sum(widths[c.vendor] * mm for c, mm in lengths.items()) / total_mm \

@@ -37,6 +37,8 @@ import numpy as np
 from inject import __version__
 from inject.errors import OrbitWarning
 
+#: A constellation file's keys that are its visits' scene keys, not its satellites'.
+SCENE_MODEL_KEYS = ("pupil", "focus_offset_um")
 #: Side of a cut-out (px) by default.
 DEFAULT_CUTOUT_PX = 1024
 #: Folder of the visits' CCD files in OUTDIR.
@@ -86,11 +88,13 @@ def visit_key(plan, constellation, model, options):
 
 def model_keys(path):
     """The satellites' model keys of a constellation file (``shape``, ``mag``,
-    ``ref_range``, ``lumos``: a scene satellite's) and its ``pupil`` (the scene's)."""
+    ``ref_range``, ``lumos``: a scene satellite's) and its ``pupil`` and ``focus_offset_um``
+    (the scene's: :data:`SCENE_MODEL_KEYS`)."""
     from inject.schema import load_scene_file
 
     raw = load_scene_file(path)
-    return {k: raw[k] for k in ("shape", "mag", "ref_range", "lumos", "pupil") if k in raw}
+    return {k: raw[k] for k in ("shape", "mag", "ref_range", "lumos", *SCENE_MODEL_KEYS)
+            if k in raw}
 
 
 # --- the visit's scene (a worker) -----------------------------------------------------------
@@ -165,10 +169,11 @@ def visit_plan(constellation_path, epoch, model, job, options):
            "stars": _stars(visit) if options.stars else False,
            "noise": True, "time": visit.start.utc.isot,
            "pupil": model.get("pupil", "annulus"),
+           "focus_offset_um": model.get("focus_offset_um", 0.0),
            "pointing": {"ra": visit.ra_deg, "dec": visit.dec_deg,
                         "rotation": visit.rotation_deg},
            "detectors": list(job.ccds),
-           "satellites": [{**{k: v for k, v in model.items() if k != "pupil"},
+           "satellites": [{**{k: v for k, v in model.items() if k not in SCENE_MODEL_KEYS},
                            "orbit": {"tle": list(by_name[n].tle_lines())}}
                           for n in job.names]}
 
