@@ -608,8 +608,9 @@ def telescope_position_angle(rotator_deg, radius_deg):
     return float((radius + rotator) % 90.0)
 
 
-def _vane_node(angle_deg):
-    """``angle_deg`` (telescope frame) at the nearest :data:`VANE_STEP_DEG` node in [0, 90)."""
+def vane_node(angle_deg):
+    """``angle_deg`` (telescope frame, deg) at the nearest :data:`VANE_STEP_DEG` node in
+    [0, 90): the angle :func:`kernel` traces."""
     return float(round(float(angle_deg) / VANE_STEP_DEG) * VANE_STEP_DEG % 90.0)
 
 
@@ -825,7 +826,7 @@ def kernel(band, range_km, field_angle_deg=0.0, focus_offset_um=0.0,
     focus = check_focus_offset(focus_offset_um)
     node = None
     if telescope_position_angle_deg is not None:
-        node = _vane_node(finite("telescope_position_angle_deg", telescope_position_angle_deg,
+        node = vane_node(finite("telescope_position_angle_deg", telescope_position_angle_deg,
                                  scalar=True))
     range_index = int(round(np.log(range_km) / np.log(RANGE_BIN_FACTOR)))
     low = min(int(np.searchsorted(FIELD_NODES_DEG, field, side="right")) - 1,

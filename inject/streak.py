@@ -150,7 +150,13 @@ class StreakModel:
             return key
         return key + (self.pupil, self.band_name, float(self.field_angle_deg),
                       self._radius_direction, float(self.focus_offset_um),
-                      self.telescope_position_angle_deg)
+                      self._vane_node)
+
+    @property
+    def _vane_node(self):
+        """The telescope-frame angle as traced (:func:`inject.optics.vane_node`), or None."""
+        angle = self.telescope_position_angle_deg
+        return None if angle is None else optics.vane_node(angle)
 
     @property
     def _radius_direction(self):

@@ -4,7 +4,7 @@ import pytest
 
 from inject import SceneError, optics, parse_scene
 from inject.errors import InputError
-from inject.optics import _grid_kernel, _vane_node, telescope_position_angle, traced_kernel
+from inject.optics import _grid_kernel, telescope_position_angle, traced_kernel, vane_node
 from inject.profile import Seeing
 from inject.scene import streak_models
 from inject.streak import StreakModel
@@ -29,7 +29,7 @@ def test_the_telescope_position_angle_is_the_radius_plus_the_rotator_modulo_90()
     assert telescope_position_angle(30, 100) == pytest.approx(40.0)
     assert telescope_position_angle(-10, 5) == pytest.approx(85.0)
     assert telescope_position_angle(250, 200) == pytest.approx(0.0)
-    assert [_vane_node(a) for a in (42.4, 42.6, 87.6, 2.4)] == [40.0, 45.0, 0.0, 0.0]
+    assert [vane_node(a) for a in (42.4, 42.6, 87.6, 2.4)] == [40.0, 45.0, 0.0, 0.0]
 
 
 def test_the_rotator_reaches_each_streak_of_a_ccd_scene():
@@ -120,3 +120,11 @@ def test_rotators_45_deg_apart_change_the_fwhm_as_a_trace_does_and_90_apart_do_n
     assert fwhm[0] / fwhm[45] - 1 == pytest.approx(trace[0.0] / trace[45.0] - 1, abs=1.5e-3)
     assert fwhm[90] == fwhm[0]
     assert trace[90.0] == pytest.approx(trace[0.0], rel=2e-3)
+
+
+def test_models_whose_angles_share_a_node_share_a_profile():
+    kw = dict(height_km=550, pupil="rubin", field_angle_deg=1.5)
+    assert (StreakModel(**kw, telescope_position_angle_deg=41.0).profile_key
+            == StreakModel(**kw, telescope_position_angle_deg=39.0).profile_key)
+    assert (StreakModel(**kw, telescope_position_angle_deg=41.0).profile_key
+            != StreakModel(**kw, telescope_position_angle_deg=46.0).profile_key)
