@@ -4,6 +4,7 @@ import pytest
 
 from inject import SceneError, optics, parse_scene
 from inject.errors import InputError
+from inject.io.fits import primary_header
 from inject.optics import _grid_kernel, telescope_position_angle, traced_kernel, vane_node
 from inject.profile import Seeing
 from inject.scene import streak_models
@@ -40,6 +41,8 @@ def test_the_rotator_reaches_each_streak_of_a_ccd_scene():
     [plain] = streak_models(parse_scene(_ccd_scene(field={"angle": 1.5, "position_angle": 100})))
     assert plain.telescope_position_angle_deg is None
     assert model.profile_key != plain.profile_key
+    assert primary_header(scene)["ROTTELPOS"] == 30.0
+    assert "ROTTELPOS" not in primary_header(parse_scene(_ccd_scene()))
 
 
 def test_the_rotator_reaches_each_streak_of_a_focal_plane_scene():
