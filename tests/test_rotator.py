@@ -131,3 +131,14 @@ def test_models_whose_angles_share_a_node_share_a_profile():
             == StreakModel(**kw, telescope_position_angle_deg=39.0).profile_key)
     assert (StreakModel(**kw, telescope_position_angle_deg=41.0).profile_key
             != StreakModel(**kw, telescope_position_angle_deg=46.0).profile_key)
+
+
+def test_a_survey_streak_takes_its_visits_rotator():
+    from inject.survey.plan import _field
+
+    # A sample at (-100, 100) mm: its radius at 135 deg on the focal plane; rotTelPos 30 puts
+    # it at 165 deg in the telescope's frame, 75 modulo the vanes' 90.
+    xd, yd = np.array([-100.0, -90.0]), np.array([100.0, 100.0])
+    field = _field(xd, yd, [0, 1], 0, rotator_deg=30.0)
+    assert field["telescope_position_angle_deg"] == pytest.approx(75.0)
+    assert "telescope_position_angle_deg" not in _field(xd, yd, [0, 1], 0)
