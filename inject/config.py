@@ -43,7 +43,8 @@ SIMULATE_BYTES_PER_PIXEL = 64
 #: and ``cutout``).
 COMMON_KEYS = frozenset({"seed", "band", "exptime", "seeing", "zenith", "sky", "stars", "noise",
                          "satellites", "pointing", "dark_current", "cosmic_rays", "units", "time",
-                         "site", "shadow_atmosphere_km", "pupil", "focus_offset_um"})
+                         "site", "shadow_atmosphere_km", "pupil", "focus_offset_um",
+                         "rotator_deg"})
 SCENE_KEYS = COMMON_KEYS | {"detector", "field"}
 #: Keys of a focal-plane scene.
 FOCAL_KEYS = COMMON_KEYS | {"detectors", "cutout"}
@@ -134,6 +135,10 @@ class Scene:
     #: the optical axis for ``pupil: rubin``, micron (0: focused at infinity; negative: towards
     #: the camera's last lens, where a star is defocused as a point at finite range is).
     focus_offset_um: float = 0.0
+    #: ``rotator_deg``: the camera rotator's angle (opsim's rotTelPos), deg, which turns the
+    #: focal plane against the spider vanes for ``pupil: rubin``; None: not given (the field
+    #: radius is taken 22.5 deg from a vane, :data:`inject.optics.VANE_OFFSET_DEG`).
+    rotator_deg: float | None = None
 
 
 def _check_detector(spec):
@@ -250,7 +255,26 @@ def parse_common(raw):
         **{k: ranged(k, k, merged.get(k, 0.0)) for k in ("dark_current", "cosmic_rays")},
         time=None if merged.get("time") is None else exposure_start(merged["time"]),
         site=merged.get("site"), shadow_atmosphere_km=atmosphere, pupil=pupil,
-        focus_offset_um=parse_focus_offset(merged.get("focus_offset_um"), pupil), raw=raw)
+        focus_offset_um=parse_focus_offset(merged.get("focus_offset_um"), pupil),
+        rotator_deg=parse_rotator(merged.get("rotator_deg"), pupil), raw=raw)
+
+
+def parse_rotator(value, pupil="rubin"):
+    """A scene's ``rotator_deg``: the camera rotator's angle rotTelPos, deg (None when absent).
+
+    Raises
+    ------
+    SceneError
+        Not a number, or given with a ``pupil`` other than ``rubin`` (the annulus has no
+        spider vanes).
+    """
+    if value is None:
+        return None
+    rotator = number("rotator_deg", value)
+    if pupil != "rubin":
+        raise SceneError(f"rotator_deg={rotator}: only with pupil: rubin (pupil: {pupil} has no "
+                         "spider vanes)")
+    return rotator
 
 
 def parse_field(value, pupil="rubin"):

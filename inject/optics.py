@@ -14,8 +14,9 @@ vanes, the top-end-assembly, M1, M2 and M1/M3 baffles) with the camera (L1, L2, 
 detector) of the band's own model (``LSST_{band}.yaml``), in vacuum as the band's model is;
 both files ship with batoid, nothing is downloaded. The telescope is focused at infinity (the
 design's detector position) unless a focus offset moves the detector. The spider vanes'
-orientation is that of the model's frame: the camera rotator and the telescope's rotation about
-its axis are not followed.
+orientation is that of the model's frame, fixed to the telescope; the camera rotator turns the
+focal plane against them (:func:`telescope_position_angle`; without a rotator the field radius
+is taken 22.5 deg from a vane).
 
 Geometric optics only: each ray lands where the optics send it (no diffraction; at 0.2" pixels
 and seeing of 0.5" and more, diffraction's ~0.01" is far below the scales here). The kernel is
@@ -566,11 +567,52 @@ FIELD_NODES_DEG = np.round(np.concatenate([np.arange(0.0, 1.6, 0.05),
                                            np.arange(1.6, 1.9, 0.01),
                                            np.arange(1.9, FIELD_MAX_DEG + 1e-9, 0.002)]), 6)
 
-#: Direction of the field radius from the spider vanes at which kernels are traced, deg. The
-#: vanes' orientation relative to the field radius follows the camera rotator, which scenes do
-#: not model; halfway between along a vane (0) and between two (45) it is off by at most half
-#: the 0.54% the FWHM moves over that range at 1.5 deg.
+#: Field position angle in batoid's frame at which kernels are traced when a scene gives no
+#: camera rotator, deg: the radius 22.5 deg from a vane (batoid's vanes lie at 45 and 135
+#: deg), halfway between along a vane and between two, so off by at most half of what the
+#: FWHM moves over that range (docs/explanation/physics.md). With a rotator the angle is
+#: :func:`telescope_position_angle`'s, on :data:`VANE_STEP_DEG` nodes.
 VANE_OFFSET_DEG = 22.5
+
+#: Spacing of the field position angles in batoid's (the telescope's) frame at which kernels
+#: are traced when the camera rotator is given, deg: the angle is taken to the nearest node. The
+#: spider vanes repeat every 90 deg, so there are at most 18 nodes per range and field node.
+VANE_STEP_DEG = 5.0
+
+
+def telescope_position_angle(rotator_deg, radius_deg):
+    """The field radius's direction in the telescope's frame, where the spider vanes are fixed.
+
+    The vanes are fixed to the telescope and the camera turns with the rotator, so a field
+    radius at ``radius_deg`` in the camera's (focal plane's) frame is at ``radius_deg +
+    rotator_deg`` in the telescope's (batoid's model, whose vanes lie at 45 and 135 deg). The
+    convention assumed: at rotTelPos 0 the camera's axes are batoid's, and a positive rotTelPos
+    turns the camera counter-clockwise in that frame. The vanes' 4-fold symmetry reduces the
+    angle modulo 90.
+
+    Parameters
+    ----------
+    rotator_deg : float
+        The camera rotator's angle, rotTelPos, deg.
+    radius_deg : float
+        Direction of the outward field radius in the focal plane (a CCD's pixel rows turn by
+        multiples of 90 deg from it, which the vanes do not see), deg from +x.
+
+    Returns
+    -------
+    float
+        The field position angle in [0, 90) deg for :func:`traced_kernel`.
+    """
+    rotator = finite("rotator_deg", rotator_deg, scalar=True)
+    radius = finite("field_position_angle_deg", radius_deg, scalar=True)
+    return float((radius + rotator) % 90.0)
+
+
+def vane_node(angle_deg):
+    """``angle_deg`` (telescope frame, deg) at the nearest :data:`VANE_STEP_DEG` node in
+    [0, 90): the angle :func:`kernel` traces."""
+    return float(round(float(angle_deg) / VANE_STEP_DEG) * VANE_STEP_DEG % 90.0)
+
 
 #: Version of the kernel files and of the code that traces them: files of another version are
 #: not read (they stay in their own folder). Bump it when a change to this module changes the
@@ -601,16 +643,18 @@ def cache_dir():
     return os.path.join(root, "kernels", f"v{CACHE_VERSION}")
 
 
-def _grid_trace(band, range_index, field_index, focus_offset_um=0.0):
+def _grid_trace(band, range_index, field_index, focus_offset_um=0.0, position_angle=None):
     """The arguments of :func:`traced_kernel` for the grid node ``(range_index, field_index)``:
     range :data:`RANGE_BIN_FACTOR` ** ``range_index`` km, field angle
-    ``FIELD_NODES_DEG[field_index]``, the radius at :data:`VANE_OFFSET_DEG` from the vanes,
+    ``FIELD_NODES_DEG[field_index]``, the field position angle ``position_angle`` in batoid's
+    frame (None: :data:`VANE_OFFSET_DEG`),
     :data:`GRID_RAYS` rays over :data:`N_WAVELENGTHS` wavelengths of the Sun's spectrum,
     :data:`KERNEL_SCALE_ARCSEC` sampling, the detector ``focus_offset_um`` from the design's
     position."""
     return dict(band=band, range_km=RANGE_BIN_FACTOR ** range_index,
                 field_angle_deg=float(FIELD_NODES_DEG[field_index]),
-                field_position_angle_deg=VANE_OFFSET_DEG, n_rays=GRID_RAYS,
+                field_position_angle_deg=(VANE_OFFSET_DEG if position_angle is None
+                                          else float(position_angle)), n_rays=GRID_RAYS,
                 pixel_scale=KERNEL_SCALE_ARCSEC, focus_offset_um=float(focus_offset_um),
                 n_wavelengths=N_WAVELENGTHS, temperature_k=SUN_TEMPERATURE_K)
 
@@ -721,13 +765,13 @@ def _unwritable(folder, err):
 
 
 @functools.lru_cache(maxsize=64)  # images of ~500 x 500 at 350 km: about 130 MB at most
-def _grid_kernel(band, range_index, field_index, focus_offset_um=0.0):
+def _grid_kernel(band, range_index, field_index, focus_offset_um=0.0, position_angle=None):
     """The kernel traced at a grid node, from the disk cache when it holds it.
 
     A damaged cache file is traced again and rewritten; a folder that cannot be written keeps
     the kernel in memory only (one :class:`~inject.errors.InputWarning` per process).
     """
-    trace = _grid_trace(band, range_index, field_index, focus_offset_um)
+    trace = _grid_trace(band, range_index, field_index, focus_offset_um, position_angle)
     folder = cache_dir()
     if folder is None:
         return traced_kernel(**trace)
@@ -748,7 +792,8 @@ def _padded(image, n):
     return np.pad(image, pad) if pad else image
 
 
-def kernel(band, range_km, field_angle_deg=0.0, focus_offset_um=0.0):
+def kernel(band, range_km, field_angle_deg=0.0, focus_offset_um=0.0,
+           telescope_position_angle_deg=None):
     """The traced kernel of a point at ``range_km`` and ``field_angle_deg``, from the grid.
 
     The kernel traced at the nearest range node (:data:`RANGE_BIN_FACTOR`) scaled as 1/range,
@@ -764,17 +809,25 @@ def kernel(band, range_km, field_angle_deg=0.0, focus_offset_um=0.0):
         Within [0, :data:`FIELD_MAX_DEG`].
     focus_offset_um : float
         The detector's shift from the design's position, micron (:func:`traced_kernel`).
+    telescope_position_angle_deg : float, optional
+        The field radius's direction in batoid's (the telescope's) frame, deg
+        (:func:`telescope_position_angle`), traced at the nearest :data:`VANE_STEP_DEG` node;
+        None (no rotator given): :data:`VANE_OFFSET_DEG`.
 
     Returns
     -------
     TracedKernel
-        Its frame has the field radius at ``field_position_angle_deg`` (= VANE_OFFSET_DEG)
+        Its frame has the field radius at ``field_position_angle_deg`` (the node traced)
         from +x.
     """
     check_band(band)
     range_km = positive("range_km", range_km, scalar=True)
     field = check_field_angle(field_angle_deg)
     focus = check_focus_offset(focus_offset_um)
+    node = None
+    if telescope_position_angle_deg is not None:
+        node = vane_node(finite("telescope_position_angle_deg", telescope_position_angle_deg,
+                                 scalar=True))
     range_index = int(round(np.log(range_km) / np.log(RANGE_BIN_FACTOR)))
     low = min(int(np.searchsorted(FIELD_NODES_DEG, field, side="right")) - 1,
               len(FIELD_NODES_DEG) - 1)
@@ -782,9 +835,9 @@ def kernel(band, range_km, field_angle_deg=0.0, focus_offset_um=0.0):
     if low + 1 < len(FIELD_NODES_DEG):
         weight = (field - FIELD_NODES_DEG[low]) / (FIELD_NODES_DEG[low + 1] - FIELD_NODES_DEG[low])
     weight = 0.0 if weight < 1e-9 else float(weight)
-    nodes = [(_grid_kernel(band, range_index, low, focus), 1.0 - weight)]
+    nodes = [(_grid_kernel(band, range_index, low, focus, node), 1.0 - weight)]
     if weight > 0:
-        nodes.append((_grid_kernel(band, range_index, low + 1, focus), weight))
+        nodes.append((_grid_kernel(band, range_index, low + 1, focus, node), weight))
     n = max(k.image.shape[0] for k, _ in nodes)
     image = sum(w * _padded(k.image, n) for k, w in nodes)
     # 1/range: the node's kernel seen from range_km instead of the node's range.

@@ -23,6 +23,7 @@ from inject.maskplanes import (
     STREAK_MASK_FRACTION,
     STREAK_MASK_SIGMA,
 )
+from inject.optics import telescope_position_angle
 from inject.profile import Seeing, line_spread
 from inject.render import (
     AUTO_MIN_TOLERANCE,
@@ -85,13 +86,17 @@ def streak_models(scene):
     """The :class:`StreakModel` of every satellite of a scene."""
     telescope = LSST
     field_angle, radius = scene.field or (0.0, 0.0)
+    # The image's +x is taken as the focal plane's: a CCD's turn by 90 deg is lost on the vanes.
+    vanes = (None if scene.rotator_deg is None
+             else telescope_position_angle(scene.rotator_deg, radius))
     return [StreakModel(height_km=s.height, zenith_deg=scene.zenith, phi_deg=s.phi,
                         shape=s.shape, mag=s.mag, band_name=scene.band,
                         seeing=Seeing(scene.seeing), telescope=telescope,
                         ref_range_km=s.ref_range, pupil=scene.pupil,
                         field_angle_deg=field_angle,
                         field_position_angle_deg=radius - s.track.angle,
-                        focus_offset_um=scene.focus_offset_um)
+                        focus_offset_um=scene.focus_offset_um,
+                        telescope_position_angle_deg=vanes)
             for s in scene.satellites]
 
 

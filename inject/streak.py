@@ -64,6 +64,11 @@ class StreakModel:
         With ``pupil="rubin"``: the detector's shift from the design's position along the
         optical axis, micron (0: focused at infinity; negative: towards the light arriving
         from the camera's last lens, :func:`inject.optics.traced_kernel`).
+    telescope_position_angle_deg : float, optional
+        With ``pupil="rubin"``: the field radius's direction in the telescope's frame, where
+        the spider vanes are fixed, deg (:func:`inject.optics.telescope_position_angle` of the
+        camera rotator and the radius's direction on the focal plane). None (the default, no
+        rotator given): the radius 22.5 deg from a vane (:data:`inject.optics.VANE_OFFSET_DEG`).
 
     Raises
     ------
@@ -87,6 +92,7 @@ class StreakModel:
     field_angle_deg: float = 0.0
     field_position_angle_deg: float = 0.0
     focus_offset_um: float = 0.0
+    telescope_position_angle_deg: float | None = None
 
     def __post_init__(self):
         # Wrong types would otherwise fail much later, as an AttributeError or TypeError.
@@ -113,6 +119,13 @@ class StreakModel:
         if self.pupil == "annulus" and self.focus_offset_um != 0:
             raise InputError("focus_offset_um", self.focus_offset_um,
                              "only applies to pupil rubin (the annulus is the design's focus)")
+        if self.telescope_position_angle_deg is not None:
+            finite("telescope_position_angle_deg", self.telescope_position_angle_deg,
+                   scalar=True)
+            if self.pupil == "annulus":
+                raise InputError("telescope_position_angle_deg",
+                                 self.telescope_position_angle_deg,
+                                 "only applies to pupil rubin (the annulus has no spider vanes)")
         # Touch the cached geometry: validates height and zenith now rather than on first use.
         _ = self.geometry
 
@@ -129,13 +142,21 @@ class StreakModel:
         geometry, shape, seeing and telescope; not the magnitude or band, which only scale
         the charge; the range override (the defocus) but not the angular speed's. Models
         with equal keys share swept profiles (:mod:`inject.render`). With the traced pupil,
-        also the band (its optics), the field angle, the radius's direction and the focus."""
+        also the band (its optics), the field angle, the radius's direction, the focus and the
+        radius's direction in the telescope's frame."""
         key = (self.height_km, self.zenith_deg, self.phi_deg, self.shape, self.seeing,
                self.telescope, self.range_km)
         if self.pupil == "annulus":
             return key
         return key + (self.pupil, self.band_name, float(self.field_angle_deg),
-                      self._radius_direction, float(self.focus_offset_um))
+                      self._radius_direction, float(self.focus_offset_um),
+                      self._vane_node)
+
+    @property
+    def _vane_node(self):
+        """The telescope-frame angle as traced (:func:`inject.optics.vane_node`), or None."""
+        angle = self.telescope_position_angle_deg
+        return None if angle is None else optics.vane_node(angle)
 
     @property
     def _radius_direction(self):
@@ -170,7 +191,7 @@ class StreakModel:
         if self.pupil == "annulus":
             return None
         return optics.kernel(self.band_name, self.geometry.range_km, self.field_angle_deg,
-                             self.focus_offset_um)
+                             self.focus_offset_um, self.telescope_position_angle_deg)
 
     @property
     def pupil_transmission(self):

@@ -15,6 +15,10 @@ Sections (all by default, or name some with ``--sections``):
 ``focus``
     The paper's satellite at 350 and 550 km (zenith 70 deg), on the axis: streak FWHM and peak
     against the detector's shift from the design's focus, and where a star is sharpest.
+``rotator``
+    The paper's satellite at 350 and 550 km (zenith 70 deg) at 1.5 deg, the field radius along
+    the focal plane's +x: streak FWHM and peak against the camera rotator's angle (rotTelPos),
+    the track along the field radius and across it, and without a rotator (22.5 deg).
 ``cost``
     ``inject focalplane`` on the paper's focal-plane sample (``--streak-ccds-only``), with
     ``pupil=annulus`` and ``pupil=rubin`` alternated in one run: the first rubin run with an
@@ -22,7 +26,7 @@ Sections (all by default, or name some with ``--sections``):
 
 Usage::
 
-    python scripts/bench_optics.py [--sections table kernels grid focus cost] [--band g]
+    python scripts/bench_optics.py [--sections table kernels grid focus rotator cost] [--band g]
 """
 import argparse
 import os
@@ -35,7 +39,14 @@ import numpy as np
 
 from inject.geometry import slant_range
 from inject.instrument import ARCSEC_PER_RAD, LSST
-from inject.optics import GRID_RAYS, N_RAYS, VANE_OFFSET_DEG, kernel, traced_kernel
+from inject.optics import (
+    GRID_RAYS,
+    N_RAYS,
+    VANE_OFFSET_DEG,
+    kernel,
+    telescope_position_angle,
+    traced_kernel,
+)
 from inject.profile import Seeing
 from inject.streak import StreakModel
 
@@ -43,7 +54,8 @@ HEIGHTS_KM = (350.0, 550.0)
 ZENITH_DEG = 70.0
 FIELD_ANGLES_DEG = (0.0, 0.75, 1.25, 1.5, 1.75)
 PIXEL_ARCSEC = 0.2
-SECTIONS = ("table", "kernels", "grid", "focus", "cost")
+SECTIONS = ("table", "kernels", "grid", "focus", "rotator", "cost")
+ROTATORS_DEG = (None, 0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
 FOCUS_UM = (-10.0, -5.0, -2.0, -1.0, 0.0, 1.0, 2.0, 5.0, 10.0)
 
 
@@ -167,6 +179,28 @@ def focus(band, seeing):
           f"{np.sqrt(c - b * b / (4 * a)):.4f}\"")
 
 
+def rotator(band, seeing):
+    """Streak FWHM and peak at 1.5 deg against the camera rotator's angle."""
+    print("\n| rotator | telescope PA | " + " | ".join(
+        f"{h:.0f} km {label} FWHM | {h:.0f} km {label} peak" for h in HEIGHTS_KM
+        for label in ("along", "across")) + " |")
+    print("|---|---|" + "---|---|" * 2 * len(HEIGHTS_KM))
+    for rot in ROTATORS_DEG:
+        # The field radius along the focal plane's +x: its telescope angle is the rotator's.
+        pa = None if rot is None else telescope_position_angle(rot, 0.0)
+        cells = []
+        for height in HEIGHTS_KM:
+            for track_pa in (0.0, 90.0):
+                m = StreakModel(height_km=height, zenith_deg=ZENITH_DEG, band_name=band,
+                                seeing=seeing, pupil="rubin", field_angle_deg=1.5,
+                                field_position_angle_deg=track_pa,
+                                telescope_position_angle_deg=pa)
+                cells += [f"{m.fwhm_arcsec:.3f}\"", f"{m.peak_e_per_px:.0f} e-"]
+        label = "none" if rot is None else f"{rot:g} deg"
+        node = VANE_OFFSET_DEG if pa is None else pa
+        print(f"| {label} | {node:g} deg | " + " | ".join(cells) + " |", flush=True)
+
+
 def _run(pupil, outdir, cache):
     env = dict(os.environ, INJECT_CACHE_DIR=cache)
     start = time.perf_counter()
@@ -211,6 +245,8 @@ def main():
         grid(args.band, seeing)
     if "focus" in args.sections:
         focus(args.band, seeing)
+    if "rotator" in args.sections:
+        rotator(args.band, seeing)
     if "cost" in args.sections:
         cost(args.repeat)
 

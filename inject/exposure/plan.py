@@ -20,7 +20,7 @@ import numpy as np
 from inject.camera import layout as fp
 from inject.instrument import LSST
 from inject.maskplanes import FLAG_OFF_IMAGE
-from inject.optics import FIELD_MAX_DEG
+from inject.optics import FIELD_MAX_DEG, telescope_position_angle
 from inject.profile import Seeing
 from inject.render import Budget, swept_profile
 from inject.scene import own_budget, pixel_noise
@@ -39,7 +39,10 @@ def vertex_model(fscene, i, values, pixel_scale=None):
                        angular_speed_rad_s=values.get("angular_speed"), pupil=scene.pupil,
                        field_angle_deg=values.get("field_angle", 0.0),
                        field_position_angle_deg=values.get("field_pa", 0.0),
-                       focus_offset_um=scene.focus_offset_um)
+                       focus_offset_um=scene.focus_offset_um,
+                       telescope_position_angle_deg=(
+                           None if scene.rotator_deg is None else telescope_position_angle(
+                               scene.rotator_deg, values.get("field_radius", 0.0))))
 
 
 @lru_cache(maxsize=64)
@@ -251,9 +254,10 @@ def _kept_pieces(fscene, i, sensor_run, run, values, scale):
 
 def _with_field(ccd, points, straight):
     """``points`` with the field keys of ``pupil: rubin`` added to their values:
-    ``field_angle`` (deg from the optical axis) and ``field_pa`` (direction of the outward
+    ``field_angle`` (deg from the optical axis), ``field_pa`` (direction of the outward
     field radius in the CCD's pixels, deg from the track's direction there, unwrapped along
-    the track). A straight track takes them at its middle on the CCD: one kernel per CCD."""
+    the track) and ``field_radius`` (that radius on the focal plane, deg from its +x). A
+    straight track takes them at its middle on the CCD: one kernel per CCD."""
     xs = np.array([p[0] for p in points])
     ys = np.array([p[1] for p in points])
     where_x, where_y = ((xs[[0, -1]].mean(),), (ys[[0, -1]].mean(),)) if straight else (xs, ys)
@@ -272,10 +276,13 @@ def _with_field(ccd, points, straight):
     if straight:
         heading = heading[:1]
     pa = np.degrees(np.unwrap(np.radians(radius - heading)))
+    focal = np.degrees(np.arctan2(uy, ux))
     if straight:
         angle, pa = np.full(len(points), angle[0]), np.full(len(points), pa[0])
-    return [(x, y, {**v, "field_angle": float(min(a, FIELD_MAX_DEG)), "field_pa": float(q)})
-            for (x, y, v), a, q in zip(points, angle, pa)]
+        focal = np.full(len(points), focal[0])
+    return [(x, y, {**v, "field_angle": float(min(a, FIELD_MAX_DEG)), "field_pa": float(q),
+                    "field_radius": float(f)})
+            for (x, y, v), a, q, f in zip(points, angle, pa, focal)]
 
 
 def _to_pixels(ccd, points):

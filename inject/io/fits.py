@@ -122,6 +122,8 @@ def primary_header(scene, primary_cards=None):
     hdr["SEEING"] = (scene.seeing, "[arcsec] atmospheric FWHM (Kolmogorov)")
     hdr["PUPIL"] = (scene.pupil, "defocus kernel: annulus or rubin (traced)")
     hdr["FOCUSDZ"] = (float(scene.focus_offset_um), "[um] detector from design focus (rubin)")
+    if scene.rotator_deg is not None:  # only when given: files without it keep their bytes
+        hdr["HIERARCH ROTTELPOS"] = (float(scene.rotator_deg), "[deg] camera rotator angle")
     hdr["ZENITH"] = (scene.zenith, "[deg] zenith angle of the line of sight")
     hdr["SEED"] = (scene.seed, "scene random seed")
     hdr["DETTYPE"] = (scene.detector.kind.upper(), "sensor type")

@@ -41,7 +41,7 @@ from inject.instrument import LSST
 from inject.masking.geometry import Line, rectangle_spans
 from inject.masking.mask import MIN_FWHM
 from inject.maskplanes import STREAK_MASK_SIGMA
-from inject.optics import FIELD_MAX_DEG
+from inject.optics import FIELD_MAX_DEG, telescope_position_angle
 from inject.orbits.passes import (
     RUBIN,
     TRACK_STEP_S,
@@ -487,16 +487,21 @@ def plan_visit(visit, constellation, site=RUBIN, prefilter=None):
     return plan
 
 
-def _field(xd, yd, piece, n):
+def _field(xd, yd, piece, n, rotator_deg=None):
     """The traced pupil's field angle and radius direction (from the direction of motion) at
-    sample ``n`` of a crossing's ``piece`` of focal-plane samples (mm)."""
+    sample ``n`` of a crossing's ``piece`` of focal-plane samples (mm), and with the visit's
+    ``rotator_deg`` (rotTelPos) the radius's direction in the telescope's frame."""
     j = piece[n]
     a, b = piece[max(n - 1, 0)], piece[min(n + 1, len(piece) - 1)]
     heading = math.atan2(yd[b] - yd[a], xd[b] - xd[a])
     angle = math.degrees(math.hypot(*fp.field_angle(xd[j], yd[j])))
     radius = math.atan2(yd[j], xd[j])
-    return {"field_angle_deg": min(angle, FIELD_MAX_DEG),
-            "field_position_angle_deg": math.degrees(radius - heading)}
+    field = {"field_angle_deg": min(angle, FIELD_MAX_DEG),
+             "field_position_angle_deg": math.degrees(radius - heading)}
+    if rotator_deg is not None:
+        field["telescope_position_angle_deg"] = telescope_position_angle(
+            rotator_deg, math.degrees(radius))
+    return field
 
 
 def _streak(name, p, crossings, spec, visit, seeing, sigmas, pupil="annulus",
@@ -527,7 +532,8 @@ def _streak(name, p, crossings, spec, visit, seeing, sigmas, pupil="annulus",
                         seeing=Seeing(seeing), telescope=LSST, ref_range_km=spec.ref_range,
                         range_km=v["range"], angular_speed_rad_s=v["angular_speed"],
                         pupil=pupil, focus_offset_um=focus_offset_um,
-                        **(_field(xd, yd, piece, n) if pupil != "annulus" else {}))
+                        **(_field(xd, yd, piece, n, visit.rotator_deg)
+                           if pupil != "annulus" else {}))
     widths = {vendor: mask_width_px(model, sigma) for vendor, sigma in sigmas.items()}
     total_mm = sum(lengths.values())
     mean_width = sum(widths[c.vendor] * mm for c, mm in lengths.items()) / total_mm \

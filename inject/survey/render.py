@@ -79,7 +79,7 @@ def visit_key(plan, constellation, model, options):
     text = json.dumps({
         "visit": [v.observation_id, v.mjd_tai, v.ra_deg, v.dec_deg, v.rotation_deg, v.band,
                   v.exptime_s, v.n_exposures, plan.seeing_arcsec, plan.sky_e_per_px,
-                  plan.alt_deg],
+                  plan.alt_deg] + ([] if v.rotator_deg is None else [v.rotator_deg]),
         "satellites": [[s.satellite, *by_name[s.satellite].tle_lines()] for s in plan.streaks],
         "model": model, "options": [options.cutout, options.compression, options.stars],
         "version": __version__}, sort_keys=True, default=str)
@@ -176,6 +176,8 @@ def visit_plan(constellation_path, epoch, model, job, options):
            "satellites": [{**{k: v for k, v in model.items() if k not in SCENE_MODEL_KEYS},
                            "orbit": {"tle": list(by_name[n].tle_lines())}}
                           for n in job.names]}
+    if raw["pupil"] == "rubin" and visit.rotator_deg is not None:
+        raw["rotator_deg"] = visit.rotator_deg  # opsim's rotTelPos turns the CCDs on the vanes
 
     def orbit_track(where, *_):
         return tracks[int(where[len("satellites["):].split("]")[0])]

@@ -14,6 +14,7 @@ The columns read are those LSST's scheduler (rubin_scheduler, formerly opsim) wr
 ``numExposures``            optional (default 1): snaps in the visit
 ``seeingFwhmEff``           optional: the effective PSF FWHM, arcsec
 ``skyBrightness``           optional: the sky, mag/arcsec^2
+``rotTelPos``               optional: the camera rotator's angle, deg (``pupil: rubin``)
 ==========================  =============================================================
 
 Times. ``observationStartMJD`` is TAI (the scheduler's convention); it becomes an astropy
@@ -27,6 +28,9 @@ rotSkyPos, flipX=False)``). rubin_scheduler writes this angle (its ``RotationCon
 rotSkyPos = parallactic angle - rotTelPos - 90 deg); databases of the older rubin_sim schema
 described it as rotTelPos - parallactic angle, which turns the focal plane about the boresight
 (the streak counts are unchanged on average, the CCDs each one crosses are not).
+``rotTelPos``, when present, turns the focal plane against the spider vanes of the traced
+pupil (:func:`inject.optics.telescope_position_angle`); without it the field radius is taken
+22.5 deg from a vane (it is not computed back from rotSkyPos and the parallactic angle).
 
 Snaps. A visit of ``numExposures`` = n snaps is n exposures of ``visitExposureTime / n``
 seconds, each after the previous one's readout (:data:`READOUT_S`): a satellite that crosses
@@ -54,7 +58,7 @@ READOUT_S = 2.0
 REQUIRED = ("observationId", "observationStartMJD", "fieldRA", "fieldDec", "rotSkyPos", "band",
             "visitExposureTime")
 #: Columns read when present.
-OPTIONAL = ("numExposures", "seeingFwhmEff", "skyBrightness")
+OPTIONAL = ("numExposures", "seeingFwhmEff", "skyBrightness", "rotTelPos")
 
 #: The MJDs of 1900-01-01 and 2100-01-01: a time of a survey outside is a mistake (a JD given
 #: as an MJD is year ~8600).
@@ -87,6 +91,8 @@ class Visit:
         ``seeingFwhmEff``, arcsec.
     sky_brightness : float or None
         ``skyBrightness``, mag/arcsec^2.
+    rotator_deg : float or None
+        ``rotTelPos``, the camera rotator's angle, deg (None without the column).
     """
 
     observation_id: int
@@ -99,6 +105,7 @@ class Visit:
     n_exposures: int = 1
     seeing_fwhm_eff: float | None = None
     sky_brightness: float | None = None
+    rotator_deg: float | None = None
 
     @property
     def start(self):
@@ -288,7 +295,8 @@ def _visit(path, k, row, names):
                  ra_deg=get("fieldRA") % 360.0, dec_deg=dec,
                  rotation_deg=get("rotSkyPos") % 360.0, band=band, exptime_s=exptime,
                  n_exposures=n_exp, seeing_fwhm_eff=seeing,
-                 sky_brightness=optional("skyBrightness"))
+                 sky_brightness=optional("skyBrightness"),
+                 rotator_deg=optional("rotTelPos"))
 
 
 def check_mjd(name, mjd):

@@ -1,0 +1,144 @@
+"""The camera rotator turns the focal plane against the spider vanes of the traced pupil."""
+import numpy as np
+import pytest
+
+from inject import SceneError, optics, parse_scene
+from inject.errors import InputError
+from inject.io.fits import primary_header
+from inject.optics import _grid_kernel, telescope_position_angle, traced_kernel, vane_node
+from inject.profile import Seeing
+from inject.scene import streak_models
+from inject.streak import StreakModel
+from inject.survey.visits import read_visits
+
+pytest.importorskip("batoid")
+
+SEEING = Seeing(0.67)
+SAT = {"height": 550, "shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0}
+
+
+def _ccd_scene(**keys):
+    raw = {"seed": 2, "band": "g", "zenith": 0, "sky": False, "stars": False, "noise": False,
+           "detector": {"type": "itl", "nx": 500, "ny": 240}, "pupil": "rubin",
+           "satellites": [dict(SAT, track={"x0": 20, "y0": 100, "angle": 10})]}
+    raw.update(keys)
+    return raw
+
+
+def test_the_telescope_position_angle_is_the_radius_plus_the_rotator_modulo_90():
+    # By hand: 100 + 30 = 130 -> 40; 5 - 10 = -5 -> 85; 200 + 250 = 450 -> 0.
+    assert telescope_position_angle(30, 100) == pytest.approx(40.0)
+    assert telescope_position_angle(-10, 5) == pytest.approx(85.0)
+    assert telescope_position_angle(250, 200) == pytest.approx(0.0)
+    assert [vane_node(a) for a in (42.4, 42.6, 87.6, 2.4)] == [40.0, 45.0, 0.0, 0.0]
+
+
+def test_the_rotator_reaches_each_streak_of_a_ccd_scene():
+    scene = parse_scene(_ccd_scene(rotator_deg=30, field={"angle": 1.5, "position_angle": 100}))
+    assert scene.rotator_deg == 30.0
+    [model] = streak_models(scene)
+    assert model.telescope_position_angle_deg == pytest.approx(40.0)
+    [plain] = streak_models(parse_scene(_ccd_scene(field={"angle": 1.5, "position_angle": 100})))
+    assert plain.telescope_position_angle_deg is None
+    assert model.profile_key != plain.profile_key
+    assert primary_header(scene)["ROTTELPOS"] == 30.0
+    assert "ROTTELPOS" not in primary_header(parse_scene(_ccd_scene()))
+
+
+def test_the_rotator_reaches_each_streak_of_a_focal_plane_scene():
+    from inject import make_plan, parse_focal_scene
+    from inject.exposure.plan import vertex_model
+
+    fscene = parse_focal_scene({
+        "seed": 5, "band": "g", "zenith": 70, "pointing": {"ra": 50, "dec": -30},
+        "sky": False, "stars": False, "noise": False, "pupil": "rubin", "rotator_deg": 12,
+        "satellites": [dict(SAT, track={"x0_mm": 60.0, "y0_mm": 20.0, "angle": 90.0,
+                                        "length_mm": 100.0})]})
+    plan = make_plan(fscene)
+    [ccd, *_] = plan.streak_ccds()
+    [s] = plan.streaks(ccd)
+    values = s.values[0]
+    x0, y0, x1, y1 = s.ends
+    (xa, xb), (ya, yb) = ccd.pixel_to_focal(np.array([x0, x1]), np.array([y0, y1]))
+    radius = np.degrees(np.arctan2((ya + yb) / 2, (xa + xb) / 2))
+    assert values["field_radius"] == pytest.approx(radius, abs=0.01)
+    model = vertex_model(fscene, 0, values)
+    assert model.telescope_position_angle_deg == pytest.approx((radius + 12) % 90, abs=0.01)
+
+
+def test_rotTelPos_is_read_when_present(tmp_path):
+    head = "observationId,observationStartMJD,fieldRA,fieldDec,rotSkyPos,band,visitExposureTime"
+    row = "7,61000.1,10,-30,20,r,30"
+    (tmp_path / "a.csv").write_text(f"{head},rotTelPos\n{row},-33.5\n")
+    (tmp_path / "b.csv").write_text(f"{head}\n{row}\n")
+    assert read_visits(str(tmp_path / "a.csv"))[0].rotator_deg == -33.5
+    assert read_visits(str(tmp_path / "b.csv"))[0].rotator_deg is None
+
+
+def test_the_rotator_is_refused_without_the_traced_pupil():
+    with pytest.raises(SceneError, match=r"rotator_deg=10\.0: only with pupil: rubin"):
+        parse_scene(_ccd_scene(pupil="annulus", rotator_deg=10))
+    with pytest.raises(SceneError, match="rotator_deg"):
+        parse_scene(_ccd_scene(rotator_deg="north"))
+    with pytest.raises(InputError, match="telescope_position_angle_deg"):
+        StreakModel(550, telescope_position_angle_deg=10.0)
+
+
+@pytest.fixture
+def cheap_grid(monkeypatch):
+    """Grid kernels of few rays and wavelengths, in memory only."""
+    monkeypatch.setenv("INJECT_CACHE_DIR", "")
+    monkeypatch.setattr(optics, "GRID_RAYS", 40_000)
+    monkeypatch.setattr(optics, "N_WAVELENGTHS", 2)
+    _grid_kernel.cache_clear()
+    yield
+    _grid_kernel.cache_clear()
+
+
+def _fwhm_across(kernel, along_radius):
+    """FWHM with seeing of a track along the field radius (``along_radius``) or across it."""
+    track = kernel.field_position_angle_deg + (0.0 if along_radius else 90.0)
+    return kernel.cross_section(track, SEEING, pixel_scale_arcsec=0.2).fwhm()
+
+
+@pytest.mark.parametrize("along_radius", [True, False])
+def test_rotators_45_deg_apart_change_the_fwhm_as_a_trace_does_and_90_apart_do_not(
+        cheap_grid, along_radius):
+    """At 1.5 deg, the radius at 0 deg on the image: rotators 0 and 45 put it along a vane's
+    diagonal and 45 deg from it, 1% apart in FWHM; an independent trace at the exact angles
+    agrees, and a rotator 90 deg on gives the rotator 0's kernel (the vanes' 4-fold symmetry,
+    which the trace at 90 deg confirms to its ray noise)."""
+    fwhm = {}
+    for rotator in (0, 45, 90):
+        scene = parse_scene(_ccd_scene(rotator_deg=rotator,
+                                       field={"angle": 1.5, "position_angle": 0}))
+        [model] = streak_models(scene)
+        fwhm[rotator] = _fwhm_across(model.traced_kernel, along_radius)
+    trace = {pa: _fwhm_across(traced_kernel("g", 550.0, 1.5, pa, n_rays=40_000,
+                                            n_wavelengths=2), along_radius)
+             for pa in (0.0, 45.0, 90.0)}
+    assert fwhm[0] == pytest.approx(trace[0.0], rel=2e-3)
+    assert fwhm[45] == pytest.approx(trace[45.0], rel=2e-3)
+    assert abs(fwhm[0] / fwhm[45] - 1) > 3e-3
+    assert fwhm[0] / fwhm[45] - 1 == pytest.approx(trace[0.0] / trace[45.0] - 1, abs=1.5e-3)
+    assert fwhm[90] == fwhm[0]
+    assert trace[90.0] == pytest.approx(trace[0.0], rel=2e-3)
+
+
+def test_models_whose_angles_share_a_node_share_a_profile():
+    kw = dict(height_km=550, pupil="rubin", field_angle_deg=1.5)
+    assert (StreakModel(**kw, telescope_position_angle_deg=41.0).profile_key
+            == StreakModel(**kw, telescope_position_angle_deg=39.0).profile_key)
+    assert (StreakModel(**kw, telescope_position_angle_deg=41.0).profile_key
+            != StreakModel(**kw, telescope_position_angle_deg=46.0).profile_key)
+
+
+def test_a_survey_streak_takes_its_visits_rotator():
+    from inject.survey.plan import _field
+
+    # A sample at (-100, 100) mm: its radius at 135 deg on the focal plane; rotTelPos 30 puts
+    # it at 165 deg in the telescope's frame, 75 modulo the vanes' 90.
+    xd, yd = np.array([-100.0, -90.0]), np.array([100.0, 100.0])
+    field = _field(xd, yd, [0, 1], 0, rotator_deg=30.0)
+    assert field["telescope_position_angle_deg"] == pytest.approx(75.0)
+    assert "telescope_position_angle_deg" not in _field(xd, yd, [0, 1], 0)
