@@ -1,6 +1,8 @@
 """The camera rotator turns the focal plane against the spider vanes of the traced pupil."""
 import numpy as np
 import pytest
+from test_pupil import SAT
+from test_pupil import _ccd_scene as _pupil_scene
 
 from inject import SceneError, optics, parse_scene
 from inject.errors import InputError
@@ -14,15 +16,11 @@ from inject.survey.visits import read_visits
 pytest.importorskip("batoid")
 
 SEEING = Seeing(0.67)
-SAT = {"height": 550, "shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0}
 
 
 def _ccd_scene(**keys):
-    raw = {"seed": 2, "band": "g", "zenith": 0, "sky": False, "stars": False, "noise": False,
-           "detector": {"type": "itl", "nx": 500, "ny": 240}, "pupil": "rubin",
-           "satellites": [dict(SAT, track={"x0": 20, "y0": 100, "angle": 10})]}
-    raw.update(keys)
-    return raw
+    """test_pupil's CCD scene, in g at the zenith."""
+    return _pupil_scene(**{"band": "g", "zenith": 0, **keys})
 
 
 def test_the_telescope_position_angle_is_the_radius_plus_the_rotator_modulo_90():
