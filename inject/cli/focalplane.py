@@ -1,11 +1,14 @@
 """``inject focalplane``: a focal-plane scene rendered CCD by CCD."""
 import gc
 import json
+import logging
 import os
 import sys
 
 from inject.errors import InputError, OutputError, ResourceError
 from inject.io.atomic import atomic_path
+
+log = logging.getLogger(__name__)
 
 # ``inject --help`` imports this module: the scene parser, the plan, the runner (multiprocessing,
 # Dask) and the camera layout are imported inside the functions that use them.
@@ -91,8 +94,7 @@ def run_focalplane(args):
                 ends = "; ".join(f"({s['x0']:.1f}, {s['y0']:.1f}) -> ({s['x1']:.1f}, "
                                  f"{s['y1']:.1f})" for s in d["streaks"])
                 print(f"{d['name']:8s} {d['id']:3d} {d['vendor']:3s}  {ends}")
-            print(f"{len(result['detectors'])} of {len(ccds)} CCDs reached by a streak",
-                  file=sys.stderr)
+            log.info("%d of %d CCDs reached by a streak", len(result["detectors"]), len(ccds))
         return
     from inject.exposure.runner import check_outdir
 
@@ -125,7 +127,7 @@ def _nothing_to_render(plan, args, records, why):
 
     run(plan, args.output, None, ccds=(), overwrite=args.overwrite)
     path = write_satellites(args.output, records)
-    print(f"inject focalplane: no CCD to render ({why}); wrote {path}", file=sys.stderr)
+    log.info("inject focalplane: no CCD to render (%s); wrote %s", why, path)
 
 
 def _workers(fscene, ccds, args):
@@ -264,19 +266,19 @@ def _render(plan, ccds, args, records, workers, memory_limit):
                          retries=args.retries)
     else:
         result = _run_on_pool(plan, ccds, args, workers)
-    print(f"{args.output}: {len(result.rendered)} CCDs rendered, {len(result.skipped)} "
-          f"already done, {len(result.failed)} failed", file=sys.stderr)
+    log.info("%s: %d CCDs rendered, %d already done, %d failed", args.output,
+             len(result.rendered), len(result.skipped), len(result.failed))
     write_satellites(args.output, records)
     for row in records:
         if not row["n_ccds"]:
-            print(f"satellites[{row['satellite']}]: renders on no CCD (why: "
-                  f"{os.path.join(args.output, SATELLITES_CSV)})", file=sys.stderr)
+            log.warning("satellites[%s]: renders on no CCD (why: %s)", row["satellite"],
+                        os.path.join(args.output, SATELLITES_CSV))
     if not args.no_mosaic:
         from inject.exposure.mosaic import write_mosaic
 
         path = os.path.join(args.output, "mosaic.png")
         write_mosaic(path, plan.fscene, args.output)
-        print(f"wrote {path}", file=sys.stderr)
+        log.info("wrote %s", path)
     error = result.error(args.output)  # which CCDs failed, with their messages
     if error is not None:
         raise error  # a RunError: one line, exit status 2

@@ -4,6 +4,7 @@ The command line of :mod:`inject.masking.run` (the engine): its parser, the run 
 image, masks it and writes the copy, and the table it prints.
 """
 import json
+import logging
 import os
 import sys
 
@@ -19,6 +20,8 @@ from inject.masking.run import (
     check_options,
     write_masked_exposure,
 )
+
+log = logging.getLogger(__name__)
 
 
 def add_mask_parser(sub):
@@ -75,7 +78,7 @@ def run_mask(args):
     else:
         _print_table(result)
     if args.out:
-        print(f"wrote {args.out}", file=sys.stderr)
+        log.info("wrote %s", args.out)
 
 
 def _print_table(result):

@@ -1,12 +1,14 @@
 """``inject simulate``: one CCD with streaks from a YAML scene file, written as FITS (and
 optionally OpenEXR, a quicklook picture and the truth table as CSV), all or nothing."""
+import logging
 import os
-import sys
 
 from inject.cli.options import add_output_option
 from inject.errors import InputError
 from inject.instrument import LSST
 from inject.io.atomic import output_group
+
+log = logging.getLogger(__name__)
 
 
 def add_simulate_parser(sub):
@@ -82,4 +84,4 @@ def run_simulate(args):
 
             write_truth_csv(args.truth, result.truth, overwrite=args.overwrite)
     for path in outputs.values():
-        print(f"wrote {path}", file=sys.stderr)
+        log.info("wrote %s", path)

@@ -3,12 +3,15 @@ masks cost (the plan); with ``--render``, the streaked CCDs rendered, masked and
 (:mod:`inject.survey.render`)."""
 import contextlib
 import json
+import logging
 import os
 import sys
 import time
 import warnings
 
 from inject.errors import InputError, OrbitWarning
+
+log = logging.getLogger(__name__)
 
 # ``inject --help`` imports this module: the orbits (astropy, SGP4), the streak model and the
 # survey engine are imported inside the functions that use them.
@@ -191,9 +194,8 @@ def _render(plans, constellation, args, first, options):
             stop_fork_server()
             raise
         pool.shutdown()
-    print(f"inject survey --render: {len(result.rendered)} CCDs rendered, "
-          f"{len(result.skipped)} already done, {len(result.failed)} failed "
-          f"({result.seconds:.1f} s)", file=sys.stderr)
+    log.info("inject survey --render: %d CCDs rendered, %d already done, %d failed (%.1f s)",
+             len(result.rendered), len(result.skipped), len(result.failed), result.seconds)
     return result
 
 
@@ -206,17 +208,19 @@ def _constellation(path, night):
 
 
 def _plan(visits, constellation, args):
-    """Every visit's plan, in this process or on workers, with a progress bar."""
+    """Every visit's plan, in this process or on workers, with its progress
+    (:mod:`inject.progress`)."""
+    from inject.progress import Progress
     from inject.survey.plan import plan_chunk, plan_visits
 
-    progress = _Progress(len(visits))
+    progress = Progress(len(visits), "planning visits", "visit", log)
     workers = args.workers or 1
     try:
         if workers == 1 and not args.scheduler:
             with warnings.catch_warnings():
                 # An epoch's warning is said once, for the night (check_epochs).
                 warnings.simplefilter("ignore", OrbitWarning)
-                return plan_visits(visits, constellation, progress=progress.step)
+                return plan_visits(visits, constellation, progress=progress.update)
         chunks = [visits[k:k + CHUNK_VISITS] for k in range(0, len(visits), CHUNK_VISITS)]
         path = os.path.abspath(args.constellation)
         if args.scheduler:
@@ -246,7 +250,7 @@ def _gather(executor, function, path, chunks, progress):
     for future in as_completed(futures):
         out[futures[future]] = future.result()
         for _ in out[futures[future]]:
-            progress.step()
+            progress.update()
     return [plan for chunk in out for plan in chunk]
 
 
@@ -280,10 +284,10 @@ def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, re
     if args.json:
         json.dump(result, sys.stdout)
         sys.stdout.write("\n")
-    print(f"inject survey: {len(visits)} visits, {result['streaked_visits']} streaked, "
-          f"{result['streaks']} streaks, pixel fraction lost "
-          f"{result['pixel_fraction_lost_total']:.3g} ({elapsed / len(visits):.3f} s a visit); "
-          f"wrote {', '.join(written.values())}", file=sys.stderr)
+    log.info("inject survey: %d visits, %d streaked, %d streaks, pixel fraction lost %.3g "
+             "(%.3f s a visit); wrote %s", len(visits), result["streaked_visits"],
+             result["streaks"], result["pixel_fraction_lost_total"], elapsed / len(visits),
+             ", ".join(written.values()))
     return written
 
 
@@ -301,31 +305,3 @@ def _failed(rendered, outdir):
                     f"{first['error']}); each one's error is in its visit's manifest.csv under "
                     f"{os.path.join(outdir, 'visits')}; a rerun redoes only the failed ones",
                     [(f"{r['visit']}/{r['detector']}", r["error"]) for r in rows])
-
-
-class _Progress:
-    """A bar over the visits on stderr: tqdm on a terminal, a line per tenth otherwise."""
-
-    def __init__(self, total):
-        self.total, self.done, self.next_line = total, 0, 0
-        self.bar = None
-        if sys.stderr.isatty():
-            try:
-                from tqdm import tqdm
-
-                self.bar = tqdm(total=total, unit="visit", file=sys.stderr)
-            except ImportError:
-                pass
-
-    def step(self):
-        self.done += 1
-        if self.bar is not None:
-            self.bar.update(1)
-        elif self.done >= self.next_line or self.done == self.total:
-            print(f"inject survey: visit {self.done}/{self.total}", file=sys.stderr,
-                  flush=True)
-            self.next_line = self.done + max(1, self.total // 10)
-
-    def close(self):
-        if self.bar is not None:
-            self.bar.close()
