@@ -258,6 +258,42 @@ def test_no_false_positives_on_streak_free_cutouts():
     assert false_positive_summary(records, 1024)["inject"]["detections"] == 0
 
 
+#: Writes the campaign's plots under a backend the caller chose (argv[1]) with a pyplot figure
+#: of its own open, then prints the backend and the caller's figures.
+PLOTS_UNDER_A_CHOSEN_BACKEND = """
+import sys
+import matplotlib
+matplotlib.use(sys.argv[1])
+import matplotlib.pyplot as plt
+from inject.cli.evaluate import write_plots
+mine = plt.figure()
+rows = [{"masker": "inject", "height_km": h, "mag": m, "peak_sb": 2.0 / m,
+         "int_snr": 50.0 / m, "completeness": 1.0, "fwhm_bias_pct": 1.0}
+        for h in (550.0, 350.0) for m in (11.0, 12.0)]
+loss = [{"mag": 11.0, "px_550": 100.0, "px_350": 150.0, "ratio": 1.5}]
+paths = write_plots(rows, loss, sys.argv[2], "inject")
+print(matplotlib.get_backend(), plt.get_fignums() == [mine.number], len(paths))
+"""
+
+
+@pytest.mark.parametrize("backend", ["svg", "pdf"])
+def test_the_plots_leave_the_callers_backend_and_figures(tmp_path, backend):
+    """Before: write_plots switched matplotlib to Agg, under a notebook's or a program's own
+    backend, and closed figures through pyplot."""
+    import os
+    import subprocess
+    import sys
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    run = subprocess.run([sys.executable, "-c", PLOTS_UNDER_A_CHOSEN_BACKEND, backend,
+                          str(tmp_path)], capture_output=True, text=True,
+                         env=dict(os.environ, PYTHONPATH=root))
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == [backend, "True", "3"]
+    for name in ("completeness.png", "fwhm_bias.png", "pixel_loss.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_evaluate_command_rejects_bad_options(tmp_path):
     for argv in (["--seeds", "0"], ["--heights", "-5"], ["--masker", "nope"],
                  ["--truth-sigma", "0"], ["--streak-free", "-1"]):

@@ -212,18 +212,21 @@ def _csv_text(rows):
 def write_plots(summary, loss, outdir, masker, overwrite=False):
     """Completeness vs peak SB, FWHM bias vs integrated S/N, pixel loss 550 vs 350 km (PNG,
     written atomically); returns the paths."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # Figures on their own Agg canvas: no pyplot, so the caller's backend and figures stay.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     paths = []
+
+    def figure():
+        fig = Figure(figsize=(6, 4))
+        FigureCanvasAgg(fig)
+        return fig, fig.subplots()
 
     def save(fig, name):
         path = os.path.join(outdir, name)
         with atomic_path(path, overwrite) as tmp:
             fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png")
-        plt.close(fig)
         paths.append(path)
 
     groups = sorted({(r["masker"], r["height_km"]) for r in summary
@@ -234,7 +237,7 @@ def write_plots(summary, loss, outdir, masker, overwrite=False):
                       key=lambda r: r[x])
         return [r[x] for r in rows], [r[y] for r in rows]
 
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, ax = figure()
     for key in groups:
         ax.plot(*series(key, "peak_sb", "completeness"), "o-", label=f"{key[0]} {key[1]:.0f} km")
     ax.set(xscale="log", xlabel="peak surface brightness / sky σ per pixel",
@@ -243,7 +246,7 @@ def write_plots(summary, loss, outdir, masker, overwrite=False):
     ax.legend(fontsize=8)
     save(fig, "completeness.png")
 
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, ax = figure()
     for key in groups:
         x, y = series(key, "int_snr", "fwhm_bias_pct")
         if any(math.isfinite(v) for v in y):
@@ -255,7 +258,7 @@ def write_plots(summary, loss, outdir, masker, overwrite=False):
     save(fig, "fwhm_bias.png")
 
     if loss:
-        fig, ax = plt.subplots(figsize=(6, 4))
+        fig, ax = figure()
         keys = [k for k in loss[0] if k.startswith("px_")]
         for k in keys:
             ax.plot([r["mag"] for r in loss], [r[k] for r in loss], "o-",
