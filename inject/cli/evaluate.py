@@ -377,9 +377,9 @@ def _output_directory(path):
 
 def run_evaluate(args):
     """The ``inject evaluate`` command (``args`` from :func:`add_evaluate_parser`)."""
+    _check(args)  # before the engine's imports
     from inject.masking.evaluate import load_masker
 
-    _check(args)
     maskers = args.masker or ["inject"]
     for masker in maskers:  # a bad name or a missing optional package: before any work
         load_masker(masker)

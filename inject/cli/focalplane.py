@@ -72,15 +72,20 @@ def _selected(plan, args):
 
 
 def run_focalplane(args):
-    from inject.exposure.plan import make_plan
-    from inject.exposure.scene import parse_focal_scene
-    from inject.schema import apply_overrides, load_scene_file
+    # The options alone first: a bad one is answered before the engine is imported.
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers", args.workers, "must be >= 1")
     if args.retries < 0:
         raise InputError("--retries", args.retries, "must be >= 0")
     if args.json and not args.plan:
         raise InputError("--json", True, "only with --plan")
+    from inject.exposure.runner import slice_ccds
+
+    slice_ccds((), args.job, args.njobs)  # --job/--njobs
+    from inject.exposure.plan import make_plan
+    from inject.exposure.scene import parse_focal_scene
+    from inject.schema import apply_overrides, load_scene_file
+
     fscene = parse_focal_scene(apply_overrides(load_scene_file(args.scene), args.overrides))
     plan = make_plan(fscene)
     ccds, why = _selected(plan, args)

@@ -58,13 +58,13 @@ def add_mask_parser(sub):
 
 def run_mask(args):
     """The ``inject mask`` command (``args`` from :func:`add_mask_parser`)."""
-    from inject.io.reader import read_exposure  # astropy: not for --help
-
     check_options(args.pixel_scale, args.mask_rule, args.sb_sigma, args.fwhm_factor,
                   args.threshold, args.max_streaks)
     if args.out:  # fail before the work, not after it
         check_distinct(args.image, args.out)
         check_writable(args.out, args.overwrite)
+    from inject.io.reader import read_exposure  # astropy: after the options' checks
+
     exposure = read_exposure(args.image)
     result = analyse_source(exposure, pixel_scale=args.pixel_scale, rule=args.mask_rule,
                             sb_sigma=args.sb_sigma, fwhm_factor=args.fwhm_factor,

@@ -5,14 +5,11 @@ import math
 import sys
 import warnings
 
-import numpy as np
-
 from inject.errors import InputError
 from inject.io.atomic import atomic_path, check_writable
-from inject.validate import RANGES, check_pointing, parse_time
 
-# ``inject --help`` imports this module: the orbits (astropy, SGP4), the camera layout and the
-# streak model are imported inside the functions that use them.
+# ``inject --help`` imports this module: NumPy, the orbits (astropy, SGP4), the camera layout
+# and the streak model are imported inside the functions that use them.
 
 
 def add_pass_parser(sub):
@@ -145,6 +142,7 @@ def _planned_ccds(spec, exposure, pointing, site, atmosphere_km):
 def run_pass(args):
     from inject.camera.wcs import Pointing
     from inject.orbits.passes import Exposure, orbit_from_spec, site_from_spec
+    from inject.validate import RANGES, check_pointing, parse_time
 
     time = parse_time(args.time, "--time")
     if args.tle is not None:
@@ -194,6 +192,8 @@ def streak_along(p, idx, mag_ref=5.0):
     (:class:`~inject.streak.StreakModel` defaults: 7.25 m x 2.65 m box, ``mag_ref`` g at 550 km)
     at samples ``idx`` of a pass: each sample's height, zenith (90 - alt) and phi, with the
     pass's exact range and angular speed."""
+    import numpy as np
+
     from inject.streak import StreakModel
 
     fwhm, peak = [], []
@@ -215,6 +215,7 @@ def write_plot(path, report, p, track, overwrite=False, file_format="png"):
     """The track on the focal-plane outline (crossed CCDs shaded) and panels of range, angular
     speed, FWHM and peak surface brightness along the exposure, as ``file_format`` (a
     matplotlib format: :func:`inject.io.quicklook.quicklook_format` of the name)."""
+    import numpy as np
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle

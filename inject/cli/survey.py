@@ -67,14 +67,16 @@ CHUNK_VISITS = 8
 
 
 def run_survey(args):
+    if args.workers is not None and args.workers < 1:  # before the engine's imports
+        raise InputError("--workers", args.workers, "must be >= 1")
+    options = _render_options(args)
+    from inject.survey.visits import select_visits
+
+    select_visits((), args.job, args.njobs)  # --job/--njobs, before the engine's imports
     from inject.exposure.runner import check_outdir
     from inject.survey.outputs import claim_outdir, output_paths, remove_earlier
     from inject.survey.plan import warn_fallbacks
-
-    if args.workers is not None and args.workers < 1:
-        raise InputError("--workers", args.workers, "must be >= 1")
-    options = _render_options(args)
-    from inject.survey.visits import read_visits, select_visits
+    from inject.survey.visits import read_visits
 
     night = read_visits(args.visits)
     visits = select_visits(night, args.job, args.njobs)
@@ -154,13 +156,13 @@ def _render_options(args):
             if value:
                 raise InputError(name, value, "only with --render")
         return None
-    from inject.survey.render import DEFAULT_CUTOUT_PX, RenderOptions
-
     if args.cutout_size is not None:
         if not args.cutouts:
             raise InputError("--cutout-size", args.cutout_size, "only with --cutouts")
         if args.cutout_size < 16:
             raise InputError("--cutout-size", args.cutout_size, "must be >= 16 (px)")
+    from inject.survey.render import DEFAULT_CUTOUT_PX, RenderOptions
+
     cutout = (args.cutout_size or DEFAULT_CUTOUT_PX) if args.cutouts else None
     compression = args.compression or "lossless"
     return RenderOptions(cutout=cutout, compression=None if compression == "none"
