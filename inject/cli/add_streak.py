@@ -22,7 +22,7 @@ def add_add_streak_parser(sub):
                     "the streak does not reach are written back unchanged in the file's own "
                     "storage (integers stay integers, compressed HDUs are compressed "
                     "losslessly). The input is never modified.")
-    p.add_argument("input", metavar="IN.fits")
+    p.add_argument("input", metavar="IN.fits", help="the FITS image (never modified)")
     add_output_option(p, "OUT.fits", "the copy with the streak: FITS, named .fits, .fit or "
                                      ".fts (.gz after it: gzipped) or .fz")
     add_satellite_options(p)

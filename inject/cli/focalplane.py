@@ -20,7 +20,8 @@ def add_focalplane_parser(sub):
         description="Simulate the CCDs of a focal-plane scene (tracks in focal-plane mm) on a "
                     "process pool or a Dask cluster, resumably; one FITS per CCD, "
                     "manifest.csv and mosaic.png in OUTDIR.")
-    p.add_argument("scene", help="YAML focal-plane scene (see sample_fields/*focal*)")
+    p.add_argument("scene", help="YAML focal-plane scene (an example: the repository's "
+                                         "sample_fields/focal_paper_550km.yaml)")
     p.add_argument("-o", "--output", "--out", metavar="OUTDIR", help="output directory (not needed "
                                                              "with --plan)")
     p.add_argument("--workers", type=int, metavar="N",
@@ -29,15 +30,17 @@ def add_focalplane_parser(sub):
                    help="a Dask scheduler address, or 'local' for a Dask LocalCluster of "
                         "--workers single-threaded processes (default: a process pool)")
     p.add_argument("--memory-limit", default=None, metavar="SIZE",
-                   help="memory limit per LocalCluster worker (default 3GiB)")
+                   help="memory limit per LocalCluster worker (default: 3GiB)")
     p.add_argument("--detectors", metavar="LIST",
                    help="comma-separated CCD names or ids (default: the scene's, or all 189)")
     p.add_argument("--streak-ccds-only", action="store_true",
                    help="render only the CCDs a streak reaches")
     p.add_argument("--job", type=int, metavar="J", help="render the J-th (0-based) of "
                                                          "--njobs interleaved slices")
-    p.add_argument("--njobs", type=int, metavar="N")
-    p.add_argument("--retries", type=int, default=2, help="resubmissions of a failed CCD (2)")
+    p.add_argument("--njobs", type=int, metavar="N",
+                   help="with --job: the number of slices (a batch array's size)")
+    p.add_argument("--retries", type=int, default=2, metavar="N",
+                   help="resubmissions of a failed CCD")
     p.add_argument("--plan", action="store_true", help="print what would be rendered; render "
                                                        "nothing")
     p.add_argument("--json", action="store_true", help="with --plan: one JSON object")

@@ -31,7 +31,7 @@ def add_mask_parser(sub):
         description="Detect satellite streaks (matched filter + fast Hough transform on a "
                     "binned, star-cleaned image), measure their line and model-free FWHM, and "
                     "size their masks. The input is never modified.")
-    p.add_argument("image", metavar="IMAGE.fits")
+    p.add_argument("image", metavar="IMAGE.fits", help="the FITS image (never modified)")
     p.add_argument("--json", action="store_true",
                    help='print {"streaks": [...], "image": {...}} as JSON')
     p.add_argument("-o", "--out", "--output", metavar="MASKED.fits",
@@ -51,7 +51,7 @@ def add_mask_parser(sub):
     p.add_argument("--threshold", type=float, metavar="Z",
                    help="detection threshold on the Hough significance (default: calibrated "
                         "false-alarm level)")
-    p.add_argument("--max-streaks", type=int, metavar="N", help="most streaks to find (8)")
+    p.add_argument("--max-streaks", type=int, metavar="N", help="most streaks to find (default: 8)")
     p.set_defaults(func=run_mask)
     return p
 

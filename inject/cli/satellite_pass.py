@@ -33,10 +33,10 @@ def add_pass_parser(sub):
     p.add_argument("--ra", required=True, type=float, metavar="DEG", help="boresight RA, ICRS")
     p.add_argument("--dec", required=True, type=float, metavar="DEG", help="boresight Dec, ICRS")
     p.add_argument("--rotation", type=float, default=0.0, metavar="DEG",
-                   help="rotSkyPos: position angle of focal-plane +y, north through east (0)")
+                   help="rotSkyPos: position angle of focal-plane +y, north through east")
     p.add_argument("--site", metavar="LAT,LON,M",
-                   help="geodetic latitude, longitude (deg) and height (m); default Rubin "
-                        "(--site=-30.2446,-70.7494,2647: with '=', as it starts with -)")
+                   help="geodetic latitude, longitude (deg) and height (m), given with '=' "
+                        "as it starts with - (default: Rubin, --site=-30.2446,-70.7494,2647)")
     p.add_argument("--shadow-atmosphere", type=float, default=0.0, metavar="KM",
                    help="height of the grazing atmosphere taken to block the Sun in Earth's "
                         "shadow (0: the solid WGS84 Earth)")

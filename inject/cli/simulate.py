@@ -15,7 +15,7 @@ def add_simulate_parser(sub):
     """Register ``inject simulate`` on an argparse sub-parser collection."""
     p = sub.add_parser("simulate", help="simulate one CCD with streaks from a scene file",
                        description="Simulate one LSSTCam-like CCD from a YAML scene file.")
-    p.add_argument("scene", help="YAML scene file (see sample_fields/)")
+    p.add_argument("scene", help="YAML scene file (examples: the repository's sample_fields/)")
     add_output_option(p, "OUT.fits", "the FITS file (IMAGE, MASK, VARIANCE, STREAK_MODEL, "
                                      "TRUTH), named .fits, .fit or .fts")
     p.add_argument("--exr", metavar="OUT.exr", help="also write OpenEXR")

@@ -42,20 +42,21 @@ def add_survey_parser(sub):
                    help="with --render: render only a square cut-out around each CCD's "
                         "streaks")
     p.add_argument("--cutout-size", type=int, default=None, metavar="PX",
-                   help="side of the cut-outs, px (default 1024)")
+                   help="side of the cut-outs, px (default: 1024)")
     p.add_argument("--compression", choices=("lossless", "lossy", "none"), default=None,
-                   help="with --render: the CCD files' tile compression (default lossless: "
-                        "GZIP; lossy: IMAGE and VARIANCE quantised to a tenth of the noise "
-                        "with dithering, adding 0.029 of it)")
+                   help="with --render: the CCD files' tile compression (lossless: GZIP; "
+                        "lossy: IMAGE and VARIANCE quantised to a tenth of the noise with "
+                        "dithering, adding 0.029 of it) (default: lossless)")
     p.add_argument("--workers", type=int, metavar="N",
-                   help="worker processes over the visits (default 1: this process); with "
-                        "--render, over the CCDs (default: the machine's cores)")
+                   help="worker processes over the visits, and with --render over the CCDs "
+                        "(default: 1, this process; with --render, the machine's cores)")
     p.add_argument("--scheduler", metavar="ADDRESS|local",
                    help="a Dask scheduler address, or 'local' for a Dask LocalCluster of "
                         "--workers processes (default: a process pool)")
     p.add_argument("--job", type=int, metavar="J",
                    help="plan the J-th (0-based) of --njobs interleaved slices of the visits")
-    p.add_argument("--njobs", type=int, metavar="N")
+    p.add_argument("--njobs", type=int, metavar="N",
+                   help="with --job: the number of slices (a batch array's size)")
     p.add_argument("--no-plots", action="store_true", help="write the tables only")
     p.add_argument("--json", action="store_true", help="print summary.json on stdout")
     p.add_argument("--overwrite", action="store_true", help="replace earlier outputs")
