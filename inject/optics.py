@@ -583,19 +583,24 @@ VANE_STEP_DEG = 5.0
 def telescope_position_angle(rotator_deg, radius_deg):
     """The field radius's direction in the telescope's frame, where the spider vanes are fixed.
 
-    The vanes are fixed to the telescope and the camera turns with the rotator, so a field
-    radius at ``radius_deg`` in the camera's (focal plane's) frame is at ``radius_deg +
-    rotator_deg`` in the telescope's (batoid's model, whose vanes lie at 45 and 135 deg). The
-    convention assumed: at rotTelPos 0 the camera's axes are batoid's, and a positive rotTelPos
-    turns the camera counter-clockwise in that frame. The vanes' 4-fold symmetry reduces the
-    angle modulo 90.
+    LSST's camera coordinate system (CCS) turns with the rotator: seen from the sky, it is
+    turned counter-clockwise by rotTelPos from the telescope's optical coordinate system
+    (OCS), which is batoid's frame (its field angles and focal plane share its axes; the
+    vanes lie at 45 and 135 deg). inject's focal plane is obs_lsst's, the data-visualisation
+    frame (DVCS), the transpose of CCS: a radius at ``radius_deg`` there is at 90 -
+    ``radius_deg`` in CCS and 90 - ``radius_deg`` + rotTelPos in OCS. The transpose is a
+    mirror, and the optics are symmetric about the vanes' bisectors, so the kernel seen on
+    the focal plane is the one traced with the radius at ``radius_deg`` - rotTelPos, turned
+    by rotTelPos: the angle returned, which the renderer turns from (the kernel's frame has
+    the radius there; :meth:`inject.streak.StreakModel.defocus_profile`). The vanes' 4-fold
+    symmetry reduces it modulo 90.
 
     Parameters
     ----------
     rotator_deg : float
         The camera rotator's angle, rotTelPos, deg.
     radius_deg : float
-        Direction of the outward field radius in the focal plane (a CCD's pixel rows turn by
+        Direction of the outward field radius on the focal plane (a CCD's pixel rows turn by
         multiples of 90 deg from it, which the vanes do not see), deg from +x.
 
     Returns
@@ -605,7 +610,7 @@ def telescope_position_angle(rotator_deg, radius_deg):
     """
     rotator = finite("rotator_deg", rotator_deg, scalar=True)
     radius = finite("field_position_angle_deg", radius_deg, scalar=True)
-    return float((radius + rotator) % 90.0)
+    return float((radius - rotator) % 90.0)
 
 
 def vane_node(angle_deg):
