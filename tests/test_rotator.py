@@ -76,6 +76,42 @@ def test_rotTelPos_is_read_when_present(tmp_path):
     assert read_visits(str(tmp_path / "b.csv"))[0].rotator_deg is None
 
 
+def test_rotTelPos_comes_from_paraAngle_when_it_is_missing(tmp_path):
+    head = "observationId,observationStartMJD,fieldRA,fieldDec,rotSkyPos,band,visitExposureTime"
+    (tmp_path / "a.csv").write_text(f"{head},paraAngle\n7,61000.1,10,-30,20,r,30,35\n"
+                                    f"8,61000.1,10,-30,300,r,30,-170\n")
+    (tmp_path / "b.csv").write_text(f"{head},rotTelPos,paraAngle\n7,61000.1,10,-30,20,r,30,5,35\n")
+    # By hand: rotTelPos = paraAngle - rotSkyPos - 90: 35 - 20 - 90 = -75; -170 - 300 - 90 =
+    # -560 -> 160 (wrapped to [-180, 180)).
+    first, second = read_visits(str(tmp_path / "a.csv"))
+    assert (first.rotator_deg, first.rotator_source) == (pytest.approx(-75.0), "paraAngle")
+    assert second.rotator_deg == pytest.approx(160.0)
+    [given] = read_visits(str(tmp_path / "b.csv"))
+    assert (given.rotator_deg, given.rotator_source) == (5.0, "rotTelPos")
+
+
+def test_rotTelPos_computed_from_the_parallactic_angle_is_lssts_worked_example():
+    """LSST's note on its rotation angles works an example: HD116244 (13:25:05.13
+    -74:53:32.5, ICRS) from Rubin at MJD 61975.91735 and 61976.03248 (TAI), where rotTelPos 0
+    gives rotSkyPos -90.2069 and -40.9595 deg (its pseudo parallactic angle, from the ICRS
+    pole, -0.2069 and 49.0405 deg). Back from those rotSkyPos, inject finds rotTelPos 0."""
+    from inject.orbits.passes import Site
+    from inject.survey.visits import Visit, with_rotators
+
+    site = Site(lat_deg=-30.2444, lon_deg=-70.7494, height_m=2650.0)
+    ra, dec = 15 * (13 + 25 / 60 + 5.13 / 3600), -(74 + 53 / 60 + 32.5 / 3600)
+    visits = [Visit(1, 61975.91735, ra, dec, -90.2069, "r", 30.0),
+              Visit(2, 61976.03248, ra, dec, -40.9595, "r", 30.0),
+              Visit(3, 61976.03248, ra, dec, 0.0, "r", 30.0, rotator_deg=12.0,
+                    rotator_source="rotTelPos")]
+    with pytest.warns(Warning, match="IERS"):  # 2028: beyond the bundled Earth orientation
+        first, second, given = with_rotators(visits, site)
+    assert first.rotator_deg == pytest.approx(0.0, abs=0.01)
+    assert second.rotator_deg == pytest.approx(0.0, abs=0.01)
+    assert first.rotator_source == second.rotator_source == "computed"
+    assert given is visits[2]
+
+
 def test_the_rotator_is_refused_without_the_traced_pupil():
     with pytest.raises(SceneError, match=r"rotator_deg=10\.0: only with pupil: rubin"):
         parse_scene(_ccd_scene(pupil="annulus", rotator_deg=10))
