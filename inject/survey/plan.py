@@ -537,6 +537,7 @@ def _streak(name, p, crossings, spec, visit, seeing, sigmas, pupil="annulus",
                         seeing=Seeing(seeing), telescope=LSST, ref_range_km=spec.ref_range,
                         range_km=v["range"], angular_speed_rad_s=v["angular_speed"],
                         pupil=pupil, focus_offset_um=focus_offset_um,
+                        sed_temperature_k=spec.sed_temperature_k,
                         **(_field(xd, yd, piece, n, visit.rotator_deg)
                            if pupil != "annulus" else {}))
     widths = {vendor: mask_width_px(model, sigma) for vendor, sigma in sigmas.items()}
