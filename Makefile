@@ -16,10 +16,12 @@ $(BIN)/python:
 	@echo "==> upgrading pip in $(VENV)"
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
+# --group dev: pyproject's development tools (ruff, import-linter); pip >= 25.1, which the
+# upgrade above provides.
 $(STAMP): $(BIN)/python pyproject.toml
-	@echo "==> installing inject and its dependencies into $(VENV) (GalSim, astropy, OpenCV,"
-	@echo "    OpenImageIO, matplotlib, pytest...; a minute or two the first time, quiet meanwhile)"
-	$(VERSION_ENV) $(BIN)/python -m pip install --quiet -e '.[test]'
+	@echo "==> installing inject, its dependencies and the development tools into $(VENV) (GalSim,"
+	@echo "    astropy, OpenCV, OpenImageIO, pytest, ruff...; a minute or two the first time, quiet meanwhile)"
+	$(VERSION_ENV) $(BIN)/python -m pip install --quiet -e '.[test]' --group dev
 	@echo "==> installing lumos-sat (optional BRDF brightness; --no-deps: it pins numpy 1.24 and astropy 5.2)"
 	$(BIN)/python -m pip install --quiet --no-deps 'lumos-sat==1.0.9'
 	@touch $(STAMP)
