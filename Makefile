@@ -17,11 +17,11 @@ $(BIN)/python:
 	@echo "==> upgrading pip in $(VENV)"
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-# --group dev: pyproject's development tools (ruff, import-linter); pip >= 25.1, which the
+# --group dev: pyproject's development tools (ruff, import-linter, mypy); pip >= 25.1, which the
 # upgrade above provides.
 $(STAMP): $(BIN)/python pyproject.toml
 	@echo "==> installing inject, its dependencies and the development tools into $(VENV) (GalSim,"
-	@echo "    astropy, OpenCV, OpenImageIO, pytest, ruff...; a minute or two the first time, quiet meanwhile)"
+	@echo "    astropy, OpenCV, OpenImageIO, pytest, mypy...; a minute or two the first time, quiet meanwhile)"
 	$(VERSION_ENV) $(BIN)/python -m pip install --quiet -e '.[test]' --group dev
 	@touch $(STAMP)
 	@echo "==> installed: run .venv/bin/inject, or 'source .venv/bin/activate' and then inject"
@@ -55,6 +55,7 @@ lint: $(STAMP)
 	fi
 	$(BIN)/ruff check inject tests scripts
 	$(BIN)/lint-imports
+	$(BIN)/mypy
 
 slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
