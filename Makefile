@@ -34,7 +34,7 @@ install: $(STAMP)
 # holding it passes pip check.
 $(LUMOS_STAMP): $(STAMP)
 	@echo "==> installing lumos-sat (optional BRDF brightness) with --no-deps: its pins (numpy 1.24,"
-	@echo "    astropy 5.2, opencv-python 4.7) would replace inject's; pip check will list them"
+	@echo "    astropy 5.2, opencv-python 4.7) would replace inject's; pip check and later installs list them"
 	$(BIN)/python -m pip install --quiet --no-deps 'lumos-sat==1.0.9'
 	@touch $(LUMOS_STAMP)
 
