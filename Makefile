@@ -17,11 +17,12 @@ $(BIN)/python:
 	@echo "==> upgrading pip in $(VENV)"
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-# --group dev: pyproject's development tools (ruff, import-linter, mypy); pip >= 25.1, which the
-# upgrade above provides.
+# --group dev: pyproject's development tools (ruff, import-linter, mypy). It needs pip >= 25.1,
+# which an older .venv may lack: pip is upgraded above only when .venv is made.
 $(STAMP): $(BIN)/python pyproject.toml
 	@echo "==> installing inject, its dependencies and the development tools into $(VENV) (GalSim,"
 	@echo "    astropy, OpenCV, OpenImageIO, pytest, mypy...; a minute or two the first time, quiet meanwhile)"
+	$(BIN)/python -m pip install --quiet 'pip>=25.1'
 	$(VERSION_ENV) $(BIN)/python -m pip install --quiet -e '.[test]' --group dev
 	@touch $(STAMP)
 	@echo "==> installed: run .venv/bin/inject, or 'source .venv/bin/activate' and then inject"
