@@ -633,7 +633,7 @@ class FieldFrame:
     teme_to_itrs: np.ndarray
     itrs_to_altaz: np.ndarray
     sun_itrs: np.ndarray
-    to_icrs: np.ndarray = None
+    to_icrs: np.ndarray | None = None
 
     @cached_property
     def jd_utc(self):
@@ -853,10 +853,10 @@ class Pass:
     in_field: bool = False
     visible: bool = False
     message: str = ""
-    inside: np.ndarray = field(default=None, repr=False)
+    inside: np.ndarray | None = field(default=None, repr=False)
     #: Height above :data:`~inject.geometry.R_EARTH_KM` (the geocentric distance less the
     #: paper's spherical Earth), km: what the streak model's ``height`` means.
-    height_km: np.ndarray = field(default=None, repr=False)
+    height_km: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def sunlit(self):

@@ -169,7 +169,7 @@ def read_constellation(path, default_epoch=None):
 
 
 #: The constellation read last in this process, by the stamps of its files (:func:`_stamps`).
-_READ = {}
+_READ: dict[tuple, Constellation] = {}
 
 
 def _stamps(path, when, tle_files):
