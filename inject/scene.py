@@ -99,7 +99,8 @@ def streak_models(scene):
                         field_angle_deg=field_angle,
                         field_position_angle_deg=radius - s.track.angle,
                         focus_offset_um=scene.focus_offset_um,
-                        telescope_position_angle_deg=vanes)
+                        telescope_position_angle_deg=vanes,
+                        sed_temperature_k=s.sed_temperature_k)
             for s in scene.satellites]
 
 
@@ -415,8 +416,10 @@ def _truth_row(model, track, ends, charge, expected, budget):
     x0, y0, x1, y1, length = ends
     traced = {}
     if model.pupil != "annulus":
+        pupil = model.summary_pupil()
         traced = {"field_angle_deg": float(model.field_angle_deg),
-                  "field_position_angle_deg": model.summary_pupil()["field_position_angle_deg"]}
+                  "field_position_angle_deg": pupil["field_position_angle_deg"],
+                  "sed_temperature_k": pupil["sed_temperature_k"]}
     return traced | {
         "x0": x0, "y0": y0, "x1": x1, "y1": y1, "angle_deg": track.angle, "length_px": length,
         "height_km": g.height_km, "zenith_deg": g.zenith_deg, "phi_deg": g.phi_deg,

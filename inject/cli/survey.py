@@ -85,6 +85,11 @@ def run_survey(args):
         raise InputError("--job", args.job, f"takes none of the {len(night)} visits "
                                             f"(--njobs {args.njobs})")
     constellation = _constellation(args.constellation, night)
+    if constellation.pupil == "rubin":  # the vanes need each visit's rotator
+        from inject.orbits.passes import RUBIN
+        from inject.survey.visits import with_rotators
+
+        visits = with_rotators(visits, RUBIN)
     check_outdir(args.output)
     paths = output_paths(args.output, args.job, args.njobs)
     from inject.io.atomic import check_writable
