@@ -118,10 +118,9 @@ def build_parser():
     return parser
 
 
-def _show_warning(message, category, filename, lineno, file=None, line=None,
-                  command="inject", seen=None):
-    """Every warning as one line, ``inject CMD: warning: ...`` (the ``inject.cli`` logger's
-    WARNING record), each text once per command (``seen``: the texts shown so far); no file
+def _show_warning(message, category, filename, lineno, file=None, line=None, seen=None):
+    """Every warning as one line, ``inject CMD: warning: ...`` (a WARNING record of this
+    module's logger), each text once per command (``seen``: the texts shown so far); no file
     path or source line."""
     text = _warning_text(message, category)
     if seen is not None:
@@ -205,8 +204,7 @@ def _run(args, command):
     """Run the subcommand; an :class:`InjectError` is one line and status 2."""
     try:
         with warnings.catch_warnings():
-            warnings.showwarning = functools.partial(_show_warning, command=command,
-                                                     seen=set())
+            warnings.showwarning = functools.partial(_show_warning, seen=set())
             args.func(args)
             sys.stdout.flush()  # a closed pipe shows here, where main catches it
     except InjectError as err:
