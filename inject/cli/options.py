@@ -1,9 +1,26 @@
-"""Options that several commands share: the output option of every command that writes one
-file, and the options describing one satellite (``inject profile``, ``inject add-streak``)
-with the :class:`~inject.streak.StreakModel` they make."""
+"""Options that several commands share: ``-q``/``-v`` of every command, the output option of
+every command that writes one file, and the options describing one satellite (``inject
+profile``, ``inject add-streak``) with the :class:`~inject.streak.StreakModel` they make."""
+import argparse
+
 from inject.errors import InputError
-from inject.instrument import LSST
-from inject.validate import check
+
+# ``inject --help`` imports this module: what the satellite options check (NumPy) is imported
+# inside the function that checks them.
+
+
+def add_verbosity_options(p, after_command=False):
+    """``-q/--quiet`` and ``-v/--verbose`` (:mod:`inject.cli.logs`), which exclude each other.
+
+    ``after_command``: the copy every subcommand takes, so that they may follow its name
+    too; not given there, the top-level value stands (the default is SUPPRESS).
+    """
+    default = argparse.SUPPRESS if after_command else False
+    group = p.add_mutually_exclusive_group()
+    group.add_argument("-q", "--quiet", action="store_true", default=default,
+                       help="show warnings and errors only (no progress, no reports)")
+    group.add_argument("-v", "--verbose", action="store_true", default=default,
+                       help="show debugging messages too")
 
 
 def add_output_option(p, metavar, help=None):
@@ -73,9 +90,11 @@ def _sed_temperature(text, pupil):
 def model_from_args(args, pixel_scale=None, pixel_scale_name="--pixel-scale"):
     """The :class:`~inject.streak.StreakModel` of the satellite options, their ranges checked
     (:data:`inject.validate.RANGES`) before any profile is built."""
+    from inject.instrument import LSST
     from inject.optics import FIELD_MAX_DEG, FOCUS_MAX_UM
     from inject.profile import Seeing  # GalSim: when a command runs, not for --help
     from inject.streak import StreakModel
+    from inject.validate import check
 
     if not 0 <= args.field_angle <= FIELD_MAX_DEG:  # also NaN
         raise InputError("--field-angle", args.field_angle,

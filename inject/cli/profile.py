@@ -17,8 +17,8 @@ def add_profile_parser(sub):
                         "lens; 0: focused at infinity)")
     p.add_argument("--sed", default="sun", metavar="SPEC",
                    help="with --pupil rubin: the satellite's spectrum the kernel is traced "
-                        "over: sun (default), a blackbody temperature such as 4500K, or an AB "
-                        "colour through LSST's bands such as g-r=0.6")
+                        "over: sun, a blackbody temperature such as 4500K, or an AB colour "
+                        "through LSST's bands such as g-r=0.6")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run_profile)
 
