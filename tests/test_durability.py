@@ -172,6 +172,35 @@ def no_flock(monkeypatch):
     monkeypatch.setattr(fcntl, "flock", unsupported)
 
 
+def scene_file(tmp_path):
+    import yaml
+
+    path = tmp_path / "scene.yaml"
+    path.write_text(yaml.safe_dump(RAW))
+    return path
+
+
+def test_no_flock_is_one_clear_line_and_no_lock_runs(tmp_path, monkeypatch, cli, fscene):
+    no_flock(monkeypatch)
+    monkeypatch.setattr(runner, "process_pool", lambda workers=None: ThreadPoolExecutor(2))
+    out = tmp_path / "out"
+    status, _, err = cli("focalplane", scene_file(tmp_path), "-o", out, "--no-mosaic")
+    assert status == 2
+    assert err.splitlines()[-1] == (
+        f"inject focalplane: error: {out}: its file system does not support locking (mounted "
+        f"with Lustre's noflock or NFS's nolock?): flock: Function not implemented; if this "
+        f"run is the only one writing there, pass --no-lock")
+    assert not (out / ".manifest.lock").exists()
+    status, _, err = cli("focalplane", scene_file(tmp_path), "-o", out, "--no-mosaic",
+                         "--no-lock")
+    assert status == 0
+    rows = runner.read_manifest(str(out))
+    assert sorted(rows) == NAMES and all(r["status"] == "done" for r in rows.values())
+    assert all(sha(out / f"{n}.fits") == rows[n]["sha256"] for n in NAMES)
+    assert atomic.locking()  # --no-lock lasts for its command only
+    assert sorted(n for n in os.listdir(out) if n.startswith(".")) == []
+
+
 def test_without_flock_single_outputs_are_still_written(tmp_path, monkeypatch):
     """A temporary file's lock only marks it live: without locks it is left out."""
     no_flock(monkeypatch)

@@ -1,6 +1,7 @@
 """A run's workers and memory from what its job may use: the CPU affinity, a control group's
 CPU quota and memory limit (fake /sys/fs/cgroup trees with hand-written limits, v1 and v2),
-RLIMIT_AS (set in a subprocess)."""
+RLIMIT_AS (set in a subprocess), and a SLURM array's --job/--njobs."""
+import argparse
 import os
 import resource
 import shutil
@@ -9,7 +10,7 @@ import sys
 
 import pytest
 
-from inject.errors import ResourceError
+from inject.errors import InputError, ResourceError
 from inject.exposure import sizing
 
 GIB = 2**30
@@ -222,3 +223,74 @@ def test_rlimit_as_bounds_the_memory():
     _, memory, _, why = probe(preexec_fn=limited)
     assert memory == limit
     assert why == "RLIMIT_AS (ulimit -v) 3 GiB"
+
+
+# -------------------------------------------------------------------------------------------
+# A SLURM array's slice
+
+def options(job=None, njobs=None):
+    return argparse.Namespace(job=job, njobs=njobs)
+
+
+ARRAY = {"SLURM_ARRAY_TASK_ID": "7", "SLURM_ARRAY_TASK_MIN": "5",
+         "SLURM_ARRAY_TASK_COUNT": "4"}
+
+
+def test_a_slurm_array_gives_job_and_njobs():
+    from inject.cli.options import slurm_slice
+
+    args = options()
+    said = slurm_slice(args, ARRAY)
+    assert (args.job, args.njobs) == (2, 4)  # tasks 5, 6, 7, 8: 7 is the third
+    assert said == "--job 2 --njobs 4 from the SLURM array (task 7 of 4 from 5)"
+    stepped = dict(ARRAY, SLURM_ARRAY_TASK_ID="9", SLURM_ARRAY_TASK_STEP="2")
+    args = options()
+    slurm_slice(args, stepped)  # tasks 5, 7, 9, 11
+    assert (args.job, args.njobs) == (2, 4)
+
+
+def test_options_given_win_over_the_array_and_no_array_changes_nothing():
+    from inject.cli.options import slurm_slice
+
+    for given in (options(0, 1), options(job=1), options(njobs=3)):
+        before = vars(given).copy()
+        assert slurm_slice(given, ARRAY) is None and vars(given) == before
+    args = options()
+    assert slurm_slice(args, {"SLURM_JOB_ID": "12"}) is None
+    assert (args.job, args.njobs) == (None, None)
+
+
+def test_an_uneven_array_asks_for_the_options():
+    from inject.cli.options import slurm_slice
+
+    with pytest.raises(InputError, match="give --job and --njobs"):
+        slurm_slice(options(), dict(ARRAY, SLURM_ARRAY_TASK_ID="12"))  # beyond 4 tasks
+
+
+def test_focalplane_in_a_slurm_array_renders_its_slice(tmp_path, monkeypatch, capsys):
+    """The fourth task of an array of 2 from 3 (--array=3-4) renders the second of two
+    interleaved slices of the scene's CCDs: ids 1 (R01_S00), 49 (R22_S11), 50 (R22_S12) and
+    187 (R43_S22), so R22_S11 and R43_S22."""
+    import yaml
+
+    from inject.cli.main import main
+    from inject.exposure import runner
+
+    scene = tmp_path / "scene.yaml"
+    scene.write_text(yaml.safe_dump({
+        "seed": 3, "band": "g", "exptime": 30, "pointing": {"ra": 50.0, "dec": -30.0},
+        "stars": False, "cutout": {"nx": 40, "ny": 30},
+        "detectors": ["R22_S12", "R01_S00", "R43_S22", "R22_S11"], "satellites": []}))
+    for name, value in {"SLURM_ARRAY_TASK_ID": "4", "SLURM_ARRAY_TASK_MIN": "3",
+                        "SLURM_ARRAY_TASK_COUNT": "2"}.items():
+        monkeypatch.setenv(name, value)
+    out = tmp_path / "out"
+    assert main(["focalplane", str(scene), "-o", str(out), "--workers", "1",
+                 "--no-mosaic"]) == 0
+    assert sorted(runner.read_manifest(str(out))) == ["R22_S11", "R43_S22"]
+    assert "inject focalplane: --job 1 --njobs 2 from the SLURM array (task 4 of 2 from 3)" \
+        in capsys.readouterr().err.splitlines()
+    other = tmp_path / "other"
+    assert main(["focalplane", str(scene), "-o", str(other), "--workers", "1", "--no-mosaic",
+                 "--job", "0", "--njobs", "1"]) == 0  # given: the whole scene
+    assert len(runner.read_manifest(str(other))) == 4

@@ -8,7 +8,9 @@ import sys
 import time
 import warnings
 
+from inject.cli.options import add_resume_options, slurm_slice
 from inject.errors import InputError, OrbitWarning
+from inject.io.atomic import locks_off
 
 # ``inject --help`` imports this module: the orbits (astropy, SGP4), the streak model and the
 # survey engine are imported inside the functions that use them.
@@ -46,16 +48,21 @@ def add_survey_parser(sub):
                         "with dithering, adding 0.029 of it)")
     p.add_argument("--workers", type=int, metavar="N",
                    help="worker processes over the visits (default 1: this process); with "
-                        "--render, over the CCDs (default: the machine's cores)")
+                        "--render, over the CCDs (default: the CPUs this job may use, its "
+                        "affinity and control group's quota, and no more than its memory "
+                        "holds)")
     p.add_argument("--scheduler", metavar="ADDRESS|local",
                    help="a Dask scheduler address, or 'local' for a Dask LocalCluster of "
                         "--workers processes (default: a process pool)")
     p.add_argument("--job", type=int, metavar="J",
-                   help="plan the J-th (0-based) of --njobs interleaved slices of the visits")
-    p.add_argument("--njobs", type=int, metavar="N")
+                   help="plan the J-th (0-based) of --njobs interleaved slices of the visits "
+                        "(default in a SLURM job array: the task's place in it)")
+    p.add_argument("--njobs", type=int, metavar="N",
+                   help="slices (default in a SLURM job array: its task count)")
     p.add_argument("--no-plots", action="store_true", help="write the tables only")
     p.add_argument("--json", action="store_true", help="print summary.json on stdout")
     p.add_argument("--overwrite", action="store_true", help="replace earlier outputs")
+    add_resume_options(p)
     p.set_defaults(func=run_survey)
 
 
@@ -71,6 +78,9 @@ def run_survey(args):
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers", args.workers, "must be >= 1")
     options = _render_options(args)
+    array = slurm_slice(args)
+    if array is not None:
+        print(f"inject survey: {array}", file=sys.stderr)
     from inject.survey.visits import read_visits, select_visits
 
     night = read_visits(args.visits)
@@ -99,11 +109,12 @@ def run_survey(args):
         started = time.perf_counter()
         plans = _plan(visits, constellation, args)
         elapsed = time.perf_counter() - started
-        rendered = None
+        rendered = sizing = None
         if options is not None:
-            rendered = _render(plans, constellation, args, night[0], options)
+            with locks_off(args.no_lock):
+                rendered, sizing = _render(plans, constellation, args, night[0], options)
         written = _write(args, paths, plans, night, visits, constellation, elapsed, inputs,
-                         rendered)
+                         rendered, sizing)
         if args.overwrite:
             remove_earlier(args.output, claim, written.values(),
                            set(rendered.measured) if rendered is not None else set())
@@ -147,7 +158,8 @@ def _render_options(args):
     the render options refused without it."""
     if not args.render:
         for name, value in (("--cutouts", args.cutouts), ("--cutout-size", args.cutout_size),
-                            ("--compression", args.compression)):
+                            ("--compression", args.compression), ("--verify", args.verify),
+                            ("--no-lock", args.no_lock)):
             if value:
                 raise InputError(name, value, "only with --render")
         return None
@@ -166,26 +178,33 @@ def _render_options(args):
 
 def _render(plans, constellation, args, first, options):
     """Render, mask and measure the streaked CCDs (:mod:`inject.survey.render`) on the focal
-    plane's runner: a process pool (``--workers``, default the machine's cores) or Dask
-    (``--scheduler``)."""
+    plane's runner: a process pool (``--workers``, default the CPUs this job may use, as many
+    as its memory holds: :func:`_render_workers`) or Dask (``--scheduler``).
+
+    Returns
+    -------
+    result : inject.survey.render.RenderResult
+    sizing : dict or None
+        The process pool's workers, why, and the job's resources (for summary.json).
+    """
     from inject.survey.render import model_keys, render_visits, visit_batches
 
     model = model_keys(args.constellation)
     batches = visit_batches(plans, constellation, model, args.output, options,
                             os.path.abspath(args.constellation), first.start.utc)
-    total = sum(len(b.ccds) for b in batches.values())
-    workers = max(1, min(args.workers or os.cpu_count() or 1, max(total, 1)))
+    sizing = None
     if args.scheduler:
         from inject.exposure.runner import dask_executor
 
         with dask_executor(args.scheduler, args.workers) as executor:
-            result = render_visits(batches, executor, args.overwrite)
+            result = render_visits(batches, executor, args.overwrite, verify=args.verify)
     else:
         from inject.exposure.runner import process_pool, stop_fork_server
 
-        pool = process_pool(workers)
+        sizing = _render_workers(batches, args, options)
+        pool = process_pool(sizing["workers"])
         try:
-            result = render_visits(batches, pool, args.overwrite)
+            result = render_visits(batches, pool, args.overwrite, verify=args.verify)
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)
             stop_fork_server()
@@ -194,7 +213,35 @@ def _render(plans, constellation, args, first, options):
     print(f"inject survey --render: {len(result.rendered)} CCDs rendered, "
           f"{len(result.skipped)} already done, {len(result.failed)} failed "
           f"({result.seconds:.1f} s)", file=sys.stderr)
-    return result
+    return result, sizing
+
+
+def _render_workers(batches, args, options):
+    """The process pool's workers for the CCDs of ``batches``, said in the log with what
+    bounds them (:func:`inject.exposure.sizing.worker_count`: the job's CPUs, the CCDs, and
+    the memory for the largest CCD or cut-out).
+
+    Returns
+    -------
+    dict
+        ``workers``, ``why`` and the job's resources (:meth:`~inject.exposure.sizing.
+        Resources.record`).
+    """
+    from inject.exposure import sizing
+    from inject.exposure.runner import WORKER_BASE_BYTES, WORKER_BYTES_PER_PIXEL
+
+    ccds = [c for b in batches.values() for c in b.ccds]
+    side = options.cutout or float("inf")  # a cut-out is clipped to its CCD
+    shape = max(((min(c.shape[0], side), min(c.shape[1], side)) for c in ccds),
+                key=lambda s: s[0] * s[1], default=(0, 0))
+    need = WORKER_BASE_BYTES + WORKER_BYTES_PER_PIXEL * shape[0] * shape[1]
+    resources = sizing.job_resources()
+    count, why = sizing.worker_count(resources, need, len(ccds), args.workers,
+                                     f"about {{need}} GiB a worker for {shape[1]} x "
+                                     f"{shape[0]} px CCDs")
+    print(f"inject survey --render: {count} worker{'s' if count != 1 else ''} ({why})",
+          file=sys.stderr)
+    return {"workers": count, "why": why, **resources.record()}
 
 
 def _constellation(path, night):
@@ -250,9 +297,11 @@ def _gather(executor, function, path, chunks, progress):
     return [plan for chunk in out for plan in chunk]
 
 
-def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, rendered=None):
+def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, rendered=None,
+           sizing=None):
     """Write the run's files (:func:`inject.survey.outputs.write_outputs`) and say so;
-    returns ``{kind: path}`` of the files written."""
+    returns ``{kind: path}`` of the files written. ``sizing``: the render's workers and why
+    (:func:`_render_workers`), recorded in summary.json."""
     from inject import __version__
     from inject.orbits.passes import RUBIN
     from inject.survey.outputs import summary, write_outputs
@@ -274,6 +323,8 @@ def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, re
 
         measured = measured_columns(plans, rendered.measured)
         about["render"] = render_summary(plans, measured, rendered, _render_options(args))
+        if sizing is not None:
+            about["render"]["sizing"] = sizing
     result = summary(plans, about, RUBIN.lon_deg)
     written = write_outputs(paths, plans, result, args.overwrite, plots=not args.no_plots,
                             measured=measured)

@@ -979,15 +979,20 @@ def stop_fork_server():
 
 
 def process_pool(workers=None):
-    """The default executor: a process pool of ``workers`` (default: the machine's cores),
-    each worker limited to one thread per library.
+    """The default executor: a process pool of ``workers`` (default: the CPUs this job may
+    use, :func:`inject.exposure.sizing.job_resources`), each worker limited to one thread per
+    library.
 
     Workers start from a fork server (:func:`start_fork_server`), not by forking the caller:
     a caller with threads (OpenImageIO's pool, BLAS, a thread pool) would hand its children
     locks held by threads that do not exist there, and they can hang on their first call
     into that library.
     """
-    return ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1,
+    if not workers:
+        from inject.exposure.sizing import job_resources
+
+        workers = job_resources().cpus
+    return ProcessPoolExecutor(max_workers=workers,
                                mp_context=start_fork_server(), initializer=_init_worker)
 
 
@@ -1020,7 +1025,8 @@ DASK_MEMORY_LIMIT = "3GiB"
 def dask_executor(scheduler, workers=None, memory_limit=DASK_MEMORY_LIMIT, retries=2):
     """A ``concurrent.futures.Executor`` on Dask: ``scheduler="local"`` starts a LocalCluster
     of ``workers`` processes with one thread each; any other value is the address of a running
-    scheduler (``tcp://host:8786``). Tasks are impure (``pure=False``) and retried
+    scheduler (``tcp://host:8786``); ``workers`` defaults to the CPUs this job may use. Tasks
+    are impure (``pure=False``) and retried
     ``retries`` times by Dask when they raise (a CCD that fails on its input returns a failed
     row instead: see :func:`run`)."""
     try:
@@ -1030,7 +1036,11 @@ def dask_executor(scheduler, workers=None, memory_limit=DASK_MEMORY_LIMIT, retri
                          "'satstreak-inject[dask]'") from None
     cluster = None
     if scheduler == "local":
-        cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
+        if not workers:
+            from inject.exposure.sizing import job_resources
+
+            workers = job_resources().cpus
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1,
                                processes=True, memory_limit=memory_limit,
                                dashboard_address=None)
         client = Client(cluster)
