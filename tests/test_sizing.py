@@ -242,7 +242,8 @@ def test_a_slurm_array_gives_job_and_njobs():
     args = options()
     said = slurm_slice(args, ARRAY)
     assert (args.job, args.njobs) == (2, 4)  # tasks 5, 6, 7, 8: 7 is the third
-    assert said == "--job 2 --njobs 4 from the SLURM array (task 7 of 4 from 5)"
+    assert said == ("--job 2 --njobs 4 from the SLURM job array (SLURM_ARRAY_TASK_ID=7, "
+                    "SLURM_ARRAY_TASK_MIN=5, SLURM_ARRAY_TASK_COUNT=4)")
     stepped = dict(ARRAY, SLURM_ARRAY_TASK_ID="9", SLURM_ARRAY_TASK_STEP="2")
     args = options()
     slurm_slice(args, stepped)  # tasks 5, 7, 9, 11
@@ -288,7 +289,8 @@ def test_focalplane_in_a_slurm_array_renders_its_slice(tmp_path, monkeypatch, ca
     assert main(["focalplane", str(scene), "-o", str(out), "--workers", "1",
                  "--no-mosaic"]) == 0
     assert sorted(runner.read_manifest(str(out))) == ["R22_S11", "R43_S22"]
-    assert "inject focalplane: --job 1 --njobs 2 from the SLURM array (task 4 of 2 from 3)" \
+    assert ("inject focalplane: --job 1 --njobs 2 from the SLURM job array (SLURM_ARRAY_TASK_ID"
+            "=4, SLURM_ARRAY_TASK_MIN=3, SLURM_ARRAY_TASK_COUNT=2)") \
         in capsys.readouterr().err.splitlines()
     other = tmp_path / "other"
     assert main(["focalplane", str(scene), "-o", str(other), "--workers", "1", "--no-mosaic",

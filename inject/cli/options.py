@@ -66,8 +66,8 @@ def slurm_slice(args, environ=None):
                          f"not one of {count} tasks from {first} in steps of {step} (an "
                          f"array of uneven indices); give --job and --njobs")
     args.job, args.njobs = job, count
-    return f"--job {job} --njobs {count} from the SLURM array (task {task} of {count} from " \
-           f"{first})"
+    return f"--job {job} --njobs {count} from the SLURM job array (SLURM_ARRAY_TASK_ID={task}, " \
+           f"SLURM_ARRAY_TASK_MIN={first}, SLURM_ARRAY_TASK_COUNT={count})"
 
 
 def add_satellite_options(p):

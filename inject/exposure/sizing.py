@@ -145,7 +145,8 @@ def worker_count(resources, need, tasks, asked=None, each="about {need} GiB a wo
                                 f"use --workers {fit} or fewer")
         why = "--workers" if count == asked else f"{tasks} task{'s' if tasks != 1 else ''}"
     else:
-        bounds = [(resources.cpus, "the CPUs"), (max(1, tasks), f"{tasks} tasks")]
+        bounds = [(resources.cpus, "the CPUs"),
+                  (max(1, tasks), f"{tasks} task{'s' if tasks != 1 else ''}")]
         if fit is not None:
             bounds.append((fit, f"the memory, {each}"))
         count, why = min(bounds, key=lambda b: b[0])
