@@ -211,6 +211,18 @@ def test_taskset_to_one_cpu_gives_one_worker():
         assert why == f"CPU affinity: 1 of {os.cpu_count()} CPUs"
 
 
+@pytest.mark.skipif(shutil.which("taskset") is None, reason="needs taskset (util-linux)")
+def test_taskset_to_one_cpu_gives_one_noise_thread():
+    """A single CCD's noise draws (inject simulate) use the CPUs the process may run on."""
+    code = ("from inject.camera.detector import ITL; from inject.scene import AmplifierNoise; "
+            "print(AmplifierNoise(ITL, 1).threads)")
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(
+        __file__))))
+    out = subprocess.run(["taskset", "-c", "0", sys.executable, "-c", code],
+                         capture_output=True, text=True, check=True, env=env).stdout
+    assert out.split() == ["1"]
+
+
 def test_rlimit_as_bounds_the_memory():
     limit = 3 * GIB
     free = sizing.job_resources().memory
