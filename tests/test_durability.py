@@ -39,6 +39,14 @@ def fscene():
     return parse_focal_scene(RAW)
 
 
+def scene_file(tmp_path):
+    import yaml
+
+    path = tmp_path / "scene.yaml"
+    path.write_text(yaml.safe_dump(RAW))
+    return path
+
+
 def render(fscene, out, **options):
     with ThreadPoolExecutor(2) as pool:
         return runner.run(make_plan(fscene), str(out), pool, **options)
@@ -162,6 +170,23 @@ def test_a_row_without_size_and_time_is_checked_by_its_hash(tmp_path, fscene):
     assert path.exists()
 
 
+def test_the_command_line_resumes_by_size_and_time_and_verify_hashes(tmp_path, cli):
+    scene, out = scene_file(tmp_path), tmp_path / "out"
+    assert cli("focalplane", scene, "-o", out, "--no-mosaic", "--workers", 1)[0] == 0
+    flipped = out / "R22_S12.fits"
+    st = flipped.stat()
+    with open(flipped, "r+b") as stream:
+        stream.seek(5000)
+        stream.write(b"\x00flipped\x00")
+    os.utime(flipped, ns=(st.st_atime_ns, st.st_mtime_ns))
+    status, _, err = cli("focalplane", scene, "-o", out, "--no-mosaic", "--workers", 1)
+    assert status == 0 and f"{out}: 0 CCDs rendered, 3 already done, 0 failed" in err
+    status, _, err = cli("focalplane", scene, "-o", out, "--no-mosaic", "--workers", 1,
+                         "--verify")
+    assert status == 0 and f"{out}: 1 CCDs rendered, 2 already done, 0 failed" in err
+    assert sha(flipped) == runner.read_manifest(str(out))["R22_S12"]["sha256"]
+
+
 # -------------------------------------------------------------------------------------------
 # A file system without locks
 
@@ -170,14 +195,6 @@ def no_flock(monkeypatch):
         raise OSError(errno.ENOSYS, os.strerror(errno.ENOSYS))
 
     monkeypatch.setattr(fcntl, "flock", unsupported)
-
-
-def scene_file(tmp_path):
-    import yaml
-
-    path = tmp_path / "scene.yaml"
-    path.write_text(yaml.safe_dump(RAW))
-    return path
 
 
 def test_no_flock_is_one_clear_line_and_no_lock_runs(tmp_path, monkeypatch, cli, fscene):
