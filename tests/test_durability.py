@@ -218,6 +218,23 @@ def test_no_flock_is_one_clear_line_and_no_lock_runs(tmp_path, monkeypatch, cli,
     assert sorted(n for n in os.listdir(out) if n.startswith(".")) == []
 
 
+def test_no_lock_with_worker_processes_commits_every_ccd(tmp_path, cli):
+    """Worker processes hand their files to the runner, which records every one: no row lost
+    to two workers rewriting the manifest at once."""
+    out = tmp_path / "out"
+    status, _, err = cli("focalplane", scene_file(tmp_path), "-o", out, "--no-mosaic",
+                         "--no-lock", "--workers", 2)
+    assert status == 0 and f"{out}: 3 CCDs rendered" in err
+    rows = runner.read_manifest(str(out))
+    assert sorted(rows) == NAMES and all(r["status"] == "done" for r in rows.values())
+    for name in NAMES:
+        st = os.stat(out / f"{name}.fits")
+        assert sha(out / f"{name}.fits") == rows[name]["sha256"]
+        assert (rows[name]["size"], rows[name]["mtime_ns"]) == (str(st.st_size),
+                                                                str(st.st_mtime_ns))
+    assert sorted(n for n in os.listdir(out) if n.startswith(".")) == []
+
+
 def test_without_flock_single_outputs_are_still_written(tmp_path, monkeypatch):
     """A temporary file's lock only marks it live: without locks it is left out."""
     no_flock(monkeypatch)

@@ -194,13 +194,12 @@ def render_ccd(task):
         if task.lock:
             claimed = commit(task.outdir, row, part if task.keep else None)
         else:  # no lock to share the manifest by: the runner commits, one CCD at a time
-            claimed, handed = None, part if task.keep else ""
+            claimed, handed = None, part if task.keep else None
+            row = dict(row, part=handed)
     finally:
-        if handed is None or not handed:
+        if handed is None:
             with contextlib.suppress(FileNotFoundError):
                 os.remove(part)  # not moved: a failure, a stop, another run, or keep=False
-    if handed is not None:
-        row = dict(row, part=handed or None)
     if claimed is not None:
         return {"detector": ccd.name, "status": "claimed", "error": claimed}
     return dict(row, **{  # Not in the manifest: for benchmarks and the caller's measures.
@@ -894,8 +893,9 @@ def run_batches(batches, executor, overwrite=False, retries=2, progress=None, ve
                         part = value.pop("part")
                         claimed = commit(batches[k].outdir, value, part)
                         if claimed is not None:
-                            with contextlib.suppress(FileNotFoundError, TypeError):
-                                os.remove(part)
+                            if part is not None:
+                                with contextlib.suppress(FileNotFoundError):
+                                    os.remove(part)
                             raise OutputError(claimed)
                     rendered.append(dict(value, outdir=batches[k].outdir))  # committed
                     progress.update(value)
