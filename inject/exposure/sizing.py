@@ -16,8 +16,8 @@ may hold and is killed. :func:`job_resources` reads each limit and keeps the sma
   the whole job's memory, the cautious reading of a batch system that sets it for the job.
 
 A control group's limits are those of its own folder and of every folder above it (the
-smallest binds), so each is read up the hierarchy from the group ``/proc/self/cgroup`` names
-to the mount point.
+smallest binds), so each is read from the group that ``/proc/self/cgroup`` names up to the
+mount point.
 """
 import math
 import os
