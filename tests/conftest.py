@@ -1,6 +1,7 @@
 """Fixtures shared by the test files: the command line, file digests and small scenes."""
 import hashlib
 import os
+import re
 
 import pytest
 
@@ -38,8 +39,8 @@ def cli(capsys):
     """``cli(command, *args)``: run ``inject`` in-process; return ``(status, out, err)``.
 
     A failure must end in one clean line, ``inject <command>: error: ...``, after nothing but
-    one-line warnings and progress lines (no traceback); ``strict=True`` allows nothing before
-    it.
+    one-line warnings, progress lines and the run's workers (``inject <command>: N workers
+    (bound by ...)``), no traceback; ``strict=True`` allows nothing before it.
     """
     def run(*argv, strict=False):
         status = main([str(a) for a in argv])
@@ -52,6 +53,8 @@ def cli(capsys):
                 assert len(lines) == 1, err
             else:
                 assert all(line.startswith((f"inject {argv[0]}: warning: ", "["))
+                           or re.match(rf"inject {argv[0]}( --render)?: \d+ workers? \(bound "
+                                       r"by ", line)
                            for line in lines[:-1]), err
         return status, out, err
 
