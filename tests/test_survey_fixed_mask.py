@@ -212,3 +212,23 @@ def test_the_file_formats_page_lists_the_columns_in_order():
     for fields in (STREAK_FIELDS, VISIT_FIELDS, FIXED_STREAK_FIELDS, FIXED_VISIT_FIELDS,
                    MEASURED_FIELDS):
         assert ", ".join(fields) in text, fields
+
+
+def test_another_width_into_the_same_outdir_is_another_run(cli, tmp_path):
+    """The band's width is part of the run's key: the other --job slice of a run with
+    another width is refused at once, though its files' names are free; with the same width
+    it is the same run's slice."""
+    visits = write_csv(tmp_path / "night.csv", aimed_rows()[:2])
+    const = write_const(str(tmp_path))
+    out = tmp_path / "out"
+
+    def run(width, job, strict=False):
+        return cli("survey", visits, "-o", out, "--constellation", const, "--no-plots",
+                   "--mask-width", width, "--job", job, "--njobs", 2, strict=strict)
+
+    assert run("300px", 0)[0] == 0
+    before = sorted(p.name for p in out.iterdir())
+    status, _, err = run("100px", 1, strict=True)
+    assert status == 2 and "another survey run" in err
+    assert sorted(p.name for p in out.iterdir()) == before
+    assert run("60arcsec", 1)[0] == 0  # the same 300 px
