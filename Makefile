@@ -3,12 +3,13 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DOCS_STAMP := $(VENV)/.docs-installed
+LUMOS_STAMP := $(VENV)/.lumos-installed
 # setuptools-scm takes the version from git or an sdist's PKG-INFO; a copy with neither (a
 # source archive, or no git program) is installed as 0+unknown instead of failing to build.
 HAS_VERSION := $(or $(wildcard PKG-INFO),$(and $(wildcard .git),$(shell command -v git)))
 VERSION_ENV := $(if $(HAS_VERSION),,SETUPTOOLS_SCM_PRETEND_VERSION_FOR_SATSTREAK_INJECT=0+unknown)
 
-.PHONY: install test lint slow demo focalplane figures bench docs clean
+.PHONY: install install-lumos test lint slow demo focalplane figures bench docs clean
 
 $(BIN)/python:
 	@echo "==> creating the virtual environment $(VENV) with $(PYTHON)"
@@ -16,23 +17,46 @@ $(BIN)/python:
 	@echo "==> upgrading pip in $(VENV)"
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
+# --group dev: pyproject's development tools (ruff, import-linter, mypy). It needs pip >= 25.1,
+# which an older .venv may lack: pip is upgraded above only when .venv is made.
 $(STAMP): $(BIN)/python pyproject.toml
-	@echo "==> installing inject and its dependencies into $(VENV) (GalSim, astropy, OpenCV,"
-	@echo "    OpenImageIO, matplotlib, pytest...; a minute or two the first time, quiet meanwhile)"
-	$(VERSION_ENV) $(BIN)/python -m pip install --quiet -e '.[test]'
-	@echo "==> installing lumos-sat (optional BRDF brightness; --no-deps: it pins numpy 1.24 and astropy 5.2)"
-	$(BIN)/python -m pip install --quiet --no-deps 'lumos-sat==1.0.9'
+	@echo "==> installing inject, its dependencies and the development tools into $(VENV) (GalSim,"
+	@echo "    astropy, OpenCV, OpenImageIO, pytest, mypy...; a minute or two the first time, quiet meanwhile)"
+	$(BIN)/python -m pip install --quiet 'pip>=25.1'
+	$(VERSION_ENV) $(BIN)/python -m pip install --quiet -e '.[test]' --group dev
 	@touch $(STAMP)
 	@echo "==> installed: run .venv/bin/inject, or 'source .venv/bin/activate' and then inject"
 
 install: $(STAMP)
 
+# lumos-sat (optional BRDF brightness, inject/orbits/lumos.py) pins numpy 1.24, astropy 5.2 and
+# scipy 1.10, older than inject needs, and opencv-python 4.7, a second cv2 beside inject's
+# OpenCV: it goes in without its dependencies, and only on request, since no environment
+# holding it passes pip check.
+$(LUMOS_STAMP): $(STAMP)
+	@echo "==> installing lumos-sat (optional BRDF brightness) with --no-deps: its pins (numpy 1.24,"
+	@echo "    astropy 5.2, opencv-python 4.7) would replace inject's; pip check and later installs list them"
+	$(BIN)/python -m pip install --quiet --no-deps 'lumos-sat==1.0.9'
+	@touch $(LUMOS_STAMP)
+
+install-lumos: $(LUMOS_STAMP)
+
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
+# pip check: every installed package's requirements met. Once lumos-sat is installed its own
+# pins cannot be, so its lines are left out and any other line still fails.
 lint: $(STAMP)
+	@if $(BIN)/python -m pip show --quiet lumos-sat 2>/dev/null; then \
+		echo "==> pip check, less lumos-sat's own pins (see make install-lumos)"; \
+		! $(BIN)/python -m pip check | grep -v '^lumos-sat '; \
+	else \
+		echo "==> pip check"; \
+		$(BIN)/python -m pip check; \
+	fi
 	$(BIN)/ruff check inject tests scripts
 	$(BIN)/lint-imports
+	$(BIN)/mypy
 
 slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow

@@ -8,7 +8,8 @@ The public API, imported on first use (``import inject`` itself loads nothing he
     model = inject.StreakModel(height_km=550, zenith_deg=70, phi_deg=90,
                                shape=inject.Box(7.25, 2.65), mag=5.0)
 
-Names and the module that defines them are listed in ``_API``; ``dir(inject)`` shows them.
+Names and the module that defines them are listed in ``_API``; ``dir(inject)`` shows them,
+and ``__init__.pyi`` repeats them for type checkers and editors.
 ``inject.__version__`` is read from the git checkout the package runs from (or the installed
 metadata) on first access; :mod:`inject._version` says how.
 """

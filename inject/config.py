@@ -16,7 +16,13 @@ from inject.camera.detector import DETECTORS, Detector, detector_from_spec
 from inject.camera.wcs import Pointing
 from inject.errors import InjectError, InputError, SceneError
 from inject.instrument import LSST
-from inject.optics import FIELD_MAX_DEG, check_focus_offset
+from inject.optics import (
+    FIELD_MAX_DEG,
+    SUN_TEMPERATURE_K,
+    check_focus_offset,
+    check_sed_temperature,
+    colour_temperature,
+)
 from inject.photometry import band, electron_rate, sky_per_pixel
 from inject.satellite import Shape, shape_from_dict
 from inject.schema import check_keys, number, ranged
@@ -49,7 +55,7 @@ SCENE_KEYS = COMMON_KEYS | {"detector", "field"}
 #: Keys of a focal-plane scene.
 FOCAL_KEYS = COMMON_KEYS | {"detectors", "cutout"}
 #: A satellite's model keys, whatever its track is given as.
-SATELLITE_MODEL_KEYS = frozenset({"height", "phi", "shape", "mag", "ref_range"})
+SATELLITE_MODEL_KEYS = frozenset({"height", "phi", "shape", "mag", "ref_range", "sed"})
 #: Keys of a straight pixel track.
 TRACK_KEYS = frozenset({"x0", "y0", "angle", "length"})
 #: Keys of a polyline vertex that vary the streak model along it.
@@ -81,6 +87,9 @@ class SatelliteSpec:
     track: Track | None = None
     phi: float = 90.0
     ref_range: float = 550.0
+    #: The spectrum the traced pupil's kernel is taken over, as a blackbody temperature, K
+    #: (``sed:``; default: the Sun's).
+    sed_temperature_k: float = SUN_TEMPERATURE_K
 
 
 @dataclass(frozen=True)
@@ -359,7 +368,46 @@ def parse_satellite(where, spec, track=None, height_from_orbit=False):
         height=None if height is None else ranged("height", f"{where}.height", height),
         shape=shape, mag=ranged("mag", f"{where}.mag", spec["mag"]),
         phi=ranged("phi", f"{where}.phi", spec.get("phi", 90.0)),
-        ref_range=ranged("ref_range", f"{where}.ref_range", ref_range), track=track)
+        ref_range=ranged("ref_range", f"{where}.ref_range", ref_range), track=track,
+        sed_temperature_k=parse_sed(f"{where}.sed", spec.get("sed", "sun")))
+
+
+def parse_sed(where, value):
+    """A satellite's ``sed:``, as the blackbody temperature (K) the traced pupil's kernel is
+    taken over.
+
+    ``sun`` (the default: sunlight reflected without colour, the Sun as a blackbody of
+    :data:`inject.optics.SUN_TEMPERATURE_K`), ``{blackbody_k: T}``, or one AB colour through
+    LSST's bands, ``{g-r: 0.6}`` (any two bands, the bluer first: the blackbody of that
+    colour, :func:`inject.optics.colour_temperature`).
+    """
+    if value == "sun":
+        return SUN_TEMPERATURE_K
+    if not isinstance(value, dict) or len(value) != 1:
+        raise SceneError(f"{where}={value!r}: give sun, {{blackbody_k: 5000}} or one colour "
+                         "such as {g-r: 0.6}")
+    [(key, number_)] = value.items()
+    try:
+        if key == "blackbody_k":
+            return check_sed_temperature(number(f"{where}.blackbody_k", number_))
+        blue, dash, red = str(key).partition("-")
+        if not dash:
+            raise SceneError(f"{where}.{key}: not blackbody_k or a colour such as g-r")
+        return colour_temperature(blue, red, number(f"{where}.{key}", number_))
+    except SceneError:
+        raise
+    except InjectError as err:
+        raise SceneError(f"{where}: {err}") from None
+
+
+def check_sed_pupil(satellites, pupil, names=None):
+    """Refuse a satellite's ``sed:`` without the traced pupil (the annulus is achromatic);
+    ``names``: where each satellite is (default ``satellites[i]``)."""
+    for i, sat in enumerate(satellites):
+        if pupil != "rubin" and sat.sed_temperature_k != SUN_TEMPERATURE_K:
+            where = f"satellites[{i}]" if names is None else names[i]
+            raise SceneError(f"{where}.sed: only with pupil: rubin (pupil: {pupil} is the "
+                             "same at every wavelength)")
 
 
 def _check_parts(where, shape):
@@ -441,6 +489,7 @@ def parse_scene(raw, charge_check=True):
                    {"height", "shape", "mag", "track"})
         track = parse_track(f"{where}.track", spec["track"])
         parsed.append(parse_satellite(where, spec, track))
+    check_sed_pupil(parsed, common["pupil"])
     scene = Scene(detector=detector, satellites=tuple(parsed),
                   field=parse_field(raw.get("field"), common["pupil"]), **common)
     if charge_check:
@@ -581,6 +630,7 @@ def parse_focal_parts(raw, orbit_track):
         tracks.append(orbit_track(f"{where}.orbit", sat["orbit"], spec, common, sat.get("lumos"))
                       if "orbit" in sat else
                       parse_focal_track(f"{where}.track", sat["track"], spec, common))
+    check_sed_pupil(specs, common.pupil)
     scene = replace(common, satellites=tuple(specs))
     # The charge of every satellite's own vertex values (an orbit's pass, a polyline's
     # overrides; the satellite's for a line or segment), at the nominal plate scale; a pass

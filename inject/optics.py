@@ -215,6 +215,71 @@ def photon_spectrum(band, temperature_k=SUN_TEMPERATURE_K):
     return wave, photons / np.trapezoid(photons, wave)
 
 
+#: Blackbody temperatures a satellite's spectrum may take, K: from a red M star's to a hot B
+#: star's (g - r from 1.53 to -0.42 through LSST's bands).
+SED_TEMPERATURE_RANGE_K = (3000.0, 30000.0)
+
+
+def check_sed_temperature(value):
+    """``value`` checked as a satellite's blackbody temperature, K: a finite number within
+    :data:`SED_TEMPERATURE_RANGE_K` (InputError otherwise)."""
+    temperature = finite("sed_temperature_k", value, scalar=True)
+    low, high = SED_TEMPERATURE_RANGE_K
+    if not low <= temperature <= high:
+        raise InputError("sed_temperature_k", value, f"must be within [{low:g}, {high:g}] K")
+    return temperature
+
+
+@functools.lru_cache(maxsize=256)
+def blackbody_colour(blue, red, temperature_k):
+    """The AB colour ``blue - red`` of a blackbody through LSST's bands, mag.
+
+    GalSim computes each magnitude: the blackbody's ``F_lambda`` as a GalSim SED (250 to 1200
+    nm every nm) through the band's total throughput (``LSST_{band}.dat``) with the AB
+    zeropoint.
+    """
+    wave = np.arange(250.0, 1200.5, 1.0)
+    hc_over_k_nm_k = 1.438776877e7
+    flux = wave ** -5.0 / np.expm1(hc_over_k_nm_k / (wave * float(temperature_k)))
+    sed = galsim.SED(galsim.LookupTable(wave, flux, interpolant="linear"), "nm", "flambda")
+
+    def magnitude(band):
+        return sed.calculateMagnitude(
+            galsim.Bandpass(_throughput_path(band), "nm").withZeropoint("AB"))
+
+    return float(magnitude(blue) - magnitude(red))
+
+
+def colour_temperature(blue, red, colour):
+    """The blackbody temperature (K) whose AB colour ``blue - red`` through LSST's bands is
+    ``colour`` (:func:`blackbody_colour`), to 0.1 K.
+
+    Raises
+    ------
+    InputError
+        If the bands are not two different LSST bands, blue first, or no temperature within
+        :data:`SED_TEMPERATURE_RANGE_K` has that colour.
+    """
+    from scipy.optimize import brentq
+
+    check_band(blue)
+    check_band(red)
+    order = "ugrizy"
+    if not order.index(blue) < order.index(red):
+        raise InputError("colour", f"{blue}-{red}", "give the bluer band first, e.g. g-r")
+    colour = finite(f"{blue}-{red}", colour, scalar=True)
+    low, high = SED_TEMPERATURE_RANGE_K
+    reddest, bluest = blackbody_colour(blue, red, low), blackbody_colour(blue, red, high)
+    if not bluest <= colour <= reddest:
+        raise InputError(f"{blue}-{red}", colour,
+                         f"a blackbody of {low:g} to {high:g} K has {bluest:.3f} to "
+                         f"{reddest:.3f}")
+    # The colour falls as the temperature rises; brentq in log T is well conditioned.
+    log_t = brentq(lambda t: blackbody_colour(blue, red, float(np.exp(t))) - colour,
+                   np.log(low), np.log(high), xtol=1e-6)
+    return float(round(np.exp(log_t), 1))
+
+
 @functools.lru_cache(maxsize=64)
 def band_wavelengths(band, n, temperature_k=SUN_TEMPERATURE_K):
     """The wavelengths a kernel is traced at over ``band``, and their weights.
@@ -583,19 +648,24 @@ VANE_STEP_DEG = 5.0
 def telescope_position_angle(rotator_deg, radius_deg):
     """The field radius's direction in the telescope's frame, where the spider vanes are fixed.
 
-    The vanes are fixed to the telescope and the camera turns with the rotator, so a field
-    radius at ``radius_deg`` in the camera's (focal plane's) frame is at ``radius_deg +
-    rotator_deg`` in the telescope's (batoid's model, whose vanes lie at 45 and 135 deg). The
-    convention assumed: at rotTelPos 0 the camera's axes are batoid's, and a positive rotTelPos
-    turns the camera counter-clockwise in that frame. The vanes' 4-fold symmetry reduces the
-    angle modulo 90.
+    LSST's camera coordinate system (CCS) turns with the rotator: seen from the sky, it is
+    turned counter-clockwise by rotTelPos from the telescope's optical coordinate system
+    (OCS), which is batoid's frame (its field angles and focal plane share its axes; the
+    vanes lie at 45 and 135 deg). inject's focal plane is obs_lsst's, the data-visualisation
+    frame (DVCS), the transpose of CCS: a radius at ``radius_deg`` there is at 90 -
+    ``radius_deg`` in CCS and 90 - ``radius_deg`` + rotTelPos in OCS. The transpose is a
+    mirror, and the optics are symmetric about the vanes' bisectors, so the kernel seen on
+    the focal plane is the one traced with the radius at ``radius_deg`` - rotTelPos, turned
+    by rotTelPos: the angle returned, which the renderer turns from (the kernel's frame has
+    the radius there; :meth:`inject.streak.StreakModel.defocus_profile`). The vanes' 4-fold
+    symmetry reduces it modulo 90.
 
     Parameters
     ----------
     rotator_deg : float
         The camera rotator's angle, rotTelPos, deg.
     radius_deg : float
-        Direction of the outward field radius in the focal plane (a CCD's pixel rows turn by
+        Direction of the outward field radius on the focal plane (a CCD's pixel rows turn by
         multiples of 90 deg from it, which the vanes do not see), deg from +x.
 
     Returns
@@ -605,7 +675,7 @@ def telescope_position_angle(rotator_deg, radius_deg):
     """
     rotator = finite("rotator_deg", rotator_deg, scalar=True)
     radius = finite("field_position_angle_deg", radius_deg, scalar=True)
-    return float((radius + rotator) % 90.0)
+    return float((radius - rotator) % 90.0)
 
 
 def vane_node(angle_deg):
@@ -643,20 +713,21 @@ def cache_dir():
     return os.path.join(root, "kernels", f"v{CACHE_VERSION}")
 
 
-def _grid_trace(band, range_index, field_index, focus_offset_um=0.0, position_angle=None):
+def _grid_trace(band, range_index, field_index, focus_offset_um=0.0, position_angle=None,
+                temperature_k=SUN_TEMPERATURE_K):
     """The arguments of :func:`traced_kernel` for the grid node ``(range_index, field_index)``:
     range :data:`RANGE_BIN_FACTOR` ** ``range_index`` km, field angle
     ``FIELD_NODES_DEG[field_index]``, the field position angle ``position_angle`` in batoid's
     frame (None: :data:`VANE_OFFSET_DEG`),
-    :data:`GRID_RAYS` rays over :data:`N_WAVELENGTHS` wavelengths of the Sun's spectrum,
-    :data:`KERNEL_SCALE_ARCSEC` sampling, the detector ``focus_offset_um`` from the design's
-    position."""
+    :data:`GRID_RAYS` rays over :data:`N_WAVELENGTHS` wavelengths of a blackbody of
+    ``temperature_k`` (default: the Sun's), :data:`KERNEL_SCALE_ARCSEC` sampling, the detector
+    ``focus_offset_um`` from the design's position."""
     return dict(band=band, range_km=RANGE_BIN_FACTOR ** range_index,
                 field_angle_deg=float(FIELD_NODES_DEG[field_index]),
                 field_position_angle_deg=(VANE_OFFSET_DEG if position_angle is None
                                           else float(position_angle)), n_rays=GRID_RAYS,
                 pixel_scale=KERNEL_SCALE_ARCSEC, focus_offset_um=float(focus_offset_um),
-                n_wavelengths=N_WAVELENGTHS, temperature_k=SUN_TEMPERATURE_K)
+                n_wavelengths=N_WAVELENGTHS, temperature_k=float(temperature_k))
 
 
 def _cache_key(trace):
@@ -765,13 +836,15 @@ def _unwritable(folder, err):
 
 
 @functools.lru_cache(maxsize=64)  # images of ~500 x 500 at 350 km: about 130 MB at most
-def _grid_kernel(band, range_index, field_index, focus_offset_um=0.0, position_angle=None):
+def _grid_kernel(band, range_index, field_index, focus_offset_um=0.0, position_angle=None,
+                 temperature_k=SUN_TEMPERATURE_K):
     """The kernel traced at a grid node, from the disk cache when it holds it.
 
     A damaged cache file is traced again and rewritten; a folder that cannot be written keeps
     the kernel in memory only (one :class:`~inject.errors.InputWarning` per process).
     """
-    trace = _grid_trace(band, range_index, field_index, focus_offset_um, position_angle)
+    trace = _grid_trace(band, range_index, field_index, focus_offset_um, position_angle,
+                        temperature_k)
     folder = cache_dir()
     if folder is None:
         return traced_kernel(**trace)
@@ -793,7 +866,7 @@ def _padded(image, n):
 
 
 def kernel(band, range_km, field_angle_deg=0.0, focus_offset_um=0.0,
-           telescope_position_angle_deg=None):
+           telescope_position_angle_deg=None, temperature_k=SUN_TEMPERATURE_K):
     """The traced kernel of a point at ``range_km`` and ``field_angle_deg``, from the grid.
 
     The kernel traced at the nearest range node (:data:`RANGE_BIN_FACTOR`) scaled as 1/range,
@@ -813,6 +886,9 @@ def kernel(band, range_km, field_angle_deg=0.0, focus_offset_um=0.0,
         The field radius's direction in batoid's (the telescope's) frame, deg
         (:func:`telescope_position_angle`), traced at the nearest :data:`VANE_STEP_DEG` node;
         None (no rotator given): :data:`VANE_OFFSET_DEG`.
+    temperature_k : float
+        The satellite's spectrum, a blackbody of this temperature, K
+        (:func:`check_sed_temperature`; default: the Sun's).
 
     Returns
     -------
@@ -824,6 +900,7 @@ def kernel(band, range_km, field_angle_deg=0.0, focus_offset_um=0.0,
     range_km = positive("range_km", range_km, scalar=True)
     field = check_field_angle(field_angle_deg)
     focus = check_focus_offset(focus_offset_um)
+    temperature = check_sed_temperature(temperature_k)
     node = None
     if telescope_position_angle_deg is not None:
         node = vane_node(finite("telescope_position_angle_deg", telescope_position_angle_deg,
@@ -835,9 +912,9 @@ def kernel(band, range_km, field_angle_deg=0.0, focus_offset_um=0.0,
     if low + 1 < len(FIELD_NODES_DEG):
         weight = (field - FIELD_NODES_DEG[low]) / (FIELD_NODES_DEG[low + 1] - FIELD_NODES_DEG[low])
     weight = 0.0 if weight < 1e-9 else float(weight)
-    nodes = [(_grid_kernel(band, range_index, low, focus, node), 1.0 - weight)]
+    nodes = [(_grid_kernel(band, range_index, low, focus, node, temperature), 1.0 - weight)]
     if weight > 0:
-        nodes.append((_grid_kernel(band, range_index, low + 1, focus, node), weight))
+        nodes.append((_grid_kernel(band, range_index, low + 1, focus, node, temperature), weight))
     n = max(k.image.shape[0] for k, _ in nodes)
     image = sum(w * _padded(k.image, n) for k, w in nodes)
     # 1/range: the node's kernel seen from range_km instead of the node's range.

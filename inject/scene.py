@@ -3,8 +3,8 @@
 The engine takes a validated :class:`~inject.config.Scene` and returns arrays and a truth
 table; writing files is :mod:`inject.io`'s job.
 """
+import logging
 import os
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from functools import lru_cache
@@ -25,6 +25,7 @@ from inject.maskplanes import (
 )
 from inject.optics import telescope_position_angle
 from inject.profile import Seeing, line_spread
+from inject.progress import Progress
 from inject.render import (
     AUTO_MIN_TOLERANCE,
     PROFILE_CACHE,
@@ -46,6 +47,8 @@ from inject.trajectory import (
     path_distance,
 )
 from inject.truth import vertices
+
+log = logging.getLogger(__name__)
 
 #: Random streams, one per purpose, spawned from the scene seed (numpy SeedSequence). The
 #: pixel noise (``noise``: the sky's and dark current's Poisson draws, ``signal_noise``: the
@@ -96,7 +99,8 @@ def streak_models(scene):
                         field_angle_deg=field_angle,
                         field_position_angle_deg=radius - s.track.angle,
                         focus_offset_um=scene.focus_offset_um,
-                        telescope_position_angle_deg=vanes)
+                        telescope_position_angle_deg=vanes,
+                        sed_temperature_k=s.sed_temperature_k)
             for s in scene.satellites]
 
 
@@ -119,31 +123,8 @@ def pixel_noise(scene):
 NOISE_FRACTION = 0.05
 
 
-#: Scenes with at least this many streaks report their progress on stderr.
+#: Scenes with at least this many streaks report their progress (:mod:`inject.progress`).
 PROGRESS_MIN_STREAKS = 20
-
-
-class _Progress:
-    """A counter line on stderr for scenes with many streaks (``\\r``-updated on a terminal,
-    a line per tenth otherwise); silent below :data:`PROGRESS_MIN_STREAKS`."""
-
-    def __init__(self, total, enabled=None):
-        self.total, self.done = total, 0
-        self.enabled = total >= PROGRESS_MIN_STREAKS if enabled is None else bool(enabled)
-        self.tty = self.enabled and sys.stderr.isatty()
-        self.next_line = 0
-
-    def step(self):
-        self.done += 1
-        if not self.enabled:
-            return
-        if self.tty:
-            end = "\n" if self.done == self.total else ""
-            print(f"\rinject: streak {self.done}/{self.total}", end=end, file=sys.stderr,
-                  flush=True)
-        elif self.done >= self.next_line or self.done == self.total:
-            print(f"inject: streak {self.done}/{self.total}", file=sys.stderr, flush=True)
-            self.next_line = self.done + max(1, self.total // 10)
 
 
 def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0,
@@ -168,7 +149,8 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0,
         Streaks with the same profile, angle and budget share one swept profile (its tables
         take most of a short streak's time); None builds each afresh.
     progress : bool, optional
-        Count the streaks on stderr; by default only for :data:`PROGRESS_MIN_STREAKS` or more.
+        Report the streaks rendered (:mod:`inject.progress`, on this module's logger); by
+        default only for :data:`PROGRESS_MIN_STREAKS` or more.
 
     Returns
     -------
@@ -180,14 +162,15 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0,
     model_image = np.zeros(shape)
     budgets = [own_budget(budget, model, noise_sigma) for model in models]
     truth = [None] * len(tracks)
-    counter = _Progress(len(tracks), progress)
+    counter = Progress(len(tracks), "rendering streaks", "streak", log,
+                       len(tracks) >= PROGRESS_MIN_STREAKS if progress is None else progress)
     # Streaks that share tables are rendered one after the other, so a bounded cache builds
     # each table once (the image changes only by the order of float additions).
     for i in _grouped(models, tracks, budgets):
         model, track, own = models[i], tracks[i], budgets[i]
         if track.vertices is not None:
             truth[i] = _render_polyline_track(model_image, model, track, own, cache)
-            counter.step()
+            counter.update()
             continue
         swept = swept_profile(model, track.angle, own,
                               np.inf if track.length is None else track.length, cache)
@@ -211,7 +194,8 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0,
             if part is not None:
                 ends = (*part, float(np.hypot(part[2] - part[0], part[3] - part[1])))
         truth[i] = _truth_row(model, track, ends, charge, expected, own)
-        counter.step()
+        counter.update()
+    counter.close()
     for i, row in enumerate(truth):
         row["satellite"] = i
     return model_image, truth
@@ -432,8 +416,10 @@ def _truth_row(model, track, ends, charge, expected, budget):
     x0, y0, x1, y1, length = ends
     traced = {}
     if model.pupil != "annulus":
+        pupil = model.summary_pupil()
         traced = {"field_angle_deg": float(model.field_angle_deg),
-                  "field_position_angle_deg": model.summary_pupil()["field_position_angle_deg"]}
+                  "field_position_angle_deg": pupil["field_position_angle_deg"],
+                  "sed_temperature_k": pupil["sed_temperature_k"]}
     return traced | {
         "x0": x0, "y0": y0, "x1": x1, "y1": y1, "angle_deg": track.angle, "length_px": length,
         "height_km": g.height_km, "zenith_deg": g.zenith_deg, "phi_deg": g.phi_deg,

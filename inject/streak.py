@@ -69,6 +69,10 @@ class StreakModel:
         the spider vanes are fixed, deg (:func:`inject.optics.telescope_position_angle` of the
         camera rotator and the radius's direction on the focal plane). None (the default, no
         rotator given): the radius 22.5 deg from a vane (:data:`inject.optics.VANE_OFFSET_DEG`).
+    sed_temperature_k : float
+        With ``pupil="rubin"``: the satellite's spectrum, a blackbody of this temperature, K,
+        over which the kernel is traced (default: the Sun's, sunlight reflected without
+        colour; :func:`inject.optics.colour_temperature` gives one from a colour).
 
     Raises
     ------
@@ -93,6 +97,7 @@ class StreakModel:
     field_position_angle_deg: float = 0.0
     focus_offset_um: float = 0.0
     telescope_position_angle_deg: float | None = None
+    sed_temperature_k: float = optics.SUN_TEMPERATURE_K
 
     def __post_init__(self):
         # Wrong types would otherwise fail much later, as an AttributeError or TypeError.
@@ -126,6 +131,10 @@ class StreakModel:
                 raise InputError("telescope_position_angle_deg",
                                  self.telescope_position_angle_deg,
                                  "only applies to pupil rubin (the annulus has no spider vanes)")
+        optics.check_sed_temperature(self.sed_temperature_k)
+        if self.pupil == "annulus" and self.sed_temperature_k != optics.SUN_TEMPERATURE_K:
+            raise InputError("sed_temperature_k", self.sed_temperature_k,
+                             "only applies to pupil rubin (the annulus is achromatic)")
         # Touch the cached geometry: validates height and zenith now rather than on first use.
         _ = self.geometry
 
@@ -142,15 +151,15 @@ class StreakModel:
         geometry, shape, seeing and telescope; not the magnitude or band, which only scale
         the charge; the range override (the defocus) but not the angular speed's. Models
         with equal keys share swept profiles (:mod:`inject.render`). With the traced pupil,
-        also the band (its optics), the field angle, the radius's direction, the focus and the
-        radius's direction in the telescope's frame."""
+        also the band (its optics), the field angle, the radius's direction, the focus, the
+        radius's direction in the telescope's frame and the satellite's spectrum."""
         key = (self.height_km, self.zenith_deg, self.phi_deg, self.shape, self.seeing,
                self.telescope, self.range_km)
         if self.pupil == "annulus":
             return key
         return key + (self.pupil, self.band_name, float(self.field_angle_deg),
                       self._radius_direction, float(self.focus_offset_um),
-                      self._vane_node)
+                      self._vane_node, float(self.sed_temperature_k))
 
     @property
     def _vane_node(self):
@@ -191,7 +200,8 @@ class StreakModel:
         if self.pupil == "annulus":
             return None
         return optics.kernel(self.band_name, self.geometry.range_km, self.field_angle_deg,
-                             self.focus_offset_um, self.telescope_position_angle_deg)
+                             self.focus_offset_um, self.telescope_position_angle_deg,
+                             self.sed_temperature_k)
 
     @property
     def pupil_transmission(self):
@@ -321,6 +331,7 @@ class StreakModel:
         return {"pupil": self.pupil, "field_angle_deg": float(self.field_angle_deg),
                 "field_position_angle_deg": self._radius_direction,
                 "focus_offset_um": float(self.focus_offset_um),
+                "sed_temperature_k": float(self.sed_temperature_k),
                 "pupil_transmission": self.pupil_transmission}
 
 

@@ -49,6 +49,8 @@ TRUTH_COLUMNS = {
                                      "(NaN with the annulus)"),
     "field_position_angle_deg": ("f8", "deg", "traced pupil: outward field radius from the "
                                               "direction of motion (NaN with the annulus)"),
+    "sed_temperature_k": ("f8", "K", "traced pupil: the satellite's spectrum as a blackbody "
+                                     "(NaN with the annulus)"),
     "charge_in_image_e": ("f8", "electron", "charge the image received from this streak"),
     "n_vertices": ("i4", "", "vertices of the track (2 for a straight track)"),
     "flags": ("i4", "", "TRUTH flag bits (FLAG_* header cards)"),

@@ -9,13 +9,16 @@ import os
 import warnings
 from dataclasses import dataclass
 
-import numpy as np
-
 from inject.errors import InputError, InputWarning, ResourceError
+
+# NumPy is imported by the checks that use it: the command line's parser imports this module
+# (through the options' defaults) and answers --help or a bad option without NumPy.
 
 
 def _has_none(value):
     """True if ``value`` is None or holds a None (which numpy would turn into NaN)."""
+    import numpy as np
+
     return value is None or any(v is None for v in np.asarray(value, dtype=object).ravel())
 
 
@@ -42,6 +45,8 @@ def finite(name, value, *, scalar=False):
         If ``value`` is not numeric (a None, a string where ``scalar``, an array where
         ``scalar``) or not finite.
     """
+    import numpy as np
+
     if scalar and isinstance(value, (str, bytes)):
         raise InputError(name, value, "must be a number")
     try:
@@ -62,6 +67,8 @@ def positive(name, value, *, scalar=False):
 
     ``scalar`` is as in :func:`finite`.
     """
+    import numpy as np
+
     arr = finite(name, value, scalar=scalar)
     if np.any(arr <= 0):
         raise InputError(name, value, "must be > 0")
@@ -73,6 +80,8 @@ def in_range(name, value, lo, hi, *, hi_open=True, scalar=False):
 
     ``scalar`` is as in :func:`finite`.
     """
+    import numpy as np
+
     arr = finite(name, value, scalar=scalar)
     upper_ok = arr < hi if hi_open else arr <= hi
     if np.any(arr < lo) or not np.all(upper_ok):

@@ -186,7 +186,7 @@ def rotator(band, seeing):
         for label in ("along", "across")) + " |")
     print("|---|---|" + "---|---|" * 2 * len(HEIGHTS_KM))
     for rot in ROTATORS_DEG:
-        # The field radius along the focal plane's +x: its telescope angle is the rotator's.
+        # The field radius along the focal plane's +x: its kernel is traced at -rotator.
         pa = None if rot is None else telescope_position_angle(rot, 0.0)
         cells = []
         for height in HEIGHTS_KM:

@@ -60,3 +60,23 @@ def test_the_public_api_resolves_every_name():
     assert missing == []
     with pytest.raises(AttributeError):
         inject.no_such_name  # noqa: B018
+
+
+def test_the_stub_lists_the_lazy_api():
+    """``inject/__init__.pyi`` (what type checkers and editors read in place of the lazy
+    ``__getattr__``) imports each name of ``inject._API`` from the same module, and exports
+    exactly ``inject.__all__``."""
+    stub = ast.parse((PACKAGE / "__init__.pyi").read_text())
+    imported = {alias.name: node.module for node in stub.body
+                if isinstance(node, ast.ImportFrom) for alias in node.names}
+    assert imported == inject._API
+    exported = next(node.value for node in stub.body if isinstance(node, ast.Assign)
+                    and [t.id for t in node.targets] == ["__all__"])
+    assert ast.literal_eval(exported) == inject.__all__
+    assert any(isinstance(node, ast.AnnAssign) and node.target.id == "__version__"
+               for node in stub.body)
+
+
+def test_the_package_is_typed():
+    """``py.typed`` marks the package's annotations (and the stub) as meant for type checkers."""
+    assert (PACKAGE / "py.typed").is_file()

@@ -75,3 +75,37 @@ def test_quicklook_truth_is_visible_beside_a_saturated_streak():
     assert coloured[above - 2:above + 3].any() and coloured[below - 2:below + 3].any()
     dark = column.max(axis=2) < 60  # the black outline: contrast with the white streak
     assert dark[above - 4:above + 5].any() and dark[below - 4:below + 5].any()
+
+
+COMMANDS = ["profile", "simulate", "add-streak", "mask", "evaluate", "focalplane", "pass",
+            "survey"]
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_every_option_has_help_and_one_default_style(capsys, command):
+    """Defaults read '(default: X)' once; a bare '(2)' or '(default 3GiB)' is another style,
+    and a default written by hand beside argparse's is said twice."""
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command").choices[command]
+    for action in sub._actions:
+        assert action.help, f"inject {command} {action.option_strings or action.dest}"
+    text = " ".join(_help(capsys, command).split())
+    assert not re.search(r"\(default [^:]", text), text
+    for entry in re.split(r" (?=-{1,2}[a-z])", text):
+        assert entry.count("(default") <= 1, entry
+        assert not re.search(r"\(\d+(\.\d+)?\)", entry), entry
+
+
+def test_retries_and_njobs_say_what_they_are(capsys):
+    text = " ".join(_help(capsys, "focalplane").split())
+    assert "--retries N resubmissions of a failed CCD (default: 2)" in text
+    assert re.search(r"--njobs N with --job: the number of slices", text)
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_help_places_the_samples_in_the_repository(capsys, command):
+    """An installed wheel has no sample_fields/: help that names it says where it is."""
+    text = " ".join(_help(capsys, command).split())
+    for match in re.finditer(r"sample_fields/", text):
+        assert text[max(0, match.start() - 30):match.start()].endswith("the repository's "), \
+            text[match.start() - 60:match.end()]

@@ -21,7 +21,7 @@ def _raw(lumos):
 def test_vertices_take_lumos_magnitudes():
     """Each vertex's apparent magnitude (the streak model's, after its cos/r^2 scaling) is
     lumos's for that sample (its alt/az, height and the Sun's alt/az from the site)."""
-    calc = pytest.importorskip("lumos.calculator")
+    calc = pytest.importorskip("lumos.calculator", reason="needs lumos-sat: make install-lumos")
     import lumos.brdf.library
     import lumos.conversions
     import lumos.geometry
@@ -54,7 +54,7 @@ def test_vertices_take_lumos_magnitudes():
 
 
 def test_lumos_inputs_are_checked():
-    pytest.importorskip("lumos")
+    pytest.importorskip("lumos", reason="needs lumos-sat: make install-lumos")
     from inject import SceneError, parse_focal_scene
     bad = {"surfaces": [{"area": 1, "normal": [0, 0, 0], "brdf": {"type": "lambertian",
                                                                   "albedo": 0.5}}]}

@@ -3,6 +3,7 @@ command (inject.cli.evaluate) and the acstools findsat_mrt adapter."""
 import argparse
 import csv
 import json
+import logging
 
 import numpy as np
 import pytest
@@ -210,15 +211,21 @@ def parse(argv):
     return p.parse_args(["evaluate", *argv])
 
 
-def test_evaluate_command(tmp_path, capsys):
+def test_evaluate_command(tmp_path, capsys, caplog):
     out = tmp_path / "ev"
     args = parse(["--out", str(out), "--seeds", "1", "--mags", "11", "16", "--detector", "512",
                   "--masker", "inject", "--masker", "tests.test_masking_evaluate:nothing",
                   "--streak-free", "2", "--json"])
+    caplog.set_level(logging.INFO, logger="inject")
     args.func(args)
     captured = capsys.readouterr()
     result = json.loads(captured.out)
-    assert "[1/4] 550 km mag 11.00 seed 1" in captured.err
+    # One progress over the 2 x 2 campaign images and the 2 streak-free ones; under ten
+    # images, a line for each.
+    progress = [m for m in caplog.messages if "images" in m and m.startswith("[")]
+    assert progress[0] == "[1/6] simulating and masking images: 550 km mag 11.00 seed 1"
+    assert progress[-1] == "[6/6] simulating and masking images: streak-free seed 1002"
+    assert len(progress) == 6
     names = {r["masker"] for r in result["summary"]}
     assert names == {"inject", "tests.test_masking_evaluate:nothing"}
     ours = {(r["height_km"], r["mag"]): r for r in result["summary"] if r["masker"] == "inject"}
@@ -228,7 +235,6 @@ def test_evaluate_command(tmp_path, capsys):
     for name in ("records.csv", "summary.csv", "summary.md", "pixel_loss.csv",
                  "completeness.png", "fwhm_bias.png", "pixel_loss.png"):
         assert (out / name).stat().st_size > 0
-    assert "[2/2] streak-free seed 1002" in captured.err
     false = result["false_positives"]
     assert false["tests.test_masking_evaluate:nothing"] == {
         "images": 2, "detections": 0, "per_image": 0.0, "per_ccd": 0.0}
@@ -250,6 +256,42 @@ def test_no_false_positives_on_streak_free_cutouts():
     records = evaluate(images, ["inject"], bad=bad_pixels)
     assert len(records) == 3 and all(r["found"] is None for r in records)
     assert false_positive_summary(records, 1024)["inject"]["detections"] == 0
+
+
+#: Writes the campaign's plots under a backend the caller chose (argv[1]) with a pyplot figure
+#: of its own open, then prints the backend and the caller's figures.
+PLOTS_UNDER_A_CHOSEN_BACKEND = """
+import sys
+import matplotlib
+matplotlib.use(sys.argv[1])
+import matplotlib.pyplot as plt
+from inject.cli.evaluate import write_plots
+mine = plt.figure()
+rows = [{"masker": "inject", "height_km": h, "mag": m, "peak_sb": 2.0 / m,
+         "int_snr": 50.0 / m, "completeness": 1.0, "fwhm_bias_pct": 1.0}
+        for h in (550.0, 350.0) for m in (11.0, 12.0)]
+loss = [{"mag": 11.0, "px_550": 100.0, "px_350": 150.0, "ratio": 1.5}]
+paths = write_plots(rows, loss, sys.argv[2], "inject")
+print(matplotlib.get_backend(), plt.get_fignums() == [mine.number], len(paths))
+"""
+
+
+@pytest.mark.parametrize("backend", ["svg", "pdf"])
+def test_the_plots_leave_the_callers_backend_and_figures(tmp_path, backend):
+    """Before: write_plots switched matplotlib to Agg, under a notebook's or a program's own
+    backend, and closed figures through pyplot."""
+    import os
+    import subprocess
+    import sys
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    run = subprocess.run([sys.executable, "-c", PLOTS_UNDER_A_CHOSEN_BACKEND, backend,
+                          str(tmp_path)], capture_output=True, text=True,
+                         env=dict(os.environ, PYTHONPATH=root))
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == [backend, "True", "3"]
+    for name in ("completeness.png", "fwhm_bias.png", "pixel_loss.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_evaluate_command_rejects_bad_options(tmp_path):

@@ -307,7 +307,9 @@ def test_the_summary_records_what_made_it(night):
     assert s["pupil"] == "annulus" and s["focus_offset_um"] == 0.0 and s["satellites"] == 400
     assert s["satellites_by_source"] == {"shells[0] s": 400}
     assert s["fallbacks"] == {"seeing_default_arcsec": 0.67, "visits_default_seeing": 0,
-                              "visits_model_sky": 3}
+                              "visits_model_sky": 3,
+                              "visits_rotator_from": {"rotTelPos": 0, "paraAngle": 0,
+                                                      "computed": 0}}
 
 
 def test_the_focus_offset_reaches_each_streaks_model_and_the_summary(night, tmp_path,
@@ -330,7 +332,8 @@ def test_the_focus_offset_reaches_each_streaks_model_and_the_summary(night, tmp_
     def untraced(**kw):
         given.append(kw)
         return StreakModel(**{k: v for k, v in kw.items() if k not in (
-            "pupil", "focus_offset_um", "field_angle_deg", "field_position_angle_deg")})
+            "pupil", "focus_offset_um", "field_angle_deg", "field_position_angle_deg",
+            "telescope_position_angle_deg")})
 
     monkeypatch.setattr(plan, "StreakModel", untraced)
     const = write_const(str(tmp_path), body=f"pupil: rubin\nfocus_offset_um: -5\n"
@@ -339,8 +342,12 @@ def test_the_focus_offset_reaches_each_streaks_model_and_the_summary(night, tmp_
     assert survey(alone, "-o", tmp_path / "out", "--constellation", const, "--no-plots") == 0
     assert len(given) == 1
     assert given[0]["pupil"] == "rubin" and given[0]["focus_offset_um"] == -5.0
+    # The visit has no rotTelPos: its rotator comes from its parallactic angle.
+    assert given[0]["telescope_position_angle_deg"] is not None
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert s["pupil"] == "rubin" and s["focus_offset_um"] == -5.0
+    assert s["fallbacks"]["visits_rotator_from"] == {"rotTelPos": 0, "paraAngle": 0,
+                                                     "computed": 1}
     # The visit's scene of --render: its every streak's model and each CCD's FOCUSDZ.
     monkeypatch.setattr(exposure_plan, "make_plan", lambda fscene: fscene)  # no kernels traced
     [row] = read_csv(tmp_path / "out" / "streaks.csv")

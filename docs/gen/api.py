@@ -66,14 +66,15 @@ PAGES = [
     ("cli", "Command line",
      "The parser and entry point of the `inject` command, and one module per command; every "
      "command's options are in [Command line](../cli.md).",
-     ["inject.cli.main", "inject.cli.options", "inject.cli.profile", "inject.cli.simulate",
+     ["inject.cli.main", "inject.cli.options", "inject.cli.logs", "inject.cli.profile",
+      "inject.cli.simulate",
       "inject.cli.add_streak", "inject.cli.focalplane", "inject.cli.satellite_pass",
       "inject.cli.mask", "inject.cli.evaluate", "inject.cli.survey"]),
     ("foundations", "Foundations",
      "Errors, the input ranges, the scene-schema helpers every parser uses, clean stops on "
-     "signals, and the mask planes: the modules every other part builds on.",
+     "signals, progress reports, and the mask planes: the modules every other part builds on.",
      ["inject.errors", "inject.validate", "inject.schema",
-      "inject.signals", "inject.maskplanes", "inject.truth"]),
+      "inject.signals", "inject.progress", "inject.maskplanes", "inject.truth"]),
 ]
 
 

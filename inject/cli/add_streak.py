@@ -1,15 +1,14 @@
 """``inject add-streak``: one streak injected into a copy of an existing FITS image (any 2-D
 image HDU, or an LSST MaskedImage/Exposure); the input is never modified."""
+import logging
 import os
-import sys
-
-import numpy as np
 
 from inject.cli.options import add_output_option, add_satellite_options, model_from_args
 from inject.errors import InputError
 from inject.io.atomic import check_writable
 from inject.maskplanes import FLAG_OFF_IMAGE, FLAG_SATURATED
-from inject.validate import check
+
+log = logging.getLogger(__name__)
 
 
 def add_add_streak_parser(sub):
@@ -23,7 +22,7 @@ def add_add_streak_parser(sub):
                     "the streak does not reach are written back unchanged in the file's own "
                     "storage (integers stay integers, compressed HDUs are compressed "
                     "losslessly). The input is never modified.")
-    p.add_argument("input", metavar="IN.fits")
+    p.add_argument("input", metavar="IN.fits", help="the FITS image (never modified)")
     add_output_option(p, "OUT.fits", "the copy with the streak: FITS, named .fits, .fit or "
                                      ".fts (.gz after it: gzipped) or .fz")
     add_satellite_options(p)
@@ -57,11 +56,14 @@ def add_add_streak_parser(sub):
 
 def run_add_streak(args):
     """The ``inject add-streak`` command (``args`` from :func:`add_add_streak_parser`)."""
-    # The engine (GalSim, astropy): imported when the command runs, not for --help.
+    # The engine (GalSim, astropy, NumPy): imported when the command runs, not for --help.
+    import numpy as np
+
     from inject.addstreak import add_streaks, sky_to_array
     from inject.io.fits import check_fits_name
     from inject.io.reader import read_exposure
     from inject.trajectory import Track
+    from inject.validate import check
 
     if os.path.exists(args.output) and os.path.samefile(args.input, args.output):
         raise InputError("-o", args.output, "must differ from the input (it is never modified)")
@@ -114,12 +116,11 @@ def run_add_streak(args):
     row = truth[0]
     x0, y0 = exposure.xy0
     parent = f" (array pixels; LSST parent = array + ({x0}, {y0}))" if (x0, y0) != (0, 0) else ""
-    print(f"wrote {args.output}: streak from ({row['x0']:.1f}, {row['y0']:.1f}) to "
-          f"({row['x1']:.1f}, {row['y1']:.1f}){parent}, {row['charge_in_image_e']:.4g} e- "
-          f"injected", file=sys.stderr)
+    log.info("wrote %s: streak from (%.1f, %.1f) to (%.1f, %.1f)%s, %.4g e- injected",
+             args.output, row["x0"], row["y0"], row["x1"], row["y1"], parent,
+             row["charge_in_image_e"])
     if row["flags"] & FLAG_OFF_IMAGE:
-        print("inject add-streak: warning: the track misses the image: 0 e- injected "
-              "(TRUTH flags = 1)", file=sys.stderr)
+        log.warning("the track misses the image: 0 e- injected (TRUTH flags = 1)")
     if row["flags"] & FLAG_SATURATED:
-        print("inject add-streak: warning: the streak saturates the integer image (clipped "
-              "at the ADC limit; SAT set in MASK if there is one)", file=sys.stderr)
+        log.warning("the streak saturates the integer image (clipped at the ADC limit; SAT "
+                    "set in MASK if there is one)")

@@ -7,12 +7,14 @@ held out from the calibration of the detection threshold) for false positives; e
 runs on the same images and is scored by :func:`inject.masking.evaluate.evaluate`. Writes
 ``records.csv`` (one row per image, masker and streak), ``summary.csv`` and ``summary.md``
 (per masker, height and magnitude; streak-free images form their own rows) and three PNG
-plots; prints the markdown table (or JSON with ``--json``) and progress on stderr.
+plots; prints the markdown table (or JSON with ``--json``); progress is logged
+(:mod:`inject.progress`).
 """
 import contextlib
 import csv
 import io
 import json
+import logging
 import math
 import os
 import sys
@@ -22,7 +24,8 @@ from inject.io.atomic import atomic_path, output_group
 from inject.masking.run import json_safe
 from inject.maskplanes import MASK_PLANES
 from inject.signals import deferred
-from inject.validate import check
+
+log = logging.getLogger(__name__)
 
 # ``inject --help`` imports this module: the simulator, inject.masking.evaluate and the
 # maskers (GalSim, SciPy, OpenCV, logging...) are imported inside the functions that use them.
@@ -79,14 +82,13 @@ def campaign_images(heights, mags, seeds, size, progress=None):
 
     Seed ``s`` fixes the track (through the central 60% of the image, any angle) and the
     noise, stars and sky, so the same seed gives the same field at every height and magnitude.
+    ``progress``: an :class:`inject.progress.Progress` told of each image, or None.
     """
     import numpy as np
 
     from inject.config import DEFAULT_SCENE, parse_scene
     from inject.scene import simulate
     from inject.schema import apply_overrides
-    total = len(heights) * len(mags) * len(seeds)
-    k = 0
     for height in heights:
         for mag in mags:
             for seed in seeds:
@@ -96,16 +98,16 @@ def campaign_images(heights, mags, seeds, size, progress=None):
                 raw = apply_overrides(DEFAULT_SCENE, [f"seed={seed}", f"detector.nx={size}",
                                                       f"detector.ny={size}"])
                 raw["satellites"] = [paper_satellite(height, mag, x0, y0, angle)]
-                k += 1
-                if progress:
-                    progress(f"[{k}/{total}] {height:.0f} km mag {mag:.2f} seed {seed}")
+                if progress is not None:
+                    progress.update(f"{height:.0f} km mag {mag:.2f} seed {seed}")
                 yield simulate(parse_scene(raw)), {"height_km": height, "mag": mag,
                                                    "seed": seed}
 
 
 def streak_free_images(count, size, progress=None, seed0=STREAK_FREE_SEED0):
     """``count`` streak-free images of the campaign's field (seeds ``seed0 + 1`` on), with
-    labels ``{height_km: None, mag: None, seed, streak_free: True}``, generated lazily."""
+    labels ``{height_km: None, mag: None, seed, streak_free: True}``, generated lazily
+    (``progress`` as in :func:`campaign_images`)."""
     from inject.config import DEFAULT_SCENE, parse_scene
     from inject.scene import simulate
     from inject.schema import apply_overrides
@@ -114,8 +116,8 @@ def streak_free_images(count, size, progress=None, seed0=STREAK_FREE_SEED0):
         raw = apply_overrides(DEFAULT_SCENE, [f"seed={seed}", f"detector.nx={size}",
                                               f"detector.ny={size}"])
         raw["satellites"] = []
-        if progress:
-            progress(f"[{k}/{count}] streak-free seed {seed}")
+        if progress is not None:
+            progress.update(f"streak-free seed {seed}")
         yield simulate(parse_scene(raw)), {"height_km": None, "mag": None, "seed": seed,
                                            "streak_free": True}
 
@@ -210,18 +212,21 @@ def _csv_text(rows):
 def write_plots(summary, loss, outdir, masker, overwrite=False):
     """Completeness vs peak SB, FWHM bias vs integrated S/N, pixel loss 550 vs 350 km (PNG,
     written atomically); returns the paths."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # Figures on their own Agg canvas: no pyplot, so the caller's backend and figures stay.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     paths = []
+
+    def figure():
+        fig = Figure(figsize=(6, 4))
+        FigureCanvasAgg(fig)
+        return fig, fig.subplots()
 
     def save(fig, name):
         path = os.path.join(outdir, name)
         with atomic_path(path, overwrite) as tmp:
             fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png")
-        plt.close(fig)
         paths.append(path)
 
     groups = sorted({(r["masker"], r["height_km"]) for r in summary
@@ -232,7 +237,7 @@ def write_plots(summary, loss, outdir, masker, overwrite=False):
                       key=lambda r: r[x])
         return [r[x] for r in rows], [r[y] for r in rows]
 
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, ax = figure()
     for key in groups:
         ax.plot(*series(key, "peak_sb", "completeness"), "o-", label=f"{key[0]} {key[1]:.0f} km")
     ax.set(xscale="log", xlabel="peak surface brightness / sky σ per pixel",
@@ -241,7 +246,7 @@ def write_plots(summary, loss, outdir, masker, overwrite=False):
     ax.legend(fontsize=8)
     save(fig, "completeness.png")
 
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, ax = figure()
     for key in groups:
         x, y = series(key, "int_snr", "fwhm_bias_pct")
         if any(math.isfinite(v) for v in y):
@@ -253,7 +258,7 @@ def write_plots(summary, loss, outdir, masker, overwrite=False):
     save(fig, "fwhm_bias.png")
 
     if loss:
-        fig, ax = plt.subplots(figsize=(6, 4))
+        fig, ax = figure()
         keys = [k for k in loss[0] if k.startswith("px_")]
         for k in keys:
             ax.plot([r["mag"] for r in loss], [r[k] for r in loss], "o-",
@@ -266,21 +271,24 @@ def write_plots(summary, loss, outdir, masker, overwrite=False):
 
 
 def run_campaign(maskers, heights=DEFAULT_HEIGHTS, mags=DEFAULT_MAGS, seeds=DEFAULT_SEEDS,
-                 size=DEFAULT_SIZE, truth_sigma=None, progress=None,
-                 streak_free=DEFAULT_STREAK_FREE):
+                 size=DEFAULT_SIZE, truth_sigma=None, streak_free=DEFAULT_STREAK_FREE):
     """Run a seeded campaign (with ``streak_free`` streak-free images for false positives);
     returns ``(records, summary)`` (see :func:`inject.masking.evaluate.evaluate` and
-    :func:`~inject.masking.evaluate.summarise`)."""
+    :func:`~inject.masking.evaluate.summarise`). Its progress over the images is this
+    module's logger's (:mod:`inject.progress`)."""
     import itertools
 
     from inject.masking.evaluate import TRUTH_SIGMA, evaluate, load_masker, summarise
+    from inject.progress import Progress
 
     maskers = [load_masker(m) for m in maskers]  # fail on a bad name before simulating
-    images = itertools.chain(
-        campaign_images(heights, mags, range(1, seeds + 1), size, progress),
-        streak_free_images(streak_free, size, progress))
-    records = evaluate(images, maskers, TRUTH_SIGMA if truth_sigma is None else truth_sigma,
-                       bad=bad_pixels)
+    total = len(heights) * len(mags) * seeds + streak_free
+    with Progress(total, "simulating and masking images", "image", log) as progress:
+        images = itertools.chain(
+            campaign_images(heights, mags, range(1, seeds + 1), size, progress),
+            streak_free_images(streak_free, size, progress))
+        records = evaluate(images, maskers,
+                           TRUTH_SIGMA if truth_sigma is None else truth_sigma, bad=bad_pixels)
     return records, summarise(records)
 
 
@@ -317,6 +325,8 @@ def add_evaluate_parser(sub):
 
 
 def _check(args):
+    from inject.validate import check
+
     if args.seeds < 1:
         raise InputError("--seeds", args.seeds, "must be >= 1")
     if args.seeds > STREAK_FREE_SEED0:
@@ -367,17 +377,14 @@ def _output_directory(path):
 
 def run_evaluate(args):
     """The ``inject evaluate`` command (``args`` from :func:`add_evaluate_parser`)."""
+    _check(args)  # before the engine's imports
     from inject.masking.evaluate import load_masker
 
-    _check(args)
     maskers = args.masker or ["inject"]
     for masker in maskers:  # a bad name or a missing optional package: before any work
         load_masker(masker)
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         raise OutputError(f"{args.out}: exists and is not a directory")
-
-    def progress(msg):
-        print(msg, file=sys.stderr, flush=True)
 
     # The group checks every target before the campaign's minutes of work, and makes its
     # files appear together at the end, or none of them (a full disk...); the directory is
@@ -385,8 +392,7 @@ def run_evaluate(args):
     with _output_directory(args.out), output_group(
             [os.path.join(args.out, name) for name in OUTPUT_FILES], args.overwrite):
         records, summary = run_campaign(maskers, args.heights, args.mags, args.seeds,
-                                        args.detector, args.truth_sigma, progress,
-                                        args.streak_free)
+                                        args.detector, args.truth_sigma, args.streak_free)
         false = false_positive_summary(records, args.detector)
         names = [load_masker(maskers[0]).name]  # pixel loss: the first masker given
         loss = pixel_loss(summary, names[0], tuple(args.heights[:2])) \
@@ -419,5 +425,5 @@ def run_evaluate(args):
         print(f"false positives ({m}) on {f['images']} streak-free {args.detector} x "
               f"{args.detector} images: {f['detections']} ({f['per_image']:.3f} per image, "
               f"{f['per_ccd']:.3f} per CCD area)")
-    print(f"wrote {args.out}/records.csv, summary.csv, summary.md, "
-          + ", ".join(os.path.basename(p) for p in plots), file=sys.stderr)
+    log.info("wrote %s/records.csv, summary.csv, summary.md, %s", args.out,
+             ", ".join(os.path.basename(p) for p in plots))

@@ -1,11 +1,14 @@
 """``inject focalplane``: a focal-plane scene rendered CCD by CCD."""
 import gc
 import json
+import logging
 import os
 import sys
 
 from inject.errors import InputError, OutputError, ResourceError
 from inject.io.atomic import atomic_path
+
+log = logging.getLogger(__name__)
 
 # ``inject --help`` imports this module: the scene parser, the plan, the runner (multiprocessing,
 # Dask) and the camera layout are imported inside the functions that use them.
@@ -17,7 +20,8 @@ def add_focalplane_parser(sub):
         description="Simulate the CCDs of a focal-plane scene (tracks in focal-plane mm) on a "
                     "process pool or a Dask cluster, resumably; one FITS per CCD, "
                     "manifest.csv and mosaic.png in OUTDIR.")
-    p.add_argument("scene", help="YAML focal-plane scene (see sample_fields/*focal*)")
+    p.add_argument("scene", help="YAML focal-plane scene (an example: the repository's "
+                                         "sample_fields/focal_paper_550km.yaml)")
     p.add_argument("-o", "--output", "--out", metavar="OUTDIR", help="output directory (not needed "
                                                              "with --plan)")
     p.add_argument("--workers", type=int, metavar="N",
@@ -26,15 +30,17 @@ def add_focalplane_parser(sub):
                    help="a Dask scheduler address, or 'local' for a Dask LocalCluster of "
                         "--workers single-threaded processes (default: a process pool)")
     p.add_argument("--memory-limit", default=None, metavar="SIZE",
-                   help="memory limit per LocalCluster worker (default 3GiB)")
+                   help="memory limit per LocalCluster worker (default: 3GiB)")
     p.add_argument("--detectors", metavar="LIST",
                    help="comma-separated CCD names or ids (default: the scene's, or all 189)")
     p.add_argument("--streak-ccds-only", action="store_true",
                    help="render only the CCDs a streak reaches")
     p.add_argument("--job", type=int, metavar="J", help="render the J-th (0-based) of "
                                                          "--njobs interleaved slices")
-    p.add_argument("--njobs", type=int, metavar="N")
-    p.add_argument("--retries", type=int, default=2, help="resubmissions of a failed CCD (2)")
+    p.add_argument("--njobs", type=int, metavar="N",
+                   help="with --job: the number of slices (a batch array's size)")
+    p.add_argument("--retries", type=int, default=2, metavar="N",
+                   help="resubmissions of a failed CCD")
     p.add_argument("--plan", action="store_true", help="print what would be rendered; render "
                                                        "nothing")
     p.add_argument("--json", action="store_true", help="with --plan: one JSON object")
@@ -69,15 +75,20 @@ def _selected(plan, args):
 
 
 def run_focalplane(args):
-    from inject.exposure.plan import make_plan
-    from inject.exposure.scene import parse_focal_scene
-    from inject.schema import apply_overrides, load_scene_file
+    # The options alone first: a bad one is answered before the engine is imported.
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers", args.workers, "must be >= 1")
     if args.retries < 0:
         raise InputError("--retries", args.retries, "must be >= 0")
     if args.json and not args.plan:
         raise InputError("--json", True, "only with --plan")
+    from inject.exposure.runner import slice_ccds
+
+    slice_ccds((), args.job, args.njobs)  # --job/--njobs
+    from inject.exposure.plan import make_plan
+    from inject.exposure.scene import parse_focal_scene
+    from inject.schema import apply_overrides, load_scene_file
+
     fscene = parse_focal_scene(apply_overrides(load_scene_file(args.scene), args.overrides))
     plan = make_plan(fscene)
     ccds, why = _selected(plan, args)
@@ -91,8 +102,7 @@ def run_focalplane(args):
                 ends = "; ".join(f"({s['x0']:.1f}, {s['y0']:.1f}) -> ({s['x1']:.1f}, "
                                  f"{s['y1']:.1f})" for s in d["streaks"])
                 print(f"{d['name']:8s} {d['id']:3d} {d['vendor']:3s}  {ends}")
-            print(f"{len(result['detectors'])} of {len(ccds)} CCDs reached by a streak",
-                  file=sys.stderr)
+            log.info("%d of %d CCDs reached by a streak", len(result["detectors"]), len(ccds))
         return
     from inject.exposure.runner import check_outdir
 
@@ -125,7 +135,7 @@ def _nothing_to_render(plan, args, records, why):
 
     run(plan, args.output, None, ccds=(), overwrite=args.overwrite)
     path = write_satellites(args.output, records)
-    print(f"inject focalplane: no CCD to render ({why}); wrote {path}", file=sys.stderr)
+    log.info("inject focalplane: no CCD to render (%s); wrote %s", why, path)
 
 
 def _workers(fscene, ccds, args):
@@ -264,19 +274,19 @@ def _render(plan, ccds, args, records, workers, memory_limit):
                          retries=args.retries)
     else:
         result = _run_on_pool(plan, ccds, args, workers)
-    print(f"{args.output}: {len(result.rendered)} CCDs rendered, {len(result.skipped)} "
-          f"already done, {len(result.failed)} failed", file=sys.stderr)
+    log.info("%s: %d CCDs rendered, %d already done, %d failed", args.output,
+             len(result.rendered), len(result.skipped), len(result.failed))
     write_satellites(args.output, records)
     for row in records:
         if not row["n_ccds"]:
-            print(f"satellites[{row['satellite']}]: renders on no CCD (why: "
-                  f"{os.path.join(args.output, SATELLITES_CSV)})", file=sys.stderr)
+            log.warning("satellites[%s]: renders on no CCD (why: %s)", row["satellite"],
+                        os.path.join(args.output, SATELLITES_CSV))
     if not args.no_mosaic:
         from inject.exposure.mosaic import write_mosaic
 
         path = os.path.join(args.output, "mosaic.png")
         write_mosaic(path, plan.fscene, args.output)
-        print(f"wrote {path}", file=sys.stderr)
+        log.info("wrote %s", path)
     error = result.error(args.output)  # which CCDs failed, with their messages
     if error is not None:
         raise error  # a RunError: one line, exit status 2

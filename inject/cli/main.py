@@ -12,12 +12,15 @@ Each subcommand parses its options, calls the engine and prints or writes the re
 argparse's usage errors (without the usage block: ``inject simulate --help`` shows it).
 Every warning is one line too, ``inject CMD: warning: ...``, each text once (a library's,
 such as ERFA's for a time beyond its tables, by its class name or reason, without a path).
+Reports and progress are the ``inject`` loggers' (:mod:`inject.cli.logs`): ``-q`` shows
+warnings and errors only, ``-v`` debugging messages too, before or after the subcommand.
 SIGINT, SIGTERM and SIGHUP stop a command cleanly (:mod:`inject.signals`: no temporary or
 half-moved file is left) with exit status 128 + the signal's number; a closed pipe on stdout
 (``inject profile --json | head``) ends it quietly, as Unix tools do.
 """
 import argparse
 import functools
+import logging
 import os
 import re
 import signal
@@ -28,13 +31,17 @@ import inject
 from inject.cli.add_streak import add_add_streak_parser
 from inject.cli.evaluate import add_evaluate_parser
 from inject.cli.focalplane import add_focalplane_parser
+from inject.cli.logs import command_logging, level_of
 from inject.cli.mask import add_mask_parser
+from inject.cli.options import add_verbosity_options
 from inject.cli.profile import add_profile_parser
 from inject.cli.satellite_pass import add_pass_parser
 from inject.cli.simulate import add_simulate_parser
 from inject.cli.survey import add_survey_parser
 from inject.errors import InjectError, InputWarning, OrbitWarning
 from inject.signals import Stopped, handling
+
+log = logging.getLogger(__name__)
 
 
 def _one_line(text):
@@ -97,6 +104,7 @@ def build_parser():
                         help="show inject's version (from git in a checkout) and exit")
     parser.add_argument("--traceback", action="store_true",
                         help="show the full traceback on errors")
+    add_verbosity_options(parser)
     sub = parser.add_subparsers(dest="command", required=True)
     for add_parser in (add_profile_parser, add_simulate_parser, add_add_streak_parser,
                        add_mask_parser, add_evaluate_parser, add_focalplane_parser,
@@ -106,19 +114,20 @@ def build_parser():
         # After the subcommand too; SUPPRESS: not given there, the top-level value stands.
         command.add_argument("--traceback", action="store_true", default=argparse.SUPPRESS,
                              help="show the full traceback on errors")
+        add_verbosity_options(command, after_command=True)
     return parser
 
 
-def _show_warning(message, category, filename, lineno, file=None, line=None,
-                  command="inject", seen=None):
-    """Every warning as one line, ``inject CMD: warning: ...``, each text once per command
-    (``seen``: the texts shown so far); no file path or source line."""
+def _show_warning(message, category, filename, lineno, file=None, line=None, seen=None):
+    """Every warning as one line, ``inject CMD: warning: ...`` (a WARNING record of this
+    module's logger), each text once per command (``seen``: the texts shown so far); no file
+    path or source line."""
     text = _warning_text(message, category)
     if seen is not None:
         if text in seen:
             return
         seen.add(text)
-    print(f"{command}: warning: {text}", file=sys.stderr)
+    log.warning("%s", text)
 
 
 #: ERFA's reasons (``yielded N of "REASON"``), as one line each whatever function gave them.
@@ -173,7 +182,11 @@ def main(argv=None):
                     # The subcommand's error, as argparse itself would word it.
                     _usage_error(command, f"unrecognized arguments: {' '.join(extra)}")
                 args.overrides = list(args.overrides) + extra
-            return _run(args, command)
+            if args.quiet and args.verbose:  # one before the subcommand, one after
+                _usage_error(command, "argument -v/--verbose: not allowed with argument "
+                                      "-q/--quiet")
+            with command_logging(command, level_of(args)):
+                return _run(args, command)
     except BrokenPipeError:
         # The reader went away (| head): stop quietly, with the status of a process killed by
         # SIGPIPE, as Unix tools do.
@@ -191,8 +204,7 @@ def _run(args, command):
     """Run the subcommand; an :class:`InjectError` is one line and status 2."""
     try:
         with warnings.catch_warnings():
-            warnings.showwarning = functools.partial(_show_warning, command=command,
-                                                     seen=set())
+            warnings.showwarning = functools.partial(_show_warning, seen=set())
             args.func(args)
             sys.stdout.flush()  # a closed pipe shows here, where main catches it
     except InjectError as err:

@@ -4,6 +4,7 @@ The command line of :mod:`inject.masking.run` (the engine): its parser, the run 
 image, masks it and writes the copy, and the table it prints.
 """
 import json
+import logging
 import os
 import sys
 
@@ -20,6 +21,8 @@ from inject.masking.run import (
     write_masked_exposure,
 )
 
+log = logging.getLogger(__name__)
+
 
 def add_mask_parser(sub):
     """Register ``inject mask`` on an argparse sub-parser collection."""
@@ -28,7 +31,7 @@ def add_mask_parser(sub):
         description="Detect satellite streaks (matched filter + fast Hough transform on a "
                     "binned, star-cleaned image), measure their line and model-free FWHM, and "
                     "size their masks. The input is never modified.")
-    p.add_argument("image", metavar="IMAGE.fits")
+    p.add_argument("image", metavar="IMAGE.fits", help="the FITS image (never modified)")
     p.add_argument("--json", action="store_true",
                    help='print {"streaks": [...], "image": {...}} as JSON')
     p.add_argument("-o", "--out", "--output", metavar="MASKED.fits",
@@ -48,20 +51,20 @@ def add_mask_parser(sub):
     p.add_argument("--threshold", type=float, metavar="Z",
                    help="detection threshold on the Hough significance (default: calibrated "
                         "false-alarm level)")
-    p.add_argument("--max-streaks", type=int, metavar="N", help="most streaks to find (8)")
+    p.add_argument("--max-streaks", type=int, metavar="N", help="most streaks to find (default: 8)")
     p.set_defaults(func=run_mask)
     return p
 
 
 def run_mask(args):
     """The ``inject mask`` command (``args`` from :func:`add_mask_parser`)."""
-    from inject.io.reader import read_exposure  # astropy: not for --help
-
     check_options(args.pixel_scale, args.mask_rule, args.sb_sigma, args.fwhm_factor,
                   args.threshold, args.max_streaks)
     if args.out:  # fail before the work, not after it
         check_distinct(args.image, args.out)
         check_writable(args.out, args.overwrite)
+    from inject.io.reader import read_exposure  # astropy: after the options' checks
+
     exposure = read_exposure(args.image)
     result = analyse_source(exposure, pixel_scale=args.pixel_scale, rule=args.mask_rule,
                             sb_sigma=args.sb_sigma, fwhm_factor=args.fwhm_factor,
@@ -75,7 +78,7 @@ def run_mask(args):
     else:
         _print_table(result)
     if args.out:
-        print(f"wrote {args.out}", file=sys.stderr)
+        log.info("wrote %s", args.out)
 
 
 def _print_table(result):

@@ -1,9 +1,26 @@
-"""Options that several commands share: the output option of every command that writes one
-file, and the options describing one satellite (``inject profile``, ``inject add-streak``)
-with the :class:`~inject.streak.StreakModel` they make."""
+"""Options that several commands share: ``-q``/``-v`` of every command, the output option of
+every command that writes one file, and the options describing one satellite (``inject
+profile``, ``inject add-streak``) with the :class:`~inject.streak.StreakModel` they make."""
+import argparse
+
 from inject.errors import InputError
-from inject.instrument import LSST
-from inject.validate import check
+
+# ``inject --help`` imports this module: what the satellite options check (NumPy) is imported
+# inside the function that checks them.
+
+
+def add_verbosity_options(p, after_command=False):
+    """``-q/--quiet`` and ``-v/--verbose`` (:mod:`inject.cli.logs`), which exclude each other.
+
+    ``after_command``: the copy every subcommand takes, so that they may follow its name
+    too; not given there, the top-level value stands (the default is SUPPRESS).
+    """
+    default = argparse.SUPPRESS if after_command else False
+    group = p.add_mutually_exclusive_group()
+    group.add_argument("-q", "--quiet", action="store_true", default=default,
+                       help="show warnings and errors only (no progress, no reports)")
+    group.add_argument("-v", "--verbose", action="store_true", default=default,
+                       help="show debugging messages too")
 
 
 def add_output_option(p, metavar, help=None):
@@ -47,12 +64,37 @@ def add_satellite_options(p):
                         "along the radius, 90: across it)")
 
 
+def _sed_temperature(text, pupil):
+    """``--sed``: ``sun``, a temperature ``4500K`` or a colour ``g-r=0.6``, as a blackbody
+    temperature, K (:func:`inject.config.parse_sed`'s forms)."""
+    from inject.optics import SUN_TEMPERATURE_K, check_sed_temperature, colour_temperature
+
+    text = str(text).strip()
+    if text == "sun":
+        return SUN_TEMPERATURE_K
+    if pupil != "rubin":
+        raise InputError("--sed", text, "only applies to --pupil rubin (the annulus is the "
+                                        "same at every wavelength)")
+    colour, equals, value = text.partition("=")
+    try:
+        number = float(value if equals else text[:-1] if text[-1:] in ("k", "K") else "x")
+    except ValueError:
+        raise InputError("--sed", text, "give sun, a temperature such as 4500K or a colour "
+                                        "such as g-r=0.6") from None
+    if equals:
+        blue, _, red = colour.partition("-")
+        return colour_temperature(blue.strip(), red.strip(), number)
+    return check_sed_temperature(number)
+
+
 def model_from_args(args, pixel_scale=None, pixel_scale_name="--pixel-scale"):
     """The :class:`~inject.streak.StreakModel` of the satellite options, their ranges checked
     (:data:`inject.validate.RANGES`) before any profile is built."""
+    from inject.instrument import LSST
     from inject.optics import FIELD_MAX_DEG, FOCUS_MAX_UM
     from inject.profile import Seeing  # GalSim: when a command runs, not for --help
     from inject.streak import StreakModel
+    from inject.validate import check
 
     if not 0 <= args.field_angle <= FIELD_MAX_DEG:  # also NaN
         raise InputError("--field-angle", args.field_angle,
@@ -63,13 +105,15 @@ def model_from_args(args, pixel_scale=None, pixel_scale_name="--pixel-scale"):
                          f"must be within [-{FOCUS_MAX_UM:g}, {FOCUS_MAX_UM:g}] micron"
                          if args.pupil == "rubin" else
                          "only applies to --pupil rubin (the annulus is the design's focus)")
+    sed = _sed_temperature(getattr(args, "sed", "sun"), args.pupil)  # inject profile's
     model = StreakModel(  # its own domain checks first (NaN, <= 0, zenith >= 90, band)
         height_km=args.height, zenith_deg=args.zenith, phi_deg=args.phi,
         shape=shape_from_args(args), mag=args.mag, band_name=args.band,
         seeing=Seeing(args.seeing, args.seeing_model),
         telescope=LSST.with_pixel_scale(pixel_scale or args.pixel_scale),
         ref_range_km=args.ref_range, pupil=args.pupil, field_angle_deg=args.field_angle,
-        field_position_angle_deg=args.field_position_angle, focus_offset_um=focus)
+        field_position_angle_deg=args.field_position_angle, focus_offset_um=focus,
+        sed_temperature_k=sed)
     if args.pupil == "annulus" and (args.field_angle != 0 or args.field_position_angle != 0):
         raise InputError("--field-angle/--field-position-angle",
                          (args.field_angle, args.field_position_angle),

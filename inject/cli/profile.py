@@ -15,6 +15,10 @@ def add_profile_parser(sub):
                    help="with --pupil rubin: the detector's shift from the design's focus "
                         "along the optical axis, micron (negative: towards the camera's last "
                         "lens; 0: focused at infinity)")
+    p.add_argument("--sed", default="sun", metavar="SPEC",
+                   help="with --pupil rubin: the satellite's spectrum the kernel is traced "
+                        "over: sun, a blackbody temperature such as 4500K, or an AB colour "
+                        "through LSST's bands such as g-r=0.6")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run_profile)
 
@@ -55,6 +59,7 @@ _PUPIL_ROWS = (
     ("field_angle_deg", "field angle", "deg", None),
     ("field_position_angle_deg", "field radius from motion", "deg", "{:.0f}"),
     ("focus_offset_um", "detector from design focus", "um", None),
+    ("sed_temperature_k", "spectrum as a blackbody", "K", "{:.1f}"),
     ("pupil_transmission", "light vs a star there", "", "{:.4f}"),
 )
 

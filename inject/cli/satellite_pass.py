@@ -5,14 +5,11 @@ import math
 import sys
 import warnings
 
-import numpy as np
-
 from inject.errors import InputError
 from inject.io.atomic import atomic_path, check_writable
-from inject.validate import RANGES, check_pointing, parse_time
 
-# ``inject --help`` imports this module: the orbits (astropy, SGP4), the camera layout and the
-# streak model are imported inside the functions that use them.
+# ``inject --help`` imports this module: NumPy, the orbits (astropy, SGP4), the camera layout
+# and the streak model are imported inside the functions that use them.
 
 
 def add_pass_parser(sub):
@@ -36,10 +33,10 @@ def add_pass_parser(sub):
     p.add_argument("--ra", required=True, type=float, metavar="DEG", help="boresight RA, ICRS")
     p.add_argument("--dec", required=True, type=float, metavar="DEG", help="boresight Dec, ICRS")
     p.add_argument("--rotation", type=float, default=0.0, metavar="DEG",
-                   help="rotSkyPos: position angle of focal-plane +y, north through east (0)")
+                   help="rotSkyPos: position angle of focal-plane +y, north through east")
     p.add_argument("--site", metavar="LAT,LON,M",
-                   help="geodetic latitude, longitude (deg) and height (m); default Rubin "
-                        "(--site=-30.2446,-70.7494,2647: with '=', as it starts with -)")
+                   help="geodetic latitude, longitude (deg) and height (m), given with '=' "
+                        "as it starts with - (default: Rubin, --site=-30.2446,-70.7494,2647)")
     p.add_argument("--shadow-atmosphere", type=float, default=0.0, metavar="KM",
                    help="height of the grazing atmosphere taken to block the Sun in Earth's "
                         "shadow (0: the solid WGS84 Earth)")
@@ -145,6 +142,7 @@ def _planned_ccds(spec, exposure, pointing, site, atmosphere_km):
 def run_pass(args):
     from inject.camera.wcs import Pointing
     from inject.orbits.passes import Exposure, orbit_from_spec, site_from_spec
+    from inject.validate import RANGES, check_pointing, parse_time
 
     time = parse_time(args.time, "--time")
     if args.tle is not None:
@@ -194,6 +192,8 @@ def streak_along(p, idx, mag_ref=5.0):
     (:class:`~inject.streak.StreakModel` defaults: 7.25 m x 2.65 m box, ``mag_ref`` g at 550 km)
     at samples ``idx`` of a pass: each sample's height, zenith (90 - alt) and phi, with the
     pass's exact range and angular speed."""
+    import numpy as np
+
     from inject.streak import StreakModel
 
     fwhm, peak = [], []
@@ -215,6 +215,7 @@ def write_plot(path, report, p, track, overwrite=False, file_format="png"):
     """The track on the focal-plane outline (crossed CCDs shaded) and panels of range, angular
     speed, FWHM and peak surface brightness along the exposure, as ``file_format`` (a
     matplotlib format: :func:`inject.io.quicklook.quicklook_format` of the name)."""
+    import numpy as np
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle

@@ -1,19 +1,21 @@
 """``inject simulate``: one CCD with streaks from a YAML scene file, written as FITS (and
 optionally OpenEXR, a quicklook picture and the truth table as CSV), all or nothing."""
+import logging
 import os
-import sys
 
 from inject.cli.options import add_output_option
 from inject.errors import InputError
 from inject.instrument import LSST
 from inject.io.atomic import output_group
 
+log = logging.getLogger(__name__)
+
 
 def add_simulate_parser(sub):
     """Register ``inject simulate`` on an argparse sub-parser collection."""
     p = sub.add_parser("simulate", help="simulate one CCD with streaks from a scene file",
                        description="Simulate one LSSTCam-like CCD from a YAML scene file.")
-    p.add_argument("scene", help="YAML scene file (see sample_fields/)")
+    p.add_argument("scene", help="YAML scene file (examples: the repository's sample_fields/)")
     add_output_option(p, "OUT.fits", "the FITS file (IMAGE, MASK, VARIANCE, STREAK_MODEL, "
                                      "TRUTH), named .fits, .fit or .fts")
     p.add_argument("--exr", metavar="OUT.exr", help="also write OpenEXR")
@@ -82,4 +84,4 @@ def run_simulate(args):
 
             write_truth_csv(args.truth, result.truth, overwrite=args.overwrite)
     for path in outputs.values():
-        print(f"wrote {path}", file=sys.stderr)
+        log.info("wrote %s", path)

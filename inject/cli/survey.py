@@ -3,12 +3,15 @@ masks cost (the plan); with ``--render``, the streaked CCDs rendered, masked and
 (:mod:`inject.survey.render`)."""
 import contextlib
 import json
+import logging
 import os
 import sys
 import time
 import warnings
 
 from inject.errors import InputError, OrbitWarning
+
+log = logging.getLogger(__name__)
 
 # ``inject --help`` imports this module: the orbits (astropy, SGP4), the streak model and the
 # survey engine are imported inside the functions that use them.
@@ -44,20 +47,21 @@ def add_survey_parser(sub):
                    help="with --render: render only a square cut-out around each CCD's "
                         "streaks")
     p.add_argument("--cutout-size", type=int, default=None, metavar="PX",
-                   help="side of the cut-outs, px (default 1024)")
+                   help="side of the cut-outs, px (default: 1024)")
     p.add_argument("--compression", choices=("lossless", "lossy", "none"), default=None,
-                   help="with --render: the CCD files' tile compression (default lossless: "
-                        "GZIP; lossy: IMAGE and VARIANCE quantised to a tenth of the noise "
-                        "with dithering, adding 0.029 of it)")
+                   help="with --render: the CCD files' tile compression (lossless: GZIP; "
+                        "lossy: IMAGE and VARIANCE quantised to a tenth of the noise with "
+                        "dithering, adding 0.029 of it) (default: lossless)")
     p.add_argument("--workers", type=int, metavar="N",
-                   help="worker processes over the visits (default 1: this process); with "
-                        "--render, over the CCDs (default: the machine's cores)")
+                   help="worker processes over the visits, and with --render over the CCDs "
+                        "(default: 1, this process; with --render, the machine's cores)")
     p.add_argument("--scheduler", metavar="ADDRESS|local",
                    help="a Dask scheduler address, or 'local' for a Dask LocalCluster of "
                         "--workers processes (default: a process pool)")
     p.add_argument("--job", type=int, metavar="J",
                    help="plan the J-th (0-based) of --njobs interleaved slices of the visits")
-    p.add_argument("--njobs", type=int, metavar="N")
+    p.add_argument("--njobs", type=int, metavar="N",
+                   help="with --job: the number of slices (a batch array's size)")
     p.add_argument("--no-plots", action="store_true", help="write the tables only")
     p.add_argument("--json", action="store_true", help="print summary.json on stdout")
     p.add_argument("--overwrite", action="store_true", help="replace earlier outputs")
@@ -69,15 +73,17 @@ CHUNK_VISITS = 8
 
 
 def run_survey(args):
-    from inject.exposure.runner import check_outdir
-    from inject.survey.outputs import claim_outdir, output_paths, remove_earlier
-    from inject.survey.plan import warn_fallbacks
-
-    if args.workers is not None and args.workers < 1:
+    if args.workers is not None and args.workers < 1:  # before the engine's imports
         raise InputError("--workers", args.workers, "must be >= 1")
     options = _render_options(args)
     fixed = _fixed_mask(args)
-    from inject.survey.visits import read_visits, select_visits
+    from inject.survey.visits import select_visits
+
+    select_visits((), args.job, args.njobs)  # --job/--njobs, before the engine's imports
+    from inject.exposure.runner import check_outdir
+    from inject.survey.outputs import claim_outdir, output_paths, remove_earlier
+    from inject.survey.plan import warn_fallbacks
+    from inject.survey.visits import read_visits
 
     night = read_visits(args.visits)
     visits = select_visits(night, args.job, args.njobs)
@@ -85,6 +91,11 @@ def run_survey(args):
         raise InputError("--job", args.job, f"takes none of the {len(night)} visits "
                                             f"(--njobs {args.njobs})")
     constellation = _constellation(args.constellation, night)
+    if constellation.pupil == "rubin":  # the vanes need each visit's rotator
+        from inject.orbits.passes import RUBIN
+        from inject.survey.visits import with_rotators
+
+        visits = with_rotators(visits, RUBIN)
     check_outdir(args.output)
     paths = output_paths(args.output, args.job, args.njobs)
     from inject.io.atomic import check_writable
@@ -170,13 +181,13 @@ def _render_options(args):
             if value:
                 raise InputError(name, value, "only with --render")
         return None
-    from inject.survey.render import DEFAULT_CUTOUT_PX, RenderOptions
-
     if args.cutout_size is not None:
         if not args.cutouts:
             raise InputError("--cutout-size", args.cutout_size, "only with --cutouts")
         if args.cutout_size < 16:
             raise InputError("--cutout-size", args.cutout_size, "must be >= 16 (px)")
+    from inject.survey.render import DEFAULT_CUTOUT_PX, RenderOptions
+
     cutout = (args.cutout_size or DEFAULT_CUTOUT_PX) if args.cutouts else None
     compression = args.compression or "lossless"
     return RenderOptions(cutout=cutout, compression=None if compression == "none"
@@ -210,9 +221,8 @@ def _render(plans, constellation, args, first, options):
             stop_fork_server()
             raise
         pool.shutdown()
-    print(f"inject survey --render: {len(result.rendered)} CCDs rendered, "
-          f"{len(result.skipped)} already done, {len(result.failed)} failed "
-          f"({result.seconds:.1f} s)", file=sys.stderr)
+    log.info("inject survey --render: %d CCDs rendered, %d already done, %d failed (%.1f s)",
+             len(result.rendered), len(result.skipped), len(result.failed), result.seconds)
     return result
 
 
@@ -225,20 +235,22 @@ def _constellation(path, night):
 
 
 def _plan(visits, constellation, args, fixed=None):
-    """Every visit's plan, in this process or on workers, with a progress bar."""
+    """Every visit's plan, in this process or on workers, with its progress
+    (:mod:`inject.progress`)."""
     from functools import partial
 
+    from inject.progress import Progress
     from inject.survey.plan import plan_chunk, plan_visits
 
     width = None if fixed is None else fixed.width_px
-    progress = _Progress(len(visits))
+    progress = Progress(len(visits), "planning visits", "visit", log)
     workers = args.workers or 1
     try:
         if workers == 1 and not args.scheduler:
             with warnings.catch_warnings():
                 # An epoch's warning is said once, for the night (check_epochs).
                 warnings.simplefilter("ignore", OrbitWarning)
-                return plan_visits(visits, constellation, progress=progress.step,
+                return plan_visits(visits, constellation, progress=progress.update,
                                    fixed_width_px=width)
         chunks = [visits[k:k + CHUNK_VISITS] for k in range(0, len(visits), CHUNK_VISITS)]
         path = os.path.abspath(args.constellation)
@@ -270,7 +282,7 @@ def _gather(executor, function, path, chunks, progress):
     for future in as_completed(futures):
         out[futures[future]] = future.result()
         for _ in out[futures[future]]:
-            progress.step()
+            progress.update()
     return [plan for chunk in out for plan in chunk]
 
 
@@ -307,10 +319,10 @@ def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, re
     if args.json:
         json.dump(result, sys.stdout)
         sys.stdout.write("\n")
-    print(f"inject survey: {len(visits)} visits, {result['streaked_visits']} streaked, "
-          f"{result['streaks']} streaks, pixel fraction lost "
-          f"{result['pixel_fraction_lost_total']:.3g} ({elapsed / len(visits):.3f} s a visit); "
-          f"wrote {', '.join(written.values())}", file=sys.stderr)
+    log.info("inject survey: %d visits, %d streaked, %d streaks, pixel fraction lost %.3g "
+             "(%.3f s a visit); wrote %s", len(visits), result["streaked_visits"],
+             result["streaks"], result["pixel_fraction_lost_total"], elapsed / len(visits),
+             ", ".join(written.values()))
     return written
 
 
@@ -328,31 +340,3 @@ def _failed(rendered, outdir):
                     f"{first['error']}); each one's error is in its visit's manifest.csv under "
                     f"{os.path.join(outdir, 'visits')}; a rerun redoes only the failed ones",
                     [(f"{r['visit']}/{r['detector']}", r["error"]) for r in rows])
-
-
-class _Progress:
-    """A bar over the visits on stderr: tqdm on a terminal, a line per tenth otherwise."""
-
-    def __init__(self, total):
-        self.total, self.done, self.next_line = total, 0, 0
-        self.bar = None
-        if sys.stderr.isatty():
-            try:
-                from tqdm import tqdm
-
-                self.bar = tqdm(total=total, unit="visit", file=sys.stderr)
-            except ImportError:
-                pass
-
-    def step(self):
-        self.done += 1
-        if self.bar is not None:
-            self.bar.update(1)
-        elif self.done >= self.next_line or self.done == self.total:
-            print(f"inject survey: visit {self.done}/{self.total}", file=sys.stderr,
-                  flush=True)
-            self.next_line = self.done + max(1, self.total // 10)
-
-    def close(self):
-        if self.bar is not None:
-            self.bar.close()

@@ -42,7 +42,8 @@ def vertex_model(fscene, i, values, pixel_scale=None):
                        focus_offset_um=scene.focus_offset_um,
                        telescope_position_angle_deg=(
                            None if scene.rotator_deg is None else telescope_position_angle(
-                               scene.rotator_deg, values.get("field_radius", 0.0))))
+                               scene.rotator_deg, values.get("field_radius", 0.0))),
+                       sed_temperature_k=spec.sed_temperature_k)
 
 
 @lru_cache(maxsize=64)

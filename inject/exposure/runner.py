@@ -37,17 +37,20 @@ import csv
 import fcntl
 import hashlib
 import io
+import logging
 import multiprocessing
 import os
 import resource
 import signal
-import sys
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 
 from inject import __version__
 from inject.errors import InjectError, InputError, OutputError, RunError
+from inject.progress import Progress
+
+log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.csv"
 FIELDS = ("detector", "id", "vendor", "file", "sha256", "streaks", "seconds", "status",
@@ -482,34 +485,25 @@ def slice_ccds(ccds, job=None, njobs=None):
     return tuple(ccds)[job::njobs]
 
 
-class _Progress:
-    """tqdm on a terminal, one log line per CCD otherwise."""
+class _CCDProgress:
+    """The run's progress over its CCDs (:class:`inject.progress.Progress`): each CCD's row
+    at DEBUG, a failed one's at WARNING (the run goes on without it)."""
 
-    def __init__(self, total, stream=None, bar=None):
-        self.stream = sys.stderr if stream is None else stream
-        self.total, self.count = total, 0
-        self.bar = None
-        use_bar = self.stream.isatty() if bar is None else bar
-        if use_bar:
-            with contextlib.suppress(ImportError):
-                from tqdm import tqdm
-
-                self.bar = tqdm(total=total, unit="CCD", file=self.stream)
+    def __init__(self, total):
+        self.progress = Progress(total, "rendering CCDs", "CCD", log)
 
     def update(self, row):
-        self.count += 1
-        if self.bar is not None:
-            self.bar.set_postfix_str(f"{row['detector']} {row['status']}")
-            self.bar.update(1)
+        seconds = f" {row['seconds']} s" if row.get("seconds") not in (None, "") else ""
+        extra = f" ({row['error']})" if row.get("error") else ""
+        note = f"{row['detector']} {row['status']}{seconds}{extra}"
+        if row.get("status") == "failed":
+            log.warning("%s", note)
         else:
-            seconds = f" {row['seconds']} s" if row.get("seconds") not in (None, "") else ""
-            extra = f" ({row['error']})" if row.get("error") else ""
-            print(f"[{self.count}/{self.total}] {row['detector']} {row['status']}{seconds}"
-                  f"{extra}", file=self.stream, flush=True)
+            log.debug("%s", note)
+        self.progress.update(note)
 
     def close(self):
-        if self.bar is not None:
-            self.bar.close()
+        self.progress.close()
 
 
 @dataclass
@@ -704,8 +698,8 @@ def _claim(batch, overwrite):
     with _manifest_lock(outdir):
         stale = remove_stale_temporaries(outdir)  # left by a killed run
         if stale:
-            print(f"inject: removed {len(stale)} temporary file(s) left in {outdir} by a run "
-                  f"that was killed", file=sys.stderr)
+            log.warning("removed %d temporary file(s) left in %s by a run that was killed",
+                        len(stale), outdir)
         todo, done = triage(batch.digest, batch.ccds, outdir, overwrite)
         if batch.done is not None:  # outputs beside a file missing or another run's
             redo = {c.name for c in done if not batch.done(c)}
@@ -742,8 +736,9 @@ def run_batches(batches, executor, overwrite=False, retries=2, progress=None):
         CCDs are reported as failed; the other CCDs go on regardless. A task that fails on its
         input (:func:`deterministic`) fails at once.
     progress : object, optional
-        ``update(row)`` after each CCD rendered or failed, ``close()`` at the end (default: a
-        line or a bar per CCD on stderr).
+        ``update(row)`` after each CCD rendered or failed, ``close()`` at the end (default:
+        :mod:`inject.progress` on this module's logger, and each CCD's row at DEBUG, a
+        failed one's at WARNING).
 
     Returns
     -------
@@ -771,7 +766,7 @@ def run_batches(batches, executor, overwrite=False, retries=2, progress=None):
         mine, done = _claim(batch, overwrite)
         todo.append(mine)
         skipped += done
-    progress = progress or _Progress(sum(map(len, todo)))
+    progress = progress or _CCDProgress(sum(map(len, todo)))
     plans = [batch.plan for batch in batches]
     attempts, pending = {}, {}
     rendered, failed = [], []

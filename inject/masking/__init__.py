@@ -18,10 +18,12 @@ Submodules are imported on first use, so that building the command-line parser s
 """
 import importlib
 from dataclasses import dataclass
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from inject.errors import InjectError
+
+if TYPE_CHECKING:  # NumPy is not imported at run time: the command line's parser imports this
+    import numpy
 
 
 class MaskingError(InjectError, ValueError):
@@ -43,7 +45,7 @@ class MaskerOutput:
         masker that gives only a mask (its angle, offset and FWHM errors are then NaN).
     """
 
-    mask: np.ndarray
+    mask: "numpy.ndarray"
     streaks: list | None = None
 
 

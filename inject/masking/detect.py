@@ -766,7 +766,7 @@ def _row_scales(h, n_usable, every=8):
     return med, spread
 
 
-_NORM = {}
+_NORM: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
 
 def _line_norm(shape, min_length):

@@ -1083,7 +1083,7 @@ class Measurement:
     moffat_alpha_px: float
     snr: float
     width_px: float
-    bootstrap: np.ndarray = field(repr=False, default=None)
+    bootstrap: np.ndarray | None = field(repr=False, default=None)
     fwhm_measured: bool = True
 
 

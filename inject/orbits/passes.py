@@ -557,6 +557,35 @@ def _earth_orientation(times):
         yield
 
 
+def parallactic_angles(ra_deg, dec_deg, times, site):
+    """The parallactic angle of each boresight at its time, deg in [0, 360).
+
+    The position angle, from the ICRS north through east, of the direction to the zenith:
+    the boresight's place seen from ``site`` (no refraction) moved 10 arcsec up, back in
+    ICRS. North is the ICRS pole rather than the true pole of the date, as LSST's rotation
+    angles take it (the two differ by the precession since J2000, ~0.3 deg by 2026).
+
+    Parameters
+    ----------
+    ra_deg, dec_deg : array_like
+        Boresights, ICRS, deg.
+    times : astropy.time.Time
+        One time per boresight.
+    site : Site
+
+    Returns
+    -------
+    ndarray
+    """
+    frame = AltAz(obstime=times, location=site.location)
+    boresight = SkyCoord(np.asarray(ra_deg, float) * u.deg, np.asarray(dec_deg, float) * u.deg,
+                         frame="icrs")
+    with _earth_orientation(times):
+        horizontal = boresight.transform_to(frame)
+        up = SkyCoord(az=horizontal.az, alt=horizontal.alt + 10 * u.arcsec, frame=frame)
+        return boresight.position_angle(up.transform_to("icrs")).to_value(u.deg)
+
+
 def _rot_z(angle):
     """Matrices (n, 3, 3) turning vectors by ``angle`` (rad, shape (n,)) about z."""
     c, s = np.cos(angle), np.sin(angle)
@@ -604,7 +633,7 @@ class FieldFrame:
     teme_to_itrs: np.ndarray
     itrs_to_altaz: np.ndarray
     sun_itrs: np.ndarray
-    to_icrs: np.ndarray = None
+    to_icrs: np.ndarray | None = None
 
     @cached_property
     def jd_utc(self):
@@ -824,10 +853,10 @@ class Pass:
     in_field: bool = False
     visible: bool = False
     message: str = ""
-    inside: np.ndarray = field(default=None, repr=False)
+    inside: np.ndarray | None = field(default=None, repr=False)
     #: Height above :data:`~inject.geometry.R_EARTH_KM` (the geocentric distance less the
     #: paper's spherical Earth), km: what the streak model's ``height`` means.
-    height_km: np.ndarray = field(default=None, repr=False)
+    height_km: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def sunlit(self):

@@ -7,6 +7,7 @@
     ref_range: 550
     # pupil: rubin                                  # optional, as a scene's
     # focus_offset_um: -20                          # optional, micron, with pupil: rubin
+    # sed: {g-r: 0.6}                               # optional, with pupil: rubin
     # lumos: {surfaces: [...]}                      # optional, as a scene's orbit satellite
     epoch: 2026-06-15T23:00:00                      # the shells' epoch (UTC)
     shells:                                         # Walker-delta shells
@@ -27,7 +28,12 @@ import warnings
 from dataclasses import dataclass, field
 from functools import cached_property
 
-from inject.config import ORBIT_SATELLITE_KEYS, parse_focus_offset, parse_satellite
+from inject.config import (
+    ORBIT_SATELLITE_KEYS,
+    check_sed_pupil,
+    parse_focus_offset,
+    parse_satellite,
+)
 from inject.errors import InjectError, OrbitError, OrbitWarning, SceneError
 from inject.orbits.passes import EPOCH_REFUSE_DAYS, EPOCH_WARN_DAYS, Orbit, walker_shell
 from inject.schema import check_keys, load_scene_file, number
@@ -167,7 +173,7 @@ def read_constellation(path, default_epoch=None):
 
 
 #: The constellation read last in this process, by the stamps of its files (:func:`_stamps`).
-_READ = {}
+_READ: dict[tuple, Constellation] = {}
 
 
 def _stamps(path, when, tle_files):
@@ -224,6 +230,7 @@ def parse_constellation(raw, default_epoch=None, folder=".", source="constellati
         raise SceneError(f"{source}: pupil={pupil!r}: choose " + " or ".join(PUPILS))
     try:
         focus = parse_focus_offset(raw.get("focus_offset_um"), pupil)
+        check_sed_pupil([satellite], pupil, ["satellite"])
     except SceneError as err:
         raise SceneError(f"{source}: {err}") from None
     lumos = raw.get("lumos")

@@ -56,6 +56,7 @@ from inject.photometry import sky_per_pixel
 from inject.profile import Seeing
 from inject.streak import StreakModel
 from inject.survey.prefilter import NightPrefilter
+from inject.survey.visits import ROTATOR_SOURCES
 from inject.trajectory import clip_path
 
 #: Pixels of the 189 science CCDs.
@@ -250,11 +251,15 @@ def fallbacks(visits):
     dict
         ``seeing_default_arcsec`` (:data:`DEFAULT_SEEING`, the streak model's seeing
         without ``seeingFwhmEff``), ``visits_default_seeing`` and ``visits_model_sky`` (those
-        without ``skyBrightness``, whose sky is the band's dark sky times the airmass).
+        without ``skyBrightness``, whose sky is the band's dark sky times the airmass), and
+        ``visits_rotator_from``: how many visits took their rotator angle from each source
+        (:data:`inject.survey.visits.ROTATOR_SOURCES`; a visit without one is in none).
     """
     return {"seeing_default_arcsec": DEFAULT_SEEING,
             "visits_default_seeing": sum(v.seeing_fwhm_eff is None for v in visits),
-            "visits_model_sky": sum(v.sky_brightness is None for v in visits)}
+            "visits_model_sky": sum(v.sky_brightness is None for v in visits),
+            "visits_rotator_from": {source: sum(v.rotator_source == source for v in visits)
+                                    for source in ROTATOR_SOURCES}}
 
 
 def warn_fallbacks(visits):
@@ -600,6 +605,7 @@ def _streak(name, p, crossings, spec, visit, seeing, sigmas, pupil="annulus",
                         seeing=Seeing(seeing), telescope=LSST, ref_range_km=spec.ref_range,
                         range_km=v["range"], angular_speed_rad_s=v["angular_speed"],
                         pupil=pupil, focus_offset_um=focus_offset_um,
+                        sed_temperature_k=spec.sed_temperature_k,
                         **(_field(xd, yd, piece, n, visit.rotator_deg)
                            if pupil != "annulus" else {}))
     widths = {vendor: mask_width_px(model, sigma) for vendor, sigma in sigmas.items()}

@@ -88,12 +88,12 @@ def visit_key(plan, constellation, model, options):
 
 def model_keys(path):
     """The satellites' model keys of a constellation file (``shape``, ``mag``,
-    ``ref_range``, ``lumos``: a scene satellite's) and its ``pupil`` and ``focus_offset_um``
-    (the scene's: :data:`SCENE_MODEL_KEYS`)."""
+    ``ref_range``, ``sed``, ``lumos``: a scene satellite's) and its ``pupil`` and
+    ``focus_offset_um`` (the scene's: :data:`SCENE_MODEL_KEYS`)."""
     from inject.schema import load_scene_file
 
     raw = load_scene_file(path)
-    return {k: raw[k] for k in ("shape", "mag", "ref_range", "lumos", *SCENE_MODEL_KEYS)
+    return {k: raw[k] for k in ("shape", "mag", "ref_range", "sed", "lumos", *SCENE_MODEL_KEYS)
             if k in raw}
 
 

@@ -15,6 +15,7 @@ The columns read are those LSST's scheduler (rubin_scheduler, formerly opsim) wr
 ``seeingFwhmEff``           optional: the effective PSF FWHM, arcsec
 ``skyBrightness``           optional: the sky, mag/arcsec^2
 ``rotTelPos``               optional: the camera rotator's angle, deg (``pupil: rubin``)
+``paraAngle``               optional: the parallactic angle, deg (for rotTelPos, below)
 ==========================  =============================================================
 
 Times. ``observationStartMJD`` is TAI (the scheduler's convention); it becomes an astropy
@@ -28,9 +29,10 @@ rotSkyPos, flipX=False)``). rubin_scheduler writes this angle (its ``RotationCon
 rotSkyPos = parallactic angle - rotTelPos - 90 deg); databases of the older rubin_sim schema
 described it as rotTelPos - parallactic angle, which turns the focal plane about the boresight
 (the streak counts are unchanged on average, the CCDs each one crosses are not).
-``rotTelPos``, when present, turns the focal plane against the spider vanes of the traced
-pupil (:func:`inject.optics.telescope_position_angle`); without it the field radius is taken
-22.5 deg from a vane (it is not computed back from rotSkyPos and the parallactic angle).
+``rotTelPos`` turns the focal plane against the spider vanes of the traced pupil
+(:func:`inject.optics.telescope_position_angle`). Without the column (or NULL) it is taken
+from the same relation: from ``paraAngle`` when the file has it, else from the parallactic
+angle computed for the visit's start (:func:`with_rotators`, with ``pupil: rubin`` only).
 
 Snaps. A visit of ``numExposures`` = n snaps is n exposures of ``visitExposureTime / n``
 seconds, each after the previous one's readout (:data:`READOUT_S`): a satellite that crosses
@@ -44,7 +46,7 @@ import csv
 import math
 import os
 import sqlite3
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -58,7 +60,11 @@ READOUT_S = 2.0
 REQUIRED = ("observationId", "observationStartMJD", "fieldRA", "fieldDec", "rotSkyPos", "band",
             "visitExposureTime")
 #: Columns read when present.
-OPTIONAL = ("numExposures", "seeingFwhmEff", "skyBrightness", "rotTelPos")
+OPTIONAL = ("numExposures", "seeingFwhmEff", "skyBrightness", "rotTelPos", "paraAngle")
+
+#: Where a visit's rotator angle came from: its ``rotTelPos``, its ``paraAngle`` and
+#: ``rotSkyPos``, or the parallactic angle computed for its start (:func:`with_rotators`).
+ROTATOR_SOURCES = ("rotTelPos", "paraAngle", "computed")
 
 #: The MJDs of 1900-01-01 and 2100-01-01: a time of a survey outside is a mistake (a JD given
 #: as an MJD is year ~8600).
@@ -92,7 +98,9 @@ class Visit:
     sky_brightness : float or None
         ``skyBrightness``, mag/arcsec^2.
     rotator_deg : float or None
-        ``rotTelPos``, the camera rotator's angle, deg (None without the column).
+        ``rotTelPos``, the camera rotator's angle, deg (None when not known).
+    rotator_source : str or None
+        Where ``rotator_deg`` came from (:data:`ROTATOR_SOURCES`).
     """
 
     observation_id: int
@@ -106,6 +114,7 @@ class Visit:
     seeing_fwhm_eff: float | None = None
     sky_brightness: float | None = None
     rotator_deg: float | None = None
+    rotator_source: str | None = None
 
     @property
     def start(self):
@@ -291,12 +300,46 @@ def _visit(path, k, row, names):
     mjd = get("observationStartMJD")
     check_mjd(f"{path} row {k + 1} observationStartMJD (visit {row[names['observationId']]})",
               mjd)
+    rotation = get("rotSkyPos") % 360.0
+    rotator, source = optional("rotTelPos"), "rotTelPos"
+    if rotator is None:
+        parallactic, source = optional("paraAngle"), "paraAngle"
+        rotator = None if parallactic is None else rotator_angle(rotation, parallactic)
     return Visit(observation_id=get("observationId", int), mjd_tai=mjd,
-                 ra_deg=get("fieldRA") % 360.0, dec_deg=dec,
-                 rotation_deg=get("rotSkyPos") % 360.0, band=band, exptime_s=exptime,
-                 n_exposures=n_exp, seeing_fwhm_eff=seeing,
-                 sky_brightness=optional("skyBrightness"),
-                 rotator_deg=optional("rotTelPos"))
+                 ra_deg=get("fieldRA") % 360.0, dec_deg=dec, rotation_deg=rotation, band=band,
+                 exptime_s=exptime, n_exposures=n_exp, seeing_fwhm_eff=seeing,
+                 sky_brightness=optional("skyBrightness"), rotator_deg=rotator,
+                 rotator_source=None if rotator is None else source)
+
+
+def rotator_angle(rot_sky_pos_deg, parallactic_deg):
+    """rotTelPos from rotSkyPos and the parallactic angle, deg in [-180, 180).
+
+    LSST's relation rotSkyPos = parallactic angle - rotTelPos - 90 deg, where the
+    parallactic angle is the position angle of the zenith at the boresight, from north
+    through east.
+    """
+    return float((parallactic_deg - rot_sky_pos_deg - 90.0 + 180.0) % 360.0 - 180.0)
+
+
+def with_rotators(visits, site):
+    """``visits`` with a rotator angle for each: those without one (no ``rotTelPos`` or
+    ``paraAngle``) take it from the parallactic angle computed for their start
+    (:func:`inject.orbits.passes.parallactic_angles`, :func:`rotator_angle`)."""
+    out = list(visits)
+    missing = [k for k, v in enumerate(out) if v.rotator_deg is None]
+    if missing:
+        from astropy.time import Time
+
+        from inject.orbits.passes import parallactic_angles
+
+        starts = Time([out[k].mjd_tai for k in missing], format="mjd", scale="tai")
+        angles = parallactic_angles([out[k].ra_deg for k in missing],
+                                    [out[k].dec_deg for k in missing], starts, site)
+        for k, angle in zip(missing, angles):
+            out[k] = replace(out[k], rotator_deg=rotator_angle(out[k].rotation_deg, angle),
+                             rotator_source="computed")
+    return out
 
 
 def check_mjd(name, mjd):
