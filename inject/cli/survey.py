@@ -36,6 +36,11 @@ def add_survey_parser(sub):
     p.add_argument("--constellation", required=True, metavar="CONST.yaml",
                    help="the satellites' model (shape, mag, ref_range or lumos) and their "
                         "orbits (shells and/or tle)")
+    p.add_argument("--mask-width", metavar="PX|ARCSEC",
+                   help="also count a fixed-width mask, as studies of constellations did: a "
+                        "band of this full width (e.g. 300px or 60arcsec, at 0.2 arcsec/px) "
+                        "along every streak on the CCDs, in pixels_fixed_mask columns and a "
+                        "fixed_mask block of summary.json")
     p.add_argument("--render", action="store_true",
                    help="render the streaked CCDs (OUTDIR/visits/<observationId>/<CCD>.fits), "
                         "mask them with the masker and add the measured FWHM, mask width "
@@ -78,6 +83,7 @@ def run_survey(args):
     if args.workers is not None and args.workers < 1:  # before the engine's imports
         raise InputError("--workers", args.workers, "must be >= 1")
     options = _render_options(args)
+    fixed = _fixed_mask(args)
     array = slurm_slice(args)
     if array is not None:
         log.info("inject survey: %s", array)
@@ -112,20 +118,20 @@ def run_survey(args):
         from inject.exposure.runner import make_outdir
 
         make_outdir(args.output)
-    inputs = _inputs(args, constellation, options)
+    inputs = _inputs(args, constellation, options, fixed)
     claim = None
     try:
         claim = claim_outdir(args.output, _run_key(inputs), inputs, args.overwrite)
         warn_fallbacks(visits)
         started = time.perf_counter()
-        plans = _plan(visits, constellation, args)
+        plans = _plan(visits, constellation, args, fixed)
         elapsed = time.perf_counter() - started
         rendered = sizing = None
         if options is not None:
             with locks_off(args.no_lock):
                 rendered, sizing = _render(plans, constellation, args, night[0], options)
         written = _write(args, paths, plans, night, visits, constellation, elapsed, inputs,
-                         rendered, sizing)
+                         rendered, sizing, fixed)
         if args.overwrite:
             remove_earlier(args.output, claim, written.values(),
                            set(rendered.measured) if rendered is not None else set())
@@ -144,18 +150,31 @@ def run_survey(args):
         raise
 
 
-def _inputs(args, constellation, options):
+def _inputs(args, constellation, options, fixed=None):
     """What makes a run: its input files' SHA-256, the constellation's epoch and the options
     that change its outputs (``--job`` left out: a run's slices share its OUTDIR)."""
     from inject.exposure.runner import sha256_file
     from inject.survey.constellation import file_digests
 
-    return {"visits_file": os.path.abspath(args.visits),
-            "visits_sha256": sha256_file(args.visits),
-            "constellation_sha256": file_digests(constellation),
-            "epoch": constellation.epoch_isot,
-            "njobs": args.njobs,
-            "render": None if options is None else [options.cutout, options.compression]}
+    inputs = {"visits_file": os.path.abspath(args.visits),
+              "visits_sha256": sha256_file(args.visits),
+              "constellation_sha256": file_digests(constellation),
+              "epoch": constellation.epoch_isot,
+              "njobs": args.njobs,
+              "render": None if options is None else [options.cutout, options.compression]}
+    if fixed is not None:  # only then: a run without it keeps its key
+        inputs["mask_width_px"] = fixed.width_px
+    return inputs
+
+
+def _fixed_mask(args):
+    """The :class:`~inject.survey.fixed_mask.FixedMask` of ``--mask-width`` (None without
+    it)."""
+    if args.mask_width is None:
+        return None
+    from inject.survey.fixed_mask import parse_mask_width
+
+    return parse_mask_width(args.mask_width)
 
 
 def _run_key(inputs):
@@ -261,12 +280,15 @@ def _constellation(path, night):
     return constellation
 
 
-def _plan(visits, constellation, args):
+def _plan(visits, constellation, args, fixed=None):
     """Every visit's plan, in this process or on workers, with its progress
     (:mod:`inject.progress`)."""
+    from functools import partial
+
     from inject.progress import Progress
     from inject.survey.plan import plan_chunk, plan_visits
 
+    width = None if fixed is None else fixed.width_px
     progress = Progress(len(visits), "planning visits", "visit", log)
     workers = args.workers or 1
     try:
@@ -274,19 +296,21 @@ def _plan(visits, constellation, args):
             with warnings.catch_warnings():
                 # An epoch's warning is said once, for the night (check_epochs).
                 warnings.simplefilter("ignore", OrbitWarning)
-                return plan_visits(visits, constellation, progress=progress.update)
+                return plan_visits(visits, constellation, progress=progress.update,
+                                   fixed_width_px=width)
         chunks = [visits[k:k + CHUNK_VISITS] for k in range(0, len(visits), CHUNK_VISITS)]
         path = os.path.abspath(args.constellation)
+        task = partial(plan_chunk, fixed_width_px=width)
         if args.scheduler:
             from inject.exposure.runner import dask_executor
 
             with dask_executor(args.scheduler, args.workers) as executor:
-                return _gather(executor, plan_chunk, path, chunks, progress)
+                return _gather(executor, task, path, chunks, progress)
         from inject.exposure.runner import process_pool
 
         pool = process_pool(workers)
         try:
-            result = _gather(pool, plan_chunk, path, chunks, progress)
+            result = _gather(pool, task, path, chunks, progress)
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)
             raise
@@ -309,7 +333,7 @@ def _gather(executor, function, path, chunks, progress):
 
 
 def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, rendered=None,
-           sizing=None):
+           sizing=None, fixed=None):
     """Write the run's files (:func:`inject.survey.outputs.write_outputs`) and say so;
     returns ``{kind: path}`` of the files written. ``sizing``: the render's workers and why
     (:func:`_render_workers`), recorded in summary.json."""
@@ -328,6 +352,8 @@ def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, re
              "night_visits": len(night), "job": args.job, "njobs": args.njobs,
              "site_lon_deg": RUBIN.lon_deg, "plan_seconds": round(elapsed, 3),
              "plan_seconds_per_visit": round(elapsed / len(visits), 4)}
+    if fixed is not None:
+        about["fixed_mask"] = {"width": fixed.given}
     measured = None
     if rendered is not None:
         from inject.survey.compare import measured_columns, render_summary
