@@ -9,6 +9,20 @@ from inject import DEFAULT_SCENE, apply_overrides, parse_scene
 from inject.cli.main import main
 
 
+@pytest.fixture
+def cheap_grid(monkeypatch):
+    """``pupil: rubin``'s grid kernels of few rays (40 000) and wavelengths (2), in memory
+    only: for tests of where a kernel goes, not of its accuracy."""
+    from inject import optics
+
+    monkeypatch.setenv("INJECT_CACHE_DIR", "")
+    monkeypatch.setattr(optics, "GRID_RAYS", 40_000)
+    monkeypatch.setattr(optics, "N_WAVELENGTHS", 2)
+    optics._grid_kernel.cache_clear()
+    yield
+    optics._grid_kernel.cache_clear()
+
+
 def _sha256(path):
     with open(path, "rb") as stream:
         return hashlib.sha256(stream.read()).hexdigest()
