@@ -434,8 +434,8 @@ def _truth_row(model, track, ends, charge, expected, budget):
     }
 
 
-#: Threads drawing the noise (None: the machine's cores); the focal-plane runner's workers set
-#: 1, as their parallelism is one CCD per process.
+#: Threads drawing the noise (None: the CPUs this process may run on); the focal-plane
+#: runner's workers set 1, as their parallelism is one CCD per process.
 NOISE_THREADS = None
 
 
@@ -645,7 +645,10 @@ class AmplifierNoise:
                 for s, y in enumerate(range(r * amp_ny, top, BLOCK_ROWS)):
                     rows = slice(y, min(y + BLOCK_ROWS, top))
                     self.blocks.append(_Block((r, c, s), (rows, cols), sigma))
-        self.threads = threads or NOISE_THREADS or min(len(self.blocks), os.cpu_count() or 1)
+        # The CPUs this process may run on (a batch job's affinity), not the node's.
+        usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else \
+            os.cpu_count() or 1
+        self.threads = threads or NOISE_THREADS or min(len(self.blocks), usable)
 
     def generator(self, purpose, block):
         """The random stream of one purpose of one block."""

@@ -1,11 +1,26 @@
 """Fixtures shared by the test files: the command line, file digests and small scenes."""
 import hashlib
 import os
+import re
 
 import pytest
 
 from inject import DEFAULT_SCENE, apply_overrides, parse_scene
 from inject.cli.main import main
+
+
+@pytest.fixture
+def cheap_grid(monkeypatch):
+    """``pupil: rubin``'s grid kernels of few rays (40 000) and wavelengths (2), in memory
+    only: for tests of where a kernel goes, not of its accuracy."""
+    from inject import optics
+
+    monkeypatch.setenv("INJECT_CACHE_DIR", "")
+    monkeypatch.setattr(optics, "GRID_RAYS", 40_000)
+    monkeypatch.setattr(optics, "N_WAVELENGTHS", 2)
+    optics._grid_kernel.cache_clear()
+    yield
+    optics._grid_kernel.cache_clear()
 
 
 def _sha256(path):
@@ -38,8 +53,8 @@ def cli(capsys):
     """``cli(command, *args)``: run ``inject`` in-process; return ``(status, out, err)``.
 
     A failure must end in one clean line, ``inject <command>: error: ...``, after nothing but
-    one-line warnings and progress lines (no traceback); ``strict=True`` allows nothing before
-    it.
+    one-line warnings, progress lines and the run's workers (``inject <command>: N workers
+    (bound by ...)``), no traceback; ``strict=True`` allows nothing before it.
     """
     def run(*argv, strict=False):
         status = main([str(a) for a in argv])
@@ -52,6 +67,8 @@ def cli(capsys):
                 assert len(lines) == 1, err
             else:
                 assert all(line.startswith((f"inject {argv[0]}: warning: ", "["))
+                           or re.match(rf"inject {argv[0]}( --render)?: \d+ workers? \(bound "
+                                       r"by ", line)
                            for line in lines[:-1]), err
         return status, out, err
 

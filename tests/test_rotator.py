@@ -6,10 +6,10 @@ from scipy.ndimage import map_coordinates
 from test_pupil import SAT
 from test_pupil import _ccd_scene as _pupil_scene
 
-from inject import SceneError, optics, parse_scene
+from inject import SceneError, parse_scene
 from inject.errors import InputError
 from inject.io.fits import primary_header
-from inject.optics import _grid_kernel, telescope_position_angle, traced_kernel, vane_node
+from inject.optics import telescope_position_angle, traced_kernel, vane_node
 from inject.profile import Seeing
 from inject.scene import streak_models
 from inject.streak import StreakModel
@@ -119,17 +119,6 @@ def test_the_rotator_is_refused_without_the_traced_pupil():
         parse_scene(_ccd_scene(rotator_deg="north"))
     with pytest.raises(InputError, match="telescope_position_angle_deg"):
         StreakModel(550, telescope_position_angle_deg=10.0)
-
-
-@pytest.fixture
-def cheap_grid(monkeypatch):
-    """Grid kernels of few rays and wavelengths, in memory only."""
-    monkeypatch.setenv("INJECT_CACHE_DIR", "")
-    monkeypatch.setattr(optics, "GRID_RAYS", 40_000)
-    monkeypatch.setattr(optics, "N_WAVELENGTHS", 2)
-    _grid_kernel.cache_clear()
-    yield
-    _grid_kernel.cache_clear()
 
 
 def _fwhm_across(kernel, along_radius):

@@ -158,7 +158,9 @@ def test_the_command_that_loses_exits_2_with_one_line(tmp_path, monkeypatch, cap
     assert _main(first, "-o", out, "--no-mosaic") == 0
     status, err = statuses
     assert status == 2
-    assert err.splitlines() == [f"inject focalplane: error: {out}: holds the run of scene "
+    # Each command's workers and why (both said so far), then the refusal.
+    err = [line for line in err.splitlines() if " workers (bound by " not in line]
+    assert err == [f"inject focalplane: error: {out}: holds the run of scene "
                                 f"{X.digest[:12]} (4 pending); pass --overwrite to replace "
                                 "that run"]
     rows = _consistent(str(out), X.digest)
@@ -307,19 +309,22 @@ def test_workers_beyond_the_memory_are_refused_and_the_default_fits(tmp_path, mo
     """Before: --workers 100 forked a worker per CCD whatever the memory. A full CCD's worker
     peaks near 0.8 GiB (scripts/bench_focalplane.py), so 2 GiB hold two of them and 1.5 GiB
     one."""
-    from inject import validate
+    from inject.exposure import sizing
+
+    def job(gib, cpus=8):
+        return lambda: sizing.Resources(cpus, "8 CPUs", gib * 2**30, "a test's limit")
 
     raw = {k: v for k, v in RAW.items() if k != "cutout"}
     raw["detectors"] = ["R22_S10", "R22_S11", "R22_S12", "R22_S20", "R22_S21", "R22_S22"]
     scene = _scene_file(tmp_path, raw)
     out = tmp_path / "out"
-    monkeypatch.setattr(validate, "available_memory", lambda: 2 * 2**30)
+    monkeypatch.setattr(sizing, "job_resources", job(2))
     assert _main(scene, "-o", out, "--workers", 100) == 2
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and err[0].startswith("inject focalplane: error: --workers 100: 6 "
                                                "workers need about")
     assert err[0].endswith("(about 0.81 GiB a worker for 4096 x 4004 px CCDs), 2 GiB "
-                           "available; use --workers 2 or fewer")
+                           "available: a test's limit; use --workers 2 or fewer")
     assert not out.exists()  # refused before any work
 
     asked = []
@@ -332,17 +337,23 @@ def test_workers_beyond_the_memory_are_refused_and_the_default_fits(tmp_path, mo
         raise Stop
 
     monkeypatch.setattr(runner, "process_pool", pool)
-    monkeypatch.setattr(os, "cpu_count", lambda: 8)
     for free, workers in ((2.0, 2), (1.5, 1), (64.0, 6)):
-        monkeypatch.setattr(validate, "available_memory", lambda free=free: free * 2**30)
+        monkeypatch.setattr(sizing, "job_resources", job(free))
         with pytest.raises(Stop):
             _main(scene, "-o", out)
         assert asked[-1] == workers
-    monkeypatch.setattr(validate, "available_memory", lambda: 0.5 * 2**30)
+    # The job's CPUs bound it before the CCDs and the memory do.
+    monkeypatch.setattr(sizing, "job_resources", job(64.0, cpus=3))
+    with pytest.raises(Stop):
+        _main(scene, "-o", out)
+    assert asked[-1] == 3
+    assert "inject focalplane: 3 workers (bound by the CPUs; the job has 3 CPUs (8 CPUs), " \
+           "64 GiB of memory (a test's limit))" in capsys.readouterr().err.splitlines()
+    monkeypatch.setattr(sizing, "job_resources", job(0.5))
     assert _main(scene, "-o", out) == 2
     err = capsys.readouterr().err.splitlines()
     assert err == ["inject focalplane: error: not enough memory for one worker (about 0.81 GiB "
-                   "a worker for 4096 x 4004 px CCDs, 0.5 GiB available)"]
+                   "a worker for 4096 x 4004 px CCDs, 0.5 GiB available: a test's limit)"]
 
 
 @pytest.mark.parametrize("limit, why", [

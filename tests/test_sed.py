@@ -19,7 +19,6 @@ from inject.cli.main import main
 from inject.errors import InputError
 from inject.optics import (
     SUN_TEMPERATURE_K,
-    _grid_kernel,
     blackbody_colour,
     colour_temperature,
     kernel,
@@ -58,19 +57,6 @@ def _photon_mean_wavelength(band, temperature_k):
     photons = np.interp(fine, wave, through) * fine ** -4.0 / np.expm1(
         HC_OVER_K / (fine * temperature_k))
     return np.trapezoid(photons * fine, fine) / np.trapezoid(photons, fine)
-
-
-@pytest.fixture
-def cheap_grid(monkeypatch):
-    """Grid kernels of few rays and wavelengths, in memory only."""
-    from inject import optics
-
-    monkeypatch.setenv("INJECT_CACHE_DIR", "")
-    monkeypatch.setattr(optics, "GRID_RAYS", 40_000)
-    monkeypatch.setattr(optics, "N_WAVELENGTHS", 4)
-    _grid_kernel.cache_clear()
-    yield
-    _grid_kernel.cache_clear()
 
 
 @pytest.mark.parametrize("blue, red", [("g", "r"), ("r", "i"), ("u", "g")])

@@ -302,7 +302,7 @@ def skyfield_night(tmp_path_factory):
             if n == n_aimed:
                 tracks.append((row, lines[n], fx, fy))
     return {"streaks": read_csv(out / "streaks.csv"), "reference": reference,
-            "tracks": tracks}
+            "tracks": tracks, "visits": read_csv(out / "visits.csv")}
 
 
 def test_field_angles_agree_with_skyfield(skyfield_night):
@@ -354,6 +354,26 @@ def test_streak_length_and_pixels_follow_the_independent_track(skyfield_night):
         width = float(row["mask_width_px"])
         lost = int(row["pixels_lost"])
         assert length_px * width * 0.99 <= lost <= (length_px + 2 * width) * width * 1.01
+
+
+def test_a_visits_streak_length_is_skyfields_tracks_on_the_ccds(skyfield_night):
+    """visits.csv's streak_length_deg: the sum over the visit's satellites of skyfield's
+    sunlit track on the science CCDs (the gaps excluded), to 0.3%; 0 where none crosses. A
+    visit with a satellite entering the shadow in the field (skyfield's track unsure) is left
+    out."""
+    totals, unsure = {}, set()
+    for (vid, _), (names, length_mm) in skyfield_night["reference"].items():
+        if names is None:
+            unsure.add(vid)
+        elif names:
+            totals[vid] = totals.get(vid, 0.0) + length_mm * PLATE / 3600.0
+    visits = skyfield_night["visits"]
+    assert len(set(totals) - unsure) >= 3 and len(visits) == len(AIMED)
+    for row in visits:
+        if int(row["observationId"]) in unsure:
+            continue
+        expected = totals.get(int(row["observationId"]), 0.0)
+        assert float(row["streak_length_deg"]) == pytest.approx(expected, rel=3e-3, abs=1e-12)
 
 
 # --- pixels lost: closed forms --------------------------------------------------------------

@@ -145,6 +145,12 @@ def test_the_compressed_files_read_back_in_astropy_with_their_cut_out_origin(ren
         assert np.allclose(sky, whole, atol=1e-9)
 
 
+def test_the_summary_records_the_workers_and_why(rendered):
+    sizing = rendered["summary"]["render"]["sizing"]
+    assert sizing["workers"] == 1 and sizing["why"].startswith("bound by --workers; the job has ")
+    assert sizing["cpus"] >= 1 and sizing["memory_why"]
+
+
 def test_a_resumed_run_renders_only_what_is_missing(rendered, tmp_path, capsys):
     """A run stopped before its last CCD and its tables: the rerun renders that CCD alone;
     the others' files are not touched."""
@@ -181,6 +187,7 @@ def test_other_render_options_are_refused_over_a_run_without_overwrite(rendered,
 
 @pytest.mark.parametrize("argv, words", [
     (["--cutouts"], "--cutouts"), (["--compression", "lossy"], "--compression"),
+    (["--verify"], "--verify"), (["--no-lock"], "--no-lock"),
     (["--render", "--cutout-size", "64"], "only with --cutouts"),
     (["--render", "--cutouts", "--cutout-size", "4"], "must be >= 16"),
 ])

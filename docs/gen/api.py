@@ -40,10 +40,10 @@ PAGES = [
       "inject.orbits.lumos"]),
     ("exposure", "Whole exposure",
      "Focal-plane scenes, the plan of which CCD gets which streak, one CCD of the exposure, "
-     "the runner (process pool or Dask) and the mosaic.",
+     "the runner (process pool or Dask), the job's CPUs and memory, and the mosaic.",
      ["inject.exposure.scene", "inject.exposure.plan",
       "inject.exposure.ccd", "inject.exposure.runner",
-      "inject.exposure.mosaic"]),
+      "inject.exposure.sizing", "inject.exposure.mosaic"]),
     ("io", "Files",
      "FITS, OpenEXR and quicklook writers, the reader of users' files, and atomic output.",
      ["inject.io", "inject.io.atomic", "inject.io.fits",

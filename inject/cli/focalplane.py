@@ -5,8 +5,9 @@ import logging
 import os
 import sys
 
-from inject.errors import InputError, OutputError, ResourceError
-from inject.io.atomic import atomic_path
+from inject.cli.options import add_resume_options, slurm_slice
+from inject.errors import InputError, OutputError
+from inject.io.atomic import atomic_path, locks_off
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +26,8 @@ def add_focalplane_parser(sub):
     p.add_argument("-o", "--output", "--out", metavar="OUTDIR", help="output directory (not needed "
                                                              "with --plan)")
     p.add_argument("--workers", type=int, metavar="N",
-                   help="worker processes (default: the machine's cores)")
+                   help="worker processes (default: the CPUs this job may use, its affinity "
+                        "and control group's quota, and no more than its memory holds)")
     p.add_argument("--scheduler", metavar="ADDRESS|local",
                    help="a Dask scheduler address, or 'local' for a Dask LocalCluster of "
                         "--workers single-threaded processes (default: a process pool)")
@@ -35,10 +37,12 @@ def add_focalplane_parser(sub):
                    help="comma-separated CCD names or ids (default: the scene's, or all 189)")
     p.add_argument("--streak-ccds-only", action="store_true",
                    help="render only the CCDs a streak reaches")
-    p.add_argument("--job", type=int, metavar="J", help="render the J-th (0-based) of "
-                                                         "--njobs interleaved slices")
+    p.add_argument("--job", type=int, metavar="J",
+                   help="render the J-th (0-based) of --njobs interleaved slices (in a SLURM job "
+                        "array, default: the task's place in it)")
     p.add_argument("--njobs", type=int, metavar="N",
-                   help="with --job: the number of slices (a batch array's size)")
+                   help="with --job: the number of slices (in a SLURM job array, "
+                        "default: its task count)")
     p.add_argument("--retries", type=int, default=2, metavar="N",
                    help="resubmissions of a failed CCD")
     p.add_argument("--plan", action="store_true", help="print what would be rendered; render "
@@ -47,6 +51,7 @@ def add_focalplane_parser(sub):
     p.add_argument("--no-mosaic", action="store_true", help="do not write mosaic.png")
     p.add_argument("--overwrite", action="store_true",
                    help="replace files of an earlier run of another scene")
+    add_resume_options(p)
     p.add_argument("overrides", nargs="*", default=[], metavar="key.path=value",
                    help="override scene keys, e.g. satellites.0.mag=6 cutout.nx=512")
     p.set_defaults(func=run_focalplane)
@@ -91,6 +96,9 @@ def run_focalplane(args):
 
     fscene = parse_focal_scene(apply_overrides(load_scene_file(args.scene), args.overrides))
     plan = make_plan(fscene)
+    array = slurm_slice(args)
+    if array is not None:
+        log.info("inject focalplane: %s", array)
     ccds, why = _selected(plan, args)
     if args.plan:
         result = plan.summary(ccds)
@@ -111,19 +119,20 @@ def run_focalplane(args):
     check_outdir(args.output)
     limit = _memory_limit(plan.fscene, ccds, args)
     records = _check_satellites_file(plan, args)
-    if not ccds:
-        _nothing_to_render(plan, args, records, why)
-        return
-    workers = _workers(plan.fscene, ccds, args)
-    mosaic = os.path.join(args.output, "mosaic.png")
-    if not args.no_mosaic and os.path.exists(mosaic) and not args.overwrite:
-        from inject.exposure.runner import read_manifest
+    with locks_off(args.no_lock):
+        if not ccds:
+            _nothing_to_render(plan, args, records, why)
+            return
+        workers = _workers(plan.fscene, ccds, args)
+        mosaic = os.path.join(args.output, "mosaic.png")
+        if not args.no_mosaic and os.path.exists(mosaic) and not args.overwrite:
+            from inject.exposure.runner import read_manifest
 
-        rows = read_manifest(args.output).values()
-        if not any(r.get("scene_sha256") == fscene.digest for r in rows):
-            raise OutputError(f"{mosaic}: exists (not this scene's); pass --overwrite to "
-                              "replace it")
-    _render(plan, ccds, args, records, workers, limit)
+            rows = read_manifest(args.output).values()
+            if not any(r.get("scene_sha256") == fscene.digest for r in rows):
+                raise OutputError(f"{mosaic}: exists (not this scene's); pass --overwrite to "
+                                  "replace it")
+        _render(plan, ccds, args, records, workers, limit)
 
 
 def _nothing_to_render(plan, args, records, why):
@@ -139,33 +148,21 @@ def _nothing_to_render(plan, args, records, why):
 
 
 def _workers(fscene, ccds, args):
-    """The worker processes of the run: ``--workers`` (default the machine's cores), never
-    more than the CCDs, and only as many as the memory available holds, each about
-    :func:`inject.exposure.runner.worker_bytes`: without ``--workers`` the count is capped at
-    what fits, with it a count that does not fit is refused (as ``inject simulate`` refuses
-    a CCD too large). A remote Dask cluster's memory is its own."""
-    from inject import validate
+    """The worker processes of the run, said in the log with what bounds them
+    (:func:`inject.exposure.sizing.worker_count`): ``--workers`` (default the CPUs this job
+    may use), never more than the CCDs, and only as many as the job's memory holds, each
+    about :func:`inject.exposure.runner.worker_bytes`: without ``--workers`` the count is
+    capped at what fits, with it a count that does not fit is refused (as ``inject simulate``
+    refuses a CCD too large). A remote Dask cluster's memory is its own."""
+    from inject.exposure import sizing
     from inject.exposure.runner import worker_bytes
 
     if args.scheduler not in (None, "local"):
         return args.workers
-    wanted = args.workers if args.workers is not None else os.cpu_count() or 1
-    count = min(wanted, len(ccds))
-    free = validate.available_memory()
-    if free is None:
-        return count
     need, (ny, nx) = worker_bytes(fscene, ccds)
-    fit = int(free // need)
-    each = f"about {need / 2**30:.2g} GiB a worker for {nx} x {ny} px CCDs"
-    if fit < 1:
-        raise ResourceError(f"not enough memory for one worker ({each}, "
-                            f"{free / 2**30:.3g} GiB available)")
-    if args.workers is None:
-        return min(count, fit)
-    if count > fit:
-        raise ResourceError(f"--workers {args.workers}: {count} workers need about "
-                            f"{count * need / 2**30:.3g} GiB of memory ({each}), "
-                            f"{free / 2**30:.3g} GiB available; use --workers {fit} or fewer")
+    count, why = sizing.worker_count(sizing.job_resources(), need, len(ccds), args.workers,
+                                     f"about {{need}} GiB a worker for {nx} x {ny} px CCDs")
+    log.info("inject focalplane: %d worker%s (%s)", count, "s" if count != 1 else "", why)
     return count
 
 
@@ -222,7 +219,7 @@ def _run_on_pool(plan, ccds, args, workers):
     try:
         pool = process_pool(workers)
         result = run(plan, args.output, pool, ccds, overwrite=args.overwrite,
-                     retries=args.retries)
+                     retries=args.retries, verify=args.verify)
     except BaseException as err:
         if pool is not None:
             pool.shutdown(wait=False, cancel_futures=True)
@@ -271,7 +268,7 @@ def _render(plan, ccds, args, records, workers, memory_limit):
     if args.scheduler:
         with dask_executor(args.scheduler, workers, memory_limit, args.retries) as executor:
             result = run(plan, args.output, executor, ccds, overwrite=args.overwrite,
-                         retries=args.retries)
+                         retries=args.retries, verify=args.verify)
     else:
         result = _run_on_pool(plan, ccds, args, workers)
     log.info("%s: %d CCDs rendered, %d already done, %d failed", args.output,

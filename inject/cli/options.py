@@ -1,7 +1,10 @@
 """Options that several commands share: ``-q``/``-v`` of every command, the output option of
-every command that writes one file, and the options describing one satellite (``inject
-profile``, ``inject add-streak``) with the :class:`~inject.streak.StreakModel` they make."""
+every command that writes one file, the options of the resumable runs on a batch system
+(``inject focalplane``, ``inject survey --render``), and the options describing one satellite
+(``inject profile``, ``inject add-streak``) with the :class:`~inject.streak.StreakModel` they
+make."""
 import argparse
+import os
 
 from inject.errors import InputError
 
@@ -27,6 +30,61 @@ def add_output_option(p, metavar, help=None):
     """``-o/--output/--out``: every subcommand accepts the three spellings."""
     p.add_argument("-o", "--output", "--out", dest="output", required=True, metavar=metavar,
                    help=help)
+
+
+def add_resume_options(p):
+    """``--verify`` and ``--no-lock``: how a resumable run trusts its finished files and
+    shares its output folder."""
+    p.add_argument("--verify", action="store_true",
+                   help="on a rerun, hash every finished file again and redo those whose "
+                        "SHA-256 differs from the manifest's (default: trust a file whose size "
+                        "and modification time are those the manifest recorded)")
+    p.add_argument("--no-lock", action="store_true",
+                   help="do not lock the output folder's manifest (for a file system mounted "
+                        "without locking, e.g. Lustre's noflock or NFS's nolock): this run "
+                        "must then be the only one writing there (no parallel --job slices)")
+
+
+#: The SLURM job-array variables that give ``--job`` and ``--njobs`` their defaults.
+SLURM_ARRAY = ("SLURM_ARRAY_TASK_ID", "SLURM_ARRAY_TASK_MIN", "SLURM_ARRAY_TASK_COUNT")
+
+
+def slurm_slice(args, environ=None):
+    """Default ``args.job`` and ``args.njobs`` from a SLURM job array: the task's place in the
+    array (``SLURM_ARRAY_TASK_ID - SLURM_ARRAY_TASK_MIN``, over ``SLURM_ARRAY_TASK_STEP``
+    when the array steps) of ``SLURM_ARRAY_TASK_COUNT``. Options given win: nothing is
+    changed if either was given, or outside an array.
+
+    Returns
+    -------
+    str or None
+        What was set and from what, for the run's log; None if nothing was.
+
+    Raises
+    ------
+    InputError
+        The array's indices are not an evenly stepped range (``--array=1,5,9`` is; ``1,2,7``
+        is not): give ``--job`` and ``--njobs``.
+    """
+    environ = os.environ if environ is None else environ
+    if args.job is not None or args.njobs is not None or \
+            not all(environ.get(name) for name in SLURM_ARRAY):
+        return None
+    try:
+        task, first, count = (int(environ[name]) for name in SLURM_ARRAY)
+        step = int(environ.get("SLURM_ARRAY_TASK_STEP") or 1)
+    except ValueError:
+        raise InputError("SLURM_ARRAY_TASK_ID", environ.get("SLURM_ARRAY_TASK_ID"),
+                         "the SLURM_ARRAY_TASK_* variables are not all integers; give --job "
+                         "and --njobs") from None
+    job, off = divmod(task - first, max(step, 1))
+    if off or not 0 <= job < count:
+        raise InputError("SLURM_ARRAY_TASK_ID", task,
+                         f"not one of {count} tasks from {first} in steps of {step} (an "
+                         f"array of uneven indices); give --job and --njobs")
+    args.job, args.njobs = job, count
+    return f"--job {job} --njobs {count} from the SLURM job array (SLURM_ARRAY_TASK_ID={task}, " \
+           f"SLURM_ARRAY_TASK_MIN={first}, SLURM_ARRAY_TASK_COUNT={count})"
 
 
 def add_satellite_options(p):

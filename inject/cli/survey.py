@@ -9,7 +9,9 @@ import sys
 import time
 import warnings
 
+from inject.cli.options import add_resume_options, slurm_slice
 from inject.errors import InputError, OrbitWarning
+from inject.io.atomic import locks_off
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +36,11 @@ def add_survey_parser(sub):
     p.add_argument("--constellation", required=True, metavar="CONST.yaml",
                    help="the satellites' model (shape, mag, ref_range or lumos) and their "
                         "orbits (shells and/or tle)")
+    p.add_argument("--mask-width", metavar="PX|ARCSEC",
+                   help="also count a fixed-width mask, as studies of constellations did: a "
+                        "band of this full width (e.g. 300px or 60arcsec, at 0.2 arcsec/px) "
+                        "along every streak on the CCDs, in pixels_fixed_mask columns and a "
+                        "fixed_mask block of summary.json")
     p.add_argument("--render", action="store_true",
                    help="render the streaked CCDs (OUTDIR/visits/<observationId>/<CCD>.fits), "
                         "mask them with the masker and add the measured FWHM, mask width "
@@ -48,18 +55,23 @@ def add_survey_parser(sub):
                         "lossy: IMAGE and VARIANCE quantised to a tenth of the noise with "
                         "dithering, adding 0.029 of it) (default: lossless)")
     p.add_argument("--workers", type=int, metavar="N",
-                   help="worker processes over the visits, and with --render over the CCDs "
-                        "(default: 1, this process; with --render, the machine's cores)")
+                   help="worker processes over the visits (default: 1, this process); with "
+                        "--render, over the CCDs (default: the CPUs this job may use, its "
+                        "affinity and control group's quota, and no more than its memory "
+                        "holds)")
     p.add_argument("--scheduler", metavar="ADDRESS|local",
                    help="a Dask scheduler address, or 'local' for a Dask LocalCluster of "
                         "--workers processes (default: a process pool)")
     p.add_argument("--job", type=int, metavar="J",
-                   help="plan the J-th (0-based) of --njobs interleaved slices of the visits")
+                   help="plan the J-th (0-based) of --njobs interleaved slices of the visits "
+                        "(in a SLURM job array, default: the task's place in it)")
     p.add_argument("--njobs", type=int, metavar="N",
-                   help="with --job: the number of slices (a batch array's size)")
+                   help="with --job: the number of slices (in a SLURM job array, "
+                        "default: its task count)")
     p.add_argument("--no-plots", action="store_true", help="write the tables only")
     p.add_argument("--json", action="store_true", help="print summary.json on stdout")
     p.add_argument("--overwrite", action="store_true", help="replace earlier outputs")
+    add_resume_options(p)
     p.set_defaults(func=run_survey)
 
 
@@ -71,6 +83,10 @@ def run_survey(args):
     if args.workers is not None and args.workers < 1:  # before the engine's imports
         raise InputError("--workers", args.workers, "must be >= 1")
     options = _render_options(args)
+    fixed = _fixed_mask(args)
+    array = slurm_slice(args)
+    if array is not None:
+        log.info("inject survey: %s", array)
     from inject.survey.visits import select_visits
 
     select_visits((), args.job, args.njobs)  # --job/--njobs, before the engine's imports
@@ -102,19 +118,20 @@ def run_survey(args):
         from inject.exposure.runner import make_outdir
 
         make_outdir(args.output)
-    inputs = _inputs(args, constellation, options)
+    inputs = _inputs(args, constellation, options, fixed)
     claim = None
     try:
         claim = claim_outdir(args.output, _run_key(inputs), inputs, args.overwrite)
         warn_fallbacks(visits)
         started = time.perf_counter()
-        plans = _plan(visits, constellation, args)
+        plans = _plan(visits, constellation, args, fixed)
         elapsed = time.perf_counter() - started
-        rendered = None
+        rendered = sizing = None
         if options is not None:
-            rendered = _render(plans, constellation, args, night[0], options)
+            with locks_off(args.no_lock):
+                rendered, sizing = _render(plans, constellation, args, night[0], options)
         written = _write(args, paths, plans, night, visits, constellation, elapsed, inputs,
-                         rendered)
+                         rendered, sizing, fixed)
         if args.overwrite:
             remove_earlier(args.output, claim, written.values(),
                            set(rendered.measured) if rendered is not None else set())
@@ -133,18 +150,31 @@ def run_survey(args):
         raise
 
 
-def _inputs(args, constellation, options):
+def _inputs(args, constellation, options, fixed=None):
     """What makes a run: its input files' SHA-256, the constellation's epoch and the options
     that change its outputs (``--job`` left out: a run's slices share its OUTDIR)."""
     from inject.exposure.runner import sha256_file
     from inject.survey.constellation import file_digests
 
-    return {"visits_file": os.path.abspath(args.visits),
-            "visits_sha256": sha256_file(args.visits),
-            "constellation_sha256": file_digests(constellation),
-            "epoch": constellation.epoch_isot,
-            "njobs": args.njobs,
-            "render": None if options is None else [options.cutout, options.compression]}
+    inputs = {"visits_file": os.path.abspath(args.visits),
+              "visits_sha256": sha256_file(args.visits),
+              "constellation_sha256": file_digests(constellation),
+              "epoch": constellation.epoch_isot,
+              "njobs": args.njobs,
+              "render": None if options is None else [options.cutout, options.compression]}
+    if fixed is not None:  # only then: a run without it keeps its key
+        inputs["mask_width_px"] = fixed.width_px
+    return inputs
+
+
+def _fixed_mask(args):
+    """The :class:`~inject.survey.fixed_mask.FixedMask` of ``--mask-width`` (None without
+    it)."""
+    if args.mask_width is None:
+        return None
+    from inject.survey.fixed_mask import parse_mask_width
+
+    return parse_mask_width(args.mask_width)
 
 
 def _run_key(inputs):
@@ -158,7 +188,8 @@ def _render_options(args):
     the render options refused without it."""
     if not args.render:
         for name, value in (("--cutouts", args.cutouts), ("--cutout-size", args.cutout_size),
-                            ("--compression", args.compression)):
+                            ("--compression", args.compression), ("--verify", args.verify),
+                            ("--no-lock", args.no_lock)):
             if value:
                 raise InputError(name, value, "only with --render")
         return None
@@ -177,26 +208,33 @@ def _render_options(args):
 
 def _render(plans, constellation, args, first, options):
     """Render, mask and measure the streaked CCDs (:mod:`inject.survey.render`) on the focal
-    plane's runner: a process pool (``--workers``, default the machine's cores) or Dask
-    (``--scheduler``)."""
+    plane's runner: a process pool (``--workers``, default the CPUs this job may use, as many
+    as its memory holds: :func:`_render_workers`) or Dask (``--scheduler``).
+
+    Returns
+    -------
+    result : inject.survey.render.RenderResult
+    sizing : dict or None
+        The process pool's workers, why, and the job's resources (for summary.json).
+    """
     from inject.survey.render import model_keys, render_visits, visit_batches
 
     model = model_keys(args.constellation)
     batches = visit_batches(plans, constellation, model, args.output, options,
                             os.path.abspath(args.constellation), first.start.utc)
-    total = sum(len(b.ccds) for b in batches.values())
-    workers = max(1, min(args.workers or os.cpu_count() or 1, max(total, 1)))
+    sizing = None
     if args.scheduler:
         from inject.exposure.runner import dask_executor
 
         with dask_executor(args.scheduler, args.workers) as executor:
-            result = render_visits(batches, executor, args.overwrite)
+            result = render_visits(batches, executor, args.overwrite, verify=args.verify)
     else:
         from inject.exposure.runner import process_pool, stop_fork_server
 
-        pool = process_pool(workers)
+        sizing = _render_workers(batches, args, options)
+        pool = process_pool(sizing["workers"])
         try:
-            result = render_visits(batches, pool, args.overwrite)
+            result = render_visits(batches, pool, args.overwrite, verify=args.verify)
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)
             stop_fork_server()
@@ -204,7 +242,34 @@ def _render(plans, constellation, args, first, options):
         pool.shutdown()
     log.info("inject survey --render: %d CCDs rendered, %d already done, %d failed (%.1f s)",
              len(result.rendered), len(result.skipped), len(result.failed), result.seconds)
-    return result
+    return result, sizing
+
+
+def _render_workers(batches, args, options):
+    """The process pool's workers for the CCDs of ``batches``, said in the log with what
+    bounds them (:func:`inject.exposure.sizing.worker_count`: the job's CPUs, the CCDs, and
+    the memory for the largest CCD or cut-out).
+
+    Returns
+    -------
+    dict
+        ``workers``, ``why`` and the job's resources (:meth:`~inject.exposure.sizing.
+        Resources.record`).
+    """
+    from inject.exposure import sizing
+    from inject.exposure.runner import WORKER_BASE_BYTES, WORKER_BYTES_PER_PIXEL
+
+    ccds = [c for b in batches.values() for c in b.ccds]
+    side = options.cutout or float("inf")  # a cut-out is clipped to its CCD
+    shape = max(((min(c.shape[0], side), min(c.shape[1], side)) for c in ccds),
+                key=lambda s: s[0] * s[1], default=(0, 0))
+    need = WORKER_BASE_BYTES + WORKER_BYTES_PER_PIXEL * shape[0] * shape[1]
+    resources = sizing.job_resources()
+    count, why = sizing.worker_count(resources, need, len(ccds), args.workers,
+                                     f"about {{need}} GiB a worker for {shape[1]} x "
+                                     f"{shape[0]} px CCDs")
+    log.info("inject survey --render: %d worker%s (%s)", count, "s" if count != 1 else "", why)
+    return {"workers": count, "why": why, **resources.record()}
 
 
 def _constellation(path, night):
@@ -215,12 +280,15 @@ def _constellation(path, night):
     return constellation
 
 
-def _plan(visits, constellation, args):
+def _plan(visits, constellation, args, fixed=None):
     """Every visit's plan, in this process or on workers, with its progress
     (:mod:`inject.progress`)."""
+    from functools import partial
+
     from inject.progress import Progress
     from inject.survey.plan import plan_chunk, plan_visits
 
+    width = None if fixed is None else fixed.width_px
     progress = Progress(len(visits), "planning visits", "visit", log)
     workers = args.workers or 1
     try:
@@ -228,19 +296,21 @@ def _plan(visits, constellation, args):
             with warnings.catch_warnings():
                 # An epoch's warning is said once, for the night (check_epochs).
                 warnings.simplefilter("ignore", OrbitWarning)
-                return plan_visits(visits, constellation, progress=progress.update)
+                return plan_visits(visits, constellation, progress=progress.update,
+                                   fixed_width_px=width)
         chunks = [visits[k:k + CHUNK_VISITS] for k in range(0, len(visits), CHUNK_VISITS)]
         path = os.path.abspath(args.constellation)
+        task = partial(plan_chunk, fixed_width_px=width)
         if args.scheduler:
             from inject.exposure.runner import dask_executor
 
             with dask_executor(args.scheduler, args.workers) as executor:
-                return _gather(executor, plan_chunk, path, chunks, progress)
+                return _gather(executor, task, path, chunks, progress)
         from inject.exposure.runner import process_pool
 
         pool = process_pool(workers)
         try:
-            result = _gather(pool, plan_chunk, path, chunks, progress)
+            result = _gather(pool, task, path, chunks, progress)
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)
             raise
@@ -262,9 +332,11 @@ def _gather(executor, function, path, chunks, progress):
     return [plan for chunk in out for plan in chunk]
 
 
-def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, rendered=None):
+def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, rendered=None,
+           sizing=None, fixed=None):
     """Write the run's files (:func:`inject.survey.outputs.write_outputs`) and say so;
-    returns ``{kind: path}`` of the files written."""
+    returns ``{kind: path}`` of the files written. ``sizing``: the render's workers and why
+    (:func:`_render_workers`), recorded in summary.json."""
     from inject import __version__
     from inject.orbits.passes import RUBIN
     from inject.survey.outputs import summary, write_outputs
@@ -280,12 +352,16 @@ def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, re
              "night_visits": len(night), "job": args.job, "njobs": args.njobs,
              "site_lon_deg": RUBIN.lon_deg, "plan_seconds": round(elapsed, 3),
              "plan_seconds_per_visit": round(elapsed / len(visits), 4)}
+    if fixed is not None:
+        about["fixed_mask"] = {"width": fixed.given}
     measured = None
     if rendered is not None:
         from inject.survey.compare import measured_columns, render_summary
 
         measured = measured_columns(plans, rendered.measured)
         about["render"] = render_summary(plans, measured, rendered, _render_options(args))
+        if sizing is not None:
+            about["render"]["sizing"] = sizing
     result = summary(plans, about, RUBIN.lon_deg)
     written = write_outputs(paths, plans, result, args.overwrite, plots=not args.no_plots,
                             measured=measured)

@@ -10,13 +10,15 @@ purpose), so the worker count, the scheduler, the order and the other CCDs asked
 change them.
 
 ``manifest.csv`` in the output directory has one row per CCD (``detector, id, vendor, file,
-sha256, streaks, seconds, status``, plus the scene's digest and the software version), rewritten
-atomically under a lock after every CCD; each CCD's file is moved into place together with its
-row (:func:`commit`), so a run stopped or killed partway (or several ``--job`` slices sharing
-the directory) leaves a manifest that says what is done. A stop signal cancels the CCDs not
-started and stops a process pool's workers at once (:func:`stop_workers`). A rerun skips the
-CCDs whose file matches its row, redoes missing or corrupt ones, and removes the temporary
-files a killed worker left (:func:`inject.io.atomic.remove_stale_temporaries`). A directory
+sha256, size, mtime_ns, streaks, seconds, status``, plus the scene's digest and the software
+version), rewritten atomically under a lock after every CCD; each CCD's file is flushed to
+disk and moved into place together with its row (:func:`commit`), so a run stopped or killed
+partway, a node that crashed, or several ``--job`` slices sharing the directory leave a
+manifest that says what is done. A stop signal cancels the CCDs not started and stops a
+process pool's workers at once (:func:`stop_workers`). A rerun skips the CCDs whose file
+matches its row (its size and modification time; its SHA-256 too with ``verify``), redoes
+missing, changed or corrupt ones, and removes the temporary files a killed worker left
+(:func:`inject.io.atomic.remove_stale_temporaries`). A directory
 holds one scene's run by one inject version: another run, and a file in no manifest row,
 are replaced only with ``overwrite``; the other run is checked at the start and again under
 the lock before each CCD is committed (:func:`check_claim`), so that of two runs of
@@ -34,7 +36,6 @@ worker, an unexpected exception) is retried ``retries`` times first. The run's
 """
 import contextlib
 import csv
-import fcntl
 import hashlib
 import io
 import logging
@@ -53,8 +54,8 @@ from inject.progress import Progress
 log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.csv"
-FIELDS = ("detector", "id", "vendor", "file", "sha256", "streaks", "seconds", "status",
-          "scene_sha256", "inject_version", "error")
+FIELDS = ("detector", "id", "vendor", "file", "sha256", "size", "mtime_ns", "streaks", "seconds",
+          "status", "scene_sha256", "inject_version", "error")
 
 #: Environment variables that cap the threads of BLAS/OpenMP libraries in workers.
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
@@ -125,6 +126,9 @@ class Task:
         files, records it and claims with it. A checkout's version follows its commits and,
         on a dirty tree, the date, so a worker reading its own could call its run's rows
         another version's.
+    lock : bool
+        Lock the manifest (:func:`inject.io.atomic.set_locking`; False: ``--no-lock``, the
+        run is the folder's only writer). The caller's setting, which a worker process takes.
     """
 
     fscene: object
@@ -137,6 +141,7 @@ class Task:
     measure: object = None
     planned: object = None
     version: str | None = None
+    lock: bool = True
 
 
 def render_ccd(task):
@@ -148,6 +153,8 @@ def render_ccd(task):
     :func:`check_claim` finds no other run in the directory (a file present is replaced: the
     runner decided beforehand that it may be). If another run has taken the directory
     meanwhile, nothing is moved and the row says ``claimed`` (the runner stops the run).
+    Without locks (``task.lock`` false) the finished file is left under its temporary name,
+    given in the row's ``part``, for the runner to commit in its own process.
     """
     if multiprocessing.parent_process() is not None:
         limit_threads()
@@ -158,9 +165,10 @@ def render_ccd(task):
             inject.__version__ = task.version
     from inject.camera import layout as fp
     from inject.exposure.ccd import ccd_cards, simulate_ccd
-    from inject.io.atomic import temporary_prefix
+    from inject.io.atomic import set_locking, temporary_prefix
     from inject.io.fits import write_exposure
 
+    set_locking(task.lock)
     start = time.perf_counter()
     ccd = fp.ccd(task.detector)
     scene, result, streaks, wcs = simulate_ccd(task.fscene, ccd, task.streaks, box=task.box)
@@ -170,6 +178,7 @@ def render_ccd(task):
     part = os.path.join(task.outdir, f"{temporary_prefix()}part-{ccd.name}.fits")
     cards = ccd_cards(ccd, task.fscene.digest)
     measured = None
+    handed = None
     try:
         # The digest of the bytes as they are written: no second read of the file.
         digest = write_exposure(part, scene, result, scene.detector.gain,
@@ -185,10 +194,15 @@ def render_ccd(task):
                "seconds": round(end - start, 3), "status": "done",
                "scene_sha256": task.fscene.digest,
                "inject_version": task.version or __version__, "error": ""}
-        claimed = commit(task.outdir, row, part if task.keep else None)
+        if task.lock:
+            claimed = commit(task.outdir, row, part if task.keep else None)
+        else:  # no lock to share the manifest by: the runner commits, one CCD at a time
+            claimed, handed = None, part if task.keep else None
+            row = dict(row, part=handed)
     finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(part)  # not moved: a failure, a stop, another run, or keep=False
+        if handed is None:
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(part)  # not moved: a failure, a stop, another run, or keep=False
     if claimed is not None:
         return {"detector": ccd.name, "status": "claimed", "error": claimed}
     return dict(row, **{  # Not in the manifest: for benchmarks and the caller's measures.
@@ -202,16 +216,23 @@ def commit(outdir, row, part=None):
     """Move a CCD's finished file ``part`` into place (if given) and record its row, both under
     the manifest's lock, unless another scene's run holds the directory (:func:`check_claim`).
 
-    A stop signal arriving meanwhile waits until both are done: the manifest never says less
-    than the files.
+    The file is flushed to disk before it is moved and the folder after, so that a crash does
+    not leave a row saying done over an empty file; the row records the file's size and
+    modification time, which a rerun checks (:func:`triage`). A stop signal arriving meanwhile
+    waits until both are done: the manifest never says less than the files.
 
     Returns
     -------
     str or None
         None once committed; else why not (another scene's run), and nothing was changed.
     """
+    from inject.io.atomic import fsync_directory, fsync_file
     from inject.signals import deferred
 
+    if part is not None:
+        fsync_file(part)  # before the lock: the other writers need not wait for the disk
+        st = os.stat(part)
+        row = dict(row, size=st.st_size, mtime_ns=st.st_mtime_ns)  # a rename keeps both
     with deferred(), _manifest_lock(outdir):
         rows = read_manifest(outdir)
         try:
@@ -220,6 +241,7 @@ def commit(outdir, row, part=None):
             return str(err)
         if part is not None:
             os.replace(part, os.path.join(outdir, row["file"]))
+            fsync_directory(outdir)  # the file's name on disk before the row that says done
         rows[row["detector"]] = {k: str(row.get(k, "")) for k in FIELDS}
         _write_manifest(outdir, rows)
     return None
@@ -301,16 +323,21 @@ def _manifest_lock(outdir):
 
     The lock file is removed by its holder before the lock is released, so none is left
     behind. A process that locked a file just removed (it opened the name before the removal)
-    sees that the name no longer leads to its file, and tries again on a new one.
+    sees that the name no longer leads to its file, and tries again on a new one. With locking
+    off (``--no-lock``: :func:`inject.io.atomic.set_locking`) nothing is locked.
     """
+    from inject.io.atomic import lock, locking
     from inject.signals import deferred
 
+    if not locking():  # --no-lock: the only writer
+        yield
+        return
     path = os.path.join(outdir, LOCK)
     fd = None
     try:
         while True:
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
-            fcntl.flock(fd, fcntl.LOCK_EX)
+            lock(fd, outdir)  # an OutputError on a file system without locks
             with contextlib.suppress(FileNotFoundError):
                 mine, named = os.fstat(fd), os.stat(path)
                 if (mine.st_dev, mine.st_ino) == (named.st_dev, named.st_ino):
@@ -417,16 +444,41 @@ def check_free(outdir, digest, ccds, rows=None):
                               "replace it")
 
 
-def triage(digest, ccds, outdir, overwrite=False):
+def finished(row, path, verify=False):
+    """Whether the file ``path`` is the one its manifest ``row`` recorded as done.
+
+    The row's size and modification time (recorded when the file was committed) must be the
+    file's; with ``verify`` its SHA-256 too (the whole file read). A row of an older manifest,
+    with neither, is checked by its SHA-256. A file changed since (rewritten, cut short by a
+    crash, copied without its times) differs in size or time; a change that keeps both,
+    such as bytes flipped on the disk, only ``verify`` finds.
+    """
+    if row is None or row.get("status") != "done":
+        return False
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    size, mtime = row.get("size") or "", row.get("mtime_ns") or ""
+    if size or mtime:
+        if (str(st.st_size), str(st.st_mtime_ns)) != (size, mtime):
+            return False
+        if not verify:
+            return True
+    return row.get("sha256") == sha256_file(path)
+
+
+def triage(digest, ccds, outdir, overwrite=False, verify=False):
     """Split CCDs into those to render and those already done; with ``overwrite``, clear the
     directory of another run.
 
     A directory holds one scene's run, by one inject version. Rows of another run (done,
     failed or pending: a run that is going, or was stopped) are refused without
     ``overwrite`` (:func:`check_free`); with it, they and their CCD files are removed. Then,
-    for each CCD: a file matching its manifest row (this scene, ``done``, same SHA-256) is
-    done; a missing file, or one whose row is this scene's but not done or whose bytes do not
-    match (corrupt, or a run killed before the row said done), is redone; a file in no
+    for each CCD: a file matching its manifest row (this scene, ``done``, the size and
+    modification time recorded, and with ``verify`` the SHA-256: :func:`finished`) is done; a
+    missing file, or one whose row is this scene's but not done or that does not match
+    (changed, corrupt, or a run killed before the row said done), is redone; a file in no
     manifest row is replaced only with ``overwrite``. Call it under the manifest's lock.
 
     Returns
@@ -447,9 +499,7 @@ def triage(digest, ccds, outdir, overwrite=False):
     todo, done = [], []
     for ccd in ccds:
         path = os.path.join(outdir, f"{ccd.name}.fits")
-        row = rows.get(ccd.name)
-        if row is not None and row.get("status") == "done" and os.path.exists(path) \
-                and row.get("sha256") == sha256_file(path):
+        if finished(rows.get(ccd.name), path, verify):
             done.append(ccd)
         else:  # missing, broken, not recorded done, or (with overwrite) in no manifest
             todo.append(ccd)
@@ -676,11 +726,14 @@ class Batch:
 
         streaks = tuple(plan.streaks(ccd))
         box = None if self.cutout is None else cutout_box(ccd, streaks, self.cutout)
+        from inject.io.atomic import locking
+
         return Task(plan.fscene, ccd.name, self.outdir, streaks, box=box, version=__version__,
+                    lock=locking(),
                     **self.task)
 
 
-def _claim(batch, overwrite):
+def _claim(batch, overwrite, verify=False):
     """Triage a batch's CCDs (:func:`triage`) and claim its directory for the run: a pending
     row for each CCD to render, so that a run killed before a CCD's row says done still marks
     its file as this scene's, to be redone, and another scene's run is refused from now on.
@@ -700,7 +753,7 @@ def _claim(batch, overwrite):
         if stale:
             log.warning("removed %d temporary file(s) left in %s by a run that was killed",
                         len(stale), outdir)
-        todo, done = triage(batch.digest, batch.ccds, outdir, overwrite)
+        todo, done = triage(batch.digest, batch.ccds, outdir, overwrite, verify)
         if batch.done is not None:  # outputs beside a file missing or another run's
             redo = {c.name for c in done if not batch.done(c)}
             todo = [c for c in batch.ccds if c in todo or c.name in redo]
@@ -714,7 +767,7 @@ def _claim(batch, overwrite):
     return todo, [dict(rows[c.name], outdir=outdir) for c in done]
 
 
-def run_batches(batches, executor, overwrite=False, retries=2, progress=None):
+def run_batches(batches, executor, overwrite=False, retries=2, progress=None, verify=False):
     """Render the CCDs of several output directories (:class:`Batch`) on ``executor``,
     resumably: one loop of submissions, retries, failures and a stop for them all.
 
@@ -739,6 +792,9 @@ def run_batches(batches, executor, overwrite=False, retries=2, progress=None):
         ``update(row)`` after each CCD rendered or failed, ``close()`` at the end (default:
         :mod:`inject.progress` on this module's logger, and each CCD's row at DEBUG, a
         failed one's at WARNING).
+    verify : bool
+        Hash each finished file again before taking it as done (default: its size and
+        modification time must be those its row recorded: :func:`finished`).
 
     Returns
     -------
@@ -763,7 +819,7 @@ def run_batches(batches, executor, overwrite=False, retries=2, progress=None):
             check_free(batch.outdir, batch.digest, batch.ccds)
     todo, skipped = [], []
     for batch in batches:
-        mine, done = _claim(batch, overwrite)
+        mine, done = _claim(batch, overwrite, verify)
         todo.append(mine)
         skipped += done
     progress = progress or _CCDProgress(sum(map(len, todo)))
@@ -828,6 +884,14 @@ def run_batches(batches, executor, overwrite=False, retries=2, progress=None):
                     for each in todo[k]:
                         submit(k, each)
                 else:
+                    if "part" in value:  # no locks: committed here, one CCD at a time
+                        part = value.pop("part")
+                        claimed = commit(batches[k].outdir, value, part)
+                        if claimed is not None:
+                            if part is not None:
+                                with contextlib.suppress(FileNotFoundError):
+                                    os.remove(part)
+                            raise OutputError(claimed)
                     rendered.append(dict(value, outdir=batches[k].outdir))  # committed
                     progress.update(value)
     except BaseException:
@@ -841,7 +905,7 @@ def run_batches(batches, executor, overwrite=False, retries=2, progress=None):
 
 
 def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=None,
-        keep=True):
+        keep=True, verify=False):
     """Render CCDs of a focal-plane scene on ``executor``, resumably: :func:`run_batches` of
     one :class:`Batch`.
 
@@ -854,7 +918,7 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
     executor : concurrent.futures.Executor
     ccds : sequence of CCD, optional
         Default: the scene's.
-    overwrite, retries, progress
+    overwrite, retries, progress, verify
         As :func:`run_batches`.
     keep : bool
         False deletes each file once hashed (benchmarks).
@@ -865,7 +929,7 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
     """
     ccds = plan.fscene.ccds if ccds is None else tuple(ccds)
     batch = Batch(outdir, plan.fscene.digest, ccds, plan=plan, task={"keep": keep})
-    return run_batches([batch], executor, overwrite, retries, progress)
+    return run_batches([batch], executor, overwrite, retries, progress, verify)
 
 
 #: Modules every worker needs, imported once by the fork server the workers come from: a
@@ -910,15 +974,20 @@ def stop_fork_server():
 
 
 def process_pool(workers=None):
-    """The default executor: a process pool of ``workers`` (default: the machine's cores),
-    each worker limited to one thread per library.
+    """The default executor: a process pool of ``workers`` (default: the CPUs this job may
+    use, :func:`inject.exposure.sizing.job_resources`), each worker limited to one thread per
+    library.
 
     Workers start from a fork server (:func:`start_fork_server`), not by forking the caller:
     a caller with threads (OpenImageIO's pool, BLAS, a thread pool) would hand its children
     locks held by threads that do not exist there, and they can hang on their first call
     into that library.
     """
-    return ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1,
+    if not workers:
+        from inject.exposure.sizing import job_resources
+
+        workers = job_resources().cpus
+    return ProcessPoolExecutor(max_workers=workers,
                                mp_context=start_fork_server(), initializer=_init_worker)
 
 
@@ -951,7 +1020,8 @@ DASK_MEMORY_LIMIT = "3GiB"
 def dask_executor(scheduler, workers=None, memory_limit=DASK_MEMORY_LIMIT, retries=2):
     """A ``concurrent.futures.Executor`` on Dask: ``scheduler="local"`` starts a LocalCluster
     of ``workers`` processes with one thread each; any other value is the address of a running
-    scheduler (``tcp://host:8786``). Tasks are impure (``pure=False``) and retried
+    scheduler (``tcp://host:8786``); ``workers`` defaults to the CPUs this job may use. Tasks
+    are impure (``pure=False``) and retried
     ``retries`` times by Dask when they raise (a CCD that fails on its input returns a failed
     row instead: see :func:`run`)."""
     try:
@@ -961,7 +1031,11 @@ def dask_executor(scheduler, workers=None, memory_limit=DASK_MEMORY_LIMIT, retri
                          "'satstreak-inject[dask]'") from None
     cluster = None
     if scheduler == "local":
-        cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
+        if not workers:
+            from inject.exposure.sizing import job_resources
+
+            workers = job_resources().cpus
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1,
                                processes=True, memory_limit=memory_limit,
                                dashboard_address=None)
         client = Client(cluster)

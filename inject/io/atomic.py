@@ -10,9 +10,21 @@ must not be cut in two, such as creating a temporary file and registering it for
 hold signals until they are done). A process killed outright (SIGKILL, a lost node) cannot
 clean up: :func:`remove_stale_temporaries` removes what such a process left, telling it from a
 live writer's file by the lock every :func:`atomic_path` holds on its temporary file.
+
+Each file is flushed to disk (``fsync``) before it is renamed, and its folder after: a node
+that crashes just after a rename leaves the whole file under its name, not an empty one (a
+file system may otherwise commit the rename before the data).
+
+A file system mounted without ``flock`` (Lustre's ``noflock``, NFS's ``nolock``) fails each
+lock with "Function not implemented". The locks on temporary files only mark them as live, and
+are then left out; a lock that guards shared state (:func:`lock`) instead raises an
+:class:`~inject.errors.OutputError` naming the mount options, unless locking is turned off for
+the process (:func:`set_locking`: the command line's ``--no-lock``, for a run that is the only
+writer of its folder).
 """
 import contextlib
 import contextvars
+import errno
 import fcntl
 import os
 import shutil
@@ -29,6 +41,95 @@ STALE_AFTER_S = 60.0
 
 #: The pending ``(path, temporary, overwrite)`` moves of the active :func:`output_group`.
 _GROUP = contextvars.ContextVar("inject_output_group", default=None)
+
+#: What ``flock`` fails with on a file system mounted without locks (Lustre's ``noflock``:
+#: ENOSYS; NFS's ``nolock``: ENOLCK; others: EOPNOTSUPP).
+NO_LOCKS = frozenset({errno.ENOSYS, errno.ENOLCK, errno.EOPNOTSUPP,
+                      getattr(errno, "ENOTSUP", errno.EOPNOTSUPP)})
+#: What ``fsync`` of a folder fails with where a file system does not do it (then nothing
+#: more can be done for the rename's durability).
+_NO_DIR_SYNC = frozenset({errno.EINVAL, errno.EBADF, errno.EOPNOTSUPP, errno.EISDIR,
+                          getattr(errno, "ENOTSUP", errno.EOPNOTSUPP)})
+
+_LOCKING = True
+
+
+def set_locking(enabled):
+    """Turn the locks of :func:`lock` on or off for this process (a worker process is told
+    by its task). Off: the caller promises to be the only writer of its folders."""
+    global _LOCKING
+    _LOCKING = bool(enabled)
+
+
+def locking():
+    """Whether :func:`lock` locks (see :func:`set_locking`)."""
+    return _LOCKING
+
+
+@contextlib.contextmanager
+def locks_off(off=True):
+    """Locking off (if ``off``) for the block, as it was after it (see :func:`set_locking`)."""
+    before = _LOCKING
+    set_locking(before and not off)
+    try:
+        yield
+    finally:
+        set_locking(before)
+
+
+def lock(fd, where, blocking=True):
+    """An exclusive ``flock`` on ``fd`` (nothing if locking is off: :func:`set_locking`).
+
+    Parameters
+    ----------
+    fd : int
+    where : str
+        The folder the lock guards, for the message.
+    blocking : bool
+        Wait for the lock (False: raise :class:`BlockingIOError` if it is held).
+
+    Raises
+    ------
+    OutputError
+        The file system does not support locks (:data:`NO_LOCKS`): one line naming the
+        likely mount options and ``--no-lock``.
+    """
+    if not _LOCKING:
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
+    except OSError as err:
+        if err.errno in NO_LOCKS:
+            raise OutputError(f"{where}: its file system does not support locking (mounted "
+                              f"with Lustre's noflock or NFS's nolock?): flock: "
+                              f"{err.strerror or err}; if this run is the only one writing "
+                              f"there, pass --no-lock") from None
+        raise
+
+
+def fsync_file(path):
+    """Flush ``path``'s data and size to disk (before it is renamed into place)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def fsync_directory(path):
+    """Flush a folder's entries (a rename into it) to disk; nothing where its file system
+    cannot sync a folder."""
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError as err:
+        if err.errno not in _NO_DIR_SYNC:
+            raise
+    finally:
+        os.close(fd)
 
 
 def check_writable(path, overwrite):
@@ -74,8 +175,8 @@ def _temporary(path, keep_open=False):
     Call it inside :func:`~inject.signals.deferred`, together with what records the name
     for removal: a signal in between would leave the file nameless. If it cannot be set up, it
     is removed and the :class:`OSError` raised. With ``keep_open``, return ``(name, fd)``: the
-    descriptor holds an exclusive lock on the file (``flock``) until it is closed, which marks
-    the file as a live writer's for :func:`remove_stale_temporaries`.
+    descriptor holds an exclusive lock on the file (``flock``, where there are locks) until it
+    is closed, which marks the file as a live writer's for :func:`remove_stale_temporaries`.
     """
     directory = os.path.dirname(os.path.abspath(path))
     # The writer's process id in the name: who stops a process tidies up after it (see
@@ -84,7 +185,12 @@ def _temporary(path, keep_open=False):
                                dir=directory)
     try:
         if keep_open:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            try:
+                if _LOCKING:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as err:
+                if err.errno not in NO_LOCKS:  # none to be had: the age alone guards it
+                    raise
         else:
             os.close(fd)
         umask = os.umask(0)
@@ -154,9 +260,10 @@ def _remove_unlocked(directory, wanted):
         except OSError:
             continue  # gone meanwhile, or not a plain file
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            if _LOCKING:  # off: this process is the folder's only writer
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
-            continue  # a live writer's
+            continue  # a live writer's (or no lock to tell by: left alone)
         else:
             with contextlib.suppress(FileNotFoundError):
                 os.remove(path)
@@ -177,7 +284,8 @@ def atomic_path(path, overwrite=False):
     """Yield a temporary path in the target's directory; on success rename it to ``path``.
 
     On any error (a full disk included) the temporary file is removed and the target is
-    left as it was. Inside an :func:`output_group` the rename waits for the group's end.
+    left as it was. The file is flushed to disk before the rename, and the folder after it.
+    Inside an :func:`output_group` the rename waits for the group's end.
 
     Raises
     ------
@@ -195,9 +303,11 @@ def atomic_path(path, overwrite=False):
         with deferred():  # a signal here would lose the file's name before the finally
             tmp, fd = _temporary(path, keep_open=True)
         yield tmp
+        fsync_file(tmp)  # by name: the writer may have made a new file under it
         with deferred():
             if group is None:
                 os.replace(tmp, path)
+                fsync_directory(os.path.dirname(os.path.abspath(path)))
             else:
                 group.append((path, tmp, overwrite))  # the group moves it, or removes it
             tmp = None
@@ -276,6 +386,8 @@ def _commit(pending):
             with deferred():
                 os.replace(tmp, path)
                 moved.append((path, backup))
+        for folder in {os.path.dirname(os.path.abspath(p)) for p, _ in moved}:
+            fsync_directory(folder)
     except BaseException as err:  # an interrupt too: never leave half of the outputs moved
         for done, backup in reversed(moved):
             with contextlib.suppress(OSError):

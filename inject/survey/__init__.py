@@ -8,6 +8,8 @@
   visit the satellites that may cross the field sunlit.
 - :mod:`~inject.survey.plan`: per visit, the sunlit crossings of the science CCDs, each with its
   length, magnitude, FWHM, peak surface brightness, mask width and the pixels its mask takes.
+- :mod:`~inject.survey.fixed_mask`: ``--mask-width``, a band of one width along every
+  streak counted beside the plan's mask.
 - :mod:`~inject.survey.render`: ``--render``: the streaked CCDs of each visit rendered as a
   focal-plane scene of the visit on the focal plane's runner.
 - :mod:`~inject.survey.compare`: what the masker measures on a rendered CCD, matched to the

@@ -110,7 +110,9 @@ class Constellation:
         """Refuse (OrbitError) a TLE whose epoch is more than
         :data:`~inject.orbits.passes.EPOCH_REFUSE_DAYS` from a visit (the farthest visit
         named), and warn once for those more than :data:`~inject.orbits.passes.EPOCH_WARN_DAYS`
-        away. The shells are exempt: their elements define them at any time.
+        away. The shells are exempt at any span: their elements carry no drag (SGP4's B* is
+        0), so SGP4 keeps their height and turns their planes by its secular J2 terms, as a
+        station-kept shell's turn; a TLE's drag and measured elements go stale within weeks.
 
         Parameters
         ----------
@@ -126,8 +128,10 @@ class Constellation:
             if days > EPOCH_REFUSE_DAYS:
                 raise OrbitError(f"{self.source}: orbit {orbit.name!r}: epoch "
                                  f"{orbit.epoch.isot} is {days:.1f} days from visit "
-                                 f"{visit.observation_id} ({visit.start.utc.iso[:19]} UTC; more"
-                                 f" than {EPOCH_REFUSE_DAYS:g} is refused)")
+                                 f"{visit.observation_id} ({visit.start.utc.iso[:19]} UTC): a TLE"
+                                 f" more than {EPOCH_REFUSE_DAYS:g} days from a visit is "
+                                 f"refused (its elements go stale; a Walker shell is "
+                                 f"propagated over any span)")
             if days > EPOCH_WARN_DAYS:
                 far += 1
                 worst = max(worst or 0.0, days)

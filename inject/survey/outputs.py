@@ -31,7 +31,14 @@ import numpy as np
 
 from inject.errors import OutputError
 from inject.io.atomic import atomic_path, output_group
-from inject.survey.plan import STREAK_FIELDS, TOTAL_PIXELS, VISIT_FIELDS, fallbacks
+from inject.survey.plan import (
+    FIXED_STREAK_FIELDS,
+    FIXED_VISIT_FIELDS,
+    STREAK_FIELDS,
+    TOTAL_PIXELS,
+    VISIT_FIELDS,
+    fallbacks,
+)
 from inject.survey.visits import night_hours
 
 #: Files of a run, by kind (the plots last).
@@ -110,9 +117,14 @@ def summary(plans, about, site_lon_deg):
     """The ``summary.json`` mapping: ``about`` (inputs, for the record), the night's totals,
     the visits whose seeing or sky came from a default (:func:`inject.survey.plan.fallbacks`),
     and the same per band and per hour of the night (local mean solar time, 24 and above
-    after midnight)."""
+    after midnight); with a fixed-width band (``--mask-width``), its ``fixed_mask`` block
+    (:func:`inject.survey.fixed_mask.totals`, after ``about``'s ``fixed_mask``)."""
     out = {**about, "total_pixels_per_visit": TOTAL_PIXELS, **_totals(plans),
            "fallbacks": fallbacks([p.visit for p in plans])}
+    if plans and plans[0].fixed_width_px is not None:
+        from inject.survey.fixed_mask import totals
+
+        out["fixed_mask"] = {**about.get("fixed_mask", {}), **totals(plans, TOTAL_PIXELS)}
     out["by_band"] = {b: _totals([p for p in plans if p.visit.band == b])
                       for b in sorted({p.visit.band for p in plans}, key="ugrizy".index)}
     hours = night_hours([p.visit for p in plans], site_lon_deg)
@@ -128,7 +140,9 @@ def write_outputs(paths, plans, summary_map, overwrite=False, plots=True, measur
     """Write every file of :func:`output_paths` together (or none: an output group).
 
     ``measured`` (``--render``): ``{(observationId, satellite): {column: value}}`` of the
-    columns :data:`inject.survey.render.MEASURED_FIELDS`, added after the planned ones.
+    columns :data:`inject.survey.render.MEASURED_FIELDS`, added after the planned ones. Plans
+    made with a fixed width (``--mask-width``) add :data:`~inject.survey.plan.FIXED_STREAK_FIELDS`
+    and :data:`~inject.survey.plan.FIXED_VISIT_FIELDS` after the planned columns.
 
     Raises
     ------
@@ -136,11 +150,13 @@ def write_outputs(paths, plans, summary_map, overwrite=False, plots=True, measur
         A file exists without ``overwrite``, or cannot be written.
     """
     rows = [row for p in plans for row in p.streak_rows()]
-    fields = STREAK_FIELDS
+    fixed = bool(plans) and plans[0].fixed_width_px is not None
+    fields = STREAK_FIELDS + (FIXED_STREAK_FIELDS if fixed else ())
+    visit_fields = VISIT_FIELDS + (FIXED_VISIT_FIELDS if fixed else ())
     if measured is not None:
         from inject.survey.compare import MEASURED_FIELDS as extra
 
-        fields = STREAK_FIELDS + extra
+        fields = fields + extra
         rows = [{**row, **dict.fromkeys(extra),
                  **measured.get((row["observationId"], row["satellite"]), {})}
                 for row in rows]
@@ -149,7 +165,7 @@ def write_outputs(paths, plans, summary_map, overwrite=False, plots=True, measur
                                   if k in ("streaks", "visits", "summary")}
     with output_group(list(wanted.values()), overwrite):
         _write_text(paths["streaks"], csv_text(rows, fields), overwrite)
-        _write_text(paths["visits"], csv_text(visits, VISIT_FIELDS), overwrite)
+        _write_text(paths["visits"], csv_text(visits, visit_fields), overwrite)
         _write_text(paths["summary"], json.dumps(summary_map, indent=1) + "\n", overwrite)
         if plots:
             write_plots(paths, plans, summary_map.get("site_lon_deg", -70.7494), overwrite)

@@ -23,7 +23,9 @@ For each visit (:func:`plan_visit`):
 6. Pixels lost: the mask, a rectangle of that width along every segment of the run with end
    caps of half the width at the run's ends (as :func:`inject.masking.mask.mask_spans` draws
    it along a measured line), rasterised on each CCD it reaches (pixel centres inside), and
-   the streaks of a visit merged on each CCD so that their overlaps count once.
+   the streaks of a visit merged on each CCD so that their overlaps count once. With a fixed
+   width (``--mask-width``, :mod:`inject.survey.fixed_mask`) a band of that width is counted
+   the same way beside it.
 
 Every number is per visit; nothing is kept between visits but the constellation and its
 positions at the night's nodes.
@@ -71,9 +73,14 @@ STREAK_FIELDS = ("observationId", "satellite", "n_ccds", "ccds", "length_deg", "
                  "mjd", "t_mid_s", "alt_deg", "range_km", "height_km",
                  "angular_speed_deg_s", "sun_fraction_min", "sunlit_parts")
 #: Columns of ``visits.csv``.
-VISIT_FIELDS = ("observationId", "mjd", "band", "n_streaks", "n_ccds_streaked", "pixels_lost",
-                "pixel_fraction_lost", "fieldRA", "fieldDec", "rotSkyPos", "exptime_s",
-                "alt_deg", "seeing_arcsec", "sky_e_per_px", "n_candidates")
+VISIT_FIELDS = ("observationId", "mjd", "band", "n_streaks", "n_ccds_streaked",
+                "streak_length_deg", "pixels_lost", "pixel_fraction_lost", "fieldRA", "fieldDec",
+                "rotSkyPos", "exptime_s", "alt_deg", "seeing_arcsec", "sky_e_per_px",
+                "n_candidates")
+#: Columns ``--mask-width`` adds to ``streaks.csv`` (:mod:`inject.survey.fixed_mask`).
+FIXED_STREAK_FIELDS = ("pixels_fixed_mask",)
+#: Columns ``--mask-width`` adds to ``visits.csv``.
+FIXED_VISIT_FIELDS = ("pixels_fixed_mask", "pixel_fraction_fixed_mask")
 
 
 @dataclass
@@ -100,6 +107,8 @@ class Streak:
     pixels_lost : int
         Pixels its mask takes on all CCDs (those shared with another streak of the visit
         included: the visit's total counts them once).
+    pixels_fixed_mask : int or None
+        The same for a band of the fixed width ``--mask-width`` (None without it).
     """
 
     satellite: str
@@ -117,6 +126,7 @@ class Streak:
     angular_speed_deg_s: float = math.nan
     sun_fraction_min: float = math.nan
     sunlit_parts: int = 1
+    pixels_fixed_mask: int | None = None
 
 
 @dataclass
@@ -125,7 +135,8 @@ class VisitPlan:
 
     ``pixels_by_ccd`` maps a CCD's name to the pixels masked on it (every streak of the
     visit merged), ``sky_e_per_px`` and ``seeing_arcsec`` are what the masks were computed
-    with (None when the visit has no candidate).
+    with (None when the visit has no candidate). With a fixed width (``--mask-width``,
+    ``fixed_width_px``), ``fixed_by_ccd`` holds the same for a band of that width.
     """
 
     visit: object
@@ -135,10 +146,24 @@ class VisitPlan:
     alt_deg: float = math.nan
     sky_e_per_px: float | None = None
     seeing_arcsec: float | None = None
+    fixed_width_px: float | None = None
+    fixed_by_ccd: dict = field(default_factory=dict)
 
     @property
     def pixels_lost(self):
         return int(sum(self.pixels_by_ccd.values()))
+
+    @property
+    def pixels_fixed_mask(self):
+        """Pixels the fixed-width band takes (overlaps once); None without a fixed width."""
+        if self.fixed_width_px is None:
+            return None
+        return int(sum(self.fixed_by_ccd.values()))
+
+    @property
+    def streak_length_deg(self):
+        """The streaks' total length on the science CCDs (each its ``length_deg``), deg."""
+        return float(sum(s.length_deg for s in self.streaks))
 
     @property
     def n_ccds_streaked(self):
@@ -154,15 +179,21 @@ class VisitPlan:
                  "pixels_lost": s.pixels_lost, "band": v.band, "mjd": v.mjd_tai,
                  "t_mid_s": s.t_mid_s, "alt_deg": s.alt_deg, "range_km": s.range_km,
                  "height_km": s.height_km, "angular_speed_deg_s": s.angular_speed_deg_s,
-                 "sun_fraction_min": s.sun_fraction_min, "sunlit_parts": s.sunlit_parts}
+                 "sun_fraction_min": s.sun_fraction_min, "sunlit_parts": s.sunlit_parts,
+                 "pixels_fixed_mask": s.pixels_fixed_mask}
                 for s in self.streaks]
 
     def visit_row(self):
-        """The visit's row of ``visits.csv`` (:data:`VISIT_FIELDS`)."""
+        """The visit's row of ``visits.csv`` (:data:`VISIT_FIELDS`, and
+        :data:`FIXED_VISIT_FIELDS`, None without a fixed width)."""
         v = self.visit
+        fixed = self.pixels_fixed_mask
         return {"observationId": v.observation_id, "mjd": v.mjd_tai, "band": v.band,
                 "n_streaks": len(self.streaks), "n_ccds_streaked": self.n_ccds_streaked,
+                "streak_length_deg": self.streak_length_deg,
                 "pixels_lost": self.pixels_lost,
+                "pixels_fixed_mask": fixed,
+                "pixel_fraction_fixed_mask": None if fixed is None else fixed / TOTAL_PIXELS,
                 "pixel_fraction_lost": self.pixels_lost / TOTAL_PIXELS,
                 "fieldRA": v.ra_deg, "fieldDec": v.dec_deg, "rotSkyPos": v.rotation_deg,
                 "exptime_s": v.exptime_s, "alt_deg": self.alt_deg,
@@ -420,7 +451,7 @@ def visit_frame(start, ts, pointing, site=RUBIN, node_step_s=FRAME_NODE_STEP_S):
                       coarse.itrs_to_altaz, interp(coarse.sun_itrs), interp(coarse.to_icrs))
 
 
-def plan_visit(visit, constellation, site=RUBIN, prefilter=None):
+def plan_visit(visit, constellation, site=RUBIN, prefilter=None, fixed_width_px=None):
     """The :class:`VisitPlan` of one visit.
 
     Parameters
@@ -430,12 +461,15 @@ def plan_visit(visit, constellation, site=RUBIN, prefilter=None):
     site : inject.orbits.passes.Site
     prefilter : inject.survey.prefilter.NightPrefilter, optional
         The night's prefilter (built for this visit alone if not given).
+    fixed_width_px : float, optional
+        Also count a band of this full width (px) along every crossing, as the mask is
+        counted (``--mask-width``, :mod:`inject.survey.fixed_mask`).
 
     Returns
     -------
     VisitPlan
     """
-    plan = VisitPlan(visit)
+    plan = VisitPlan(visit, fixed_width_px=fixed_width_px)
     pointing = Pointing(visit.ra_deg, visit.dec_deg, visit.rotation_deg)
     ts = visit_times(visit)
     exposure = Exposure(visit.start, float(ts[-1]))
@@ -455,7 +489,7 @@ def plan_visit(visit, constellation, site=RUBIN, prefilter=None):
     seeing = visit.seeing_arcsec if visit.seeing_arcsec is not None else DEFAULT_SEEING
     plan.seeing_arcsec = seeing
     spec = constellation.satellite
-    spans_by_ccd = {}
+    spans_by_ccd, fixed_by_ccd = {}, {}
     for i in idx:
         orbit = orbits[i]
         p = compute_pass(orbit, exposure, pointing, site, t_s=ts, frame=frame,
@@ -478,18 +512,52 @@ def plan_visit(visit, constellation, site=RUBIN, prefilter=None):
             continue
         streak, widths = _streak(orbit.name, p, crossings, spec, visit, seeing, sigmas,
                                  constellation.pupil, constellation.focus_offset_um)
-        mine = {}
-        for piece, _, _ in crossings:
-            for ccd in reached_ccds(xd[piece], yd[piece], max(widths.values())):
-                mine.setdefault(ccd.name, []).extend(
-                    run_spans(xd[piece], yd[piece], widths[ccd.vendor], ccd))
+        pieces = [piece for piece, _, _ in crossings]
+        mine = mask_spans(xd, yd, pieces, widths)
         streak.pixels_lost = sum(union_pixels(spans) for spans in mine.values())
         for name, spans in mine.items():
             spans_by_ccd.setdefault(name, []).extend(spans)
+        if fixed_width_px is not None:
+            band = mask_spans(xd, yd, pieces, dict.fromkeys(widths, fixed_width_px))
+            streak.pixels_fixed_mask = sum(union_pixels(spans) for spans in band.values())
+            for name, spans in band.items():
+                fixed_by_ccd.setdefault(name, []).extend(spans)
         plan.streaks.append(streak)
-    merged = {name: union_pixels(spans) for name, spans in spans_by_ccd.items()}
-    plan.pixels_by_ccd = {name: n for name, n in merged.items() if n}
+    plan.pixels_by_ccd = _merged(spans_by_ccd)
+    plan.fixed_by_ccd = _merged(fixed_by_ccd)
     return plan
+
+
+def mask_spans(xd, yd, pieces, widths):
+    """Row runs of a streak's mask on every CCD it reaches.
+
+    Parameters
+    ----------
+    xd, yd : ndarray
+        The track's samples, focal-plane mm.
+    pieces : list of ndarray
+        Indices of the samples of each part of the track to mask (its crossings).
+    widths : dict
+        The mask's full width (px) by sensor vendor (``e2v``, ``ITL``).
+
+    Returns
+    -------
+    dict
+        ``{CCD name: [(rows, start, stop), ...]}``: a rectangle of the CCD's width along each
+        part with its end caps (:func:`run_spans`), on every CCD it reaches.
+    """
+    mine = {}
+    for piece in pieces:
+        for ccd in reached_ccds(xd[piece], yd[piece], max(widths.values())):
+            mine.setdefault(ccd.name, []).extend(
+                run_spans(xd[piece], yd[piece], widths[ccd.vendor], ccd))
+    return mine
+
+
+def _merged(spans_by_ccd):
+    """Pixels per CCD of the union of its spans (CCDs with none left out)."""
+    merged = {name: union_pixels(spans) for name, spans in spans_by_ccd.items()}
+    return {name: n for name, n in merged.items() if n}
 
 
 def _field(xd, yd, piece, n, rotator_deg=None):
@@ -563,19 +631,20 @@ def _inside(ccd, x, y):
 
 # --- many visits ----------------------------------------------------------------------------
 
-def plan_visits(visits, constellation, site=RUBIN, progress=None):
+def plan_visits(visits, constellation, site=RUBIN, progress=None, fixed_width_px=None):
     """:func:`plan_visit` for each visit, in order (``progress()`` called after each), with
-    one :class:`~inject.survey.prefilter.NightPrefilter` for them all."""
+    one :class:`~inject.survey.prefilter.NightPrefilter` for them all (and
+    ``fixed_width_px`` as :func:`plan_visit` takes it)."""
     out = []
     prefilter = NightPrefilter(constellation.orbits, visits, site) if len(visits) else None
     for visit in visits:
-        out.append(plan_visit(visit, constellation, site, prefilter))
+        out.append(plan_visit(visit, constellation, site, prefilter, fixed_width_px))
         if progress is not None:
             progress()
     return out
 
 
-def plan_chunk(constellation_path, visits):
+def plan_chunk(constellation_path, visits, fixed_width_px=None):
     """Plan ``visits`` in a worker process, reading the constellation file once per process
     (:func:`~inject.survey.constellation.read_constellation_once`). Returns a list of
     :class:`VisitPlan`."""
@@ -584,4 +653,4 @@ def plan_chunk(constellation_path, visits):
     constellation = read_constellation_once(constellation_path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OrbitWarning)
-        return plan_visits(visits, constellation)
+        return plan_visits(visits, constellation, fixed_width_px=fixed_width_px)

@@ -261,10 +261,10 @@ def visit_batches(plans, constellation, model, outdir, options, constellation_pa
     return out
 
 
-def render_visits(batches, executor, overwrite=False, retries=2, progress=None):
+def render_visits(batches, executor, overwrite=False, retries=2, progress=None, verify=False):
     """Render and mask the CCDs of ``batches`` (:func:`visit_batches`) on ``executor``: the
     focal plane's :func:`inject.exposure.runner.run_batches`, whose claims, retries, failures
-    and stop are those of ``inject focalplane``.
+    and stop are those of ``inject focalplane`` (``verify``: as there).
 
     Returns
     -------
@@ -281,7 +281,7 @@ def render_visits(batches, executor, overwrite=False, retries=2, progress=None):
     started = time.perf_counter()
     if batches:  # OUTDIR/visits, the visits' folders' parent
         make_outdir(os.path.dirname(next(iter(batches.values())).outdir))
-    run = run_batches(list(batches.values()), executor, overwrite, retries, progress)
+    run = run_batches(list(batches.values()), executor, overwrite, retries, progress, verify)
     visit = {b.outdir: v for v, b in batches.items()}
     result = RenderResult({v: {} for v in batches}, [], [], [],
                           time.perf_counter() - started)
