@@ -787,6 +787,26 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
         raise SceneError(f"scene={type(scene).__name__}: pass a Scene "
                          f"(inject.config.parse_scene of the mapping)")
     det = scene.detector
+    if scene.stars and add_stars is None:
+        def add_stars(image):
+            # Random stars over the whole sensor: a cut-out has the whole CCD's stars.
+            return add_star_field(image, scene, rng(scene.seed, "stars", detector_index),
+                                  wcs=wcs, field_shape=det.full_shape)
+    noise = AmplifierNoise(det, scene.seed, detector_index) if scene.noise else None
+    stars = None
+    if noise is not None and scene.stars:
+        # The stars' expected charge, to join the streaks' (a sum of its own: the model is
+        # written as it is), so that each pixel's charge is drawn from its block's stream.
+        # With a core to spare, the streaks render meanwhile (each into its own array: the
+        # same numbers in either order).
+        stars = np.zeros(det.shape)
+        if rendered is None and noise.threads > 1:
+            with ThreadPoolExecutor(1) as pool:
+                pending = pool.submit(render_streaks, scene, budget)
+                add_stars(stars)
+                rendered = pending.result()
+        else:
+            add_stars(stars)
     streaks, truth = render_streaks(scene, budget) if rendered is None else rendered
     sky = sky_level(scene)
     # Expected charge = level (uniform: sky, dark current) + streaks + stars.
@@ -794,25 +814,16 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
     if not truth:
         # No streak: no model to add, keep or write (a read-only zero view costs nothing).
         streaks = np.broadcast_to(np.float32(0), det.shape)
-    if scene.stars and add_stars is None:
-        def add_stars(image):
-            # Random stars over the whole sensor: a cut-out has the whole CCD's stars.
-            return add_star_field(image, scene, rng(scene.seed, "stars", detector_index),
-                                  wcs=wcs, field_shape=det.full_shape)
     mask = np.zeros(det.shape, dtype=np.int32)
-    noise = AmplifierNoise(det, scene.seed, detector_index) if scene.noise else None
     if noise is not None:
         varying = streaks if truth else None
-        if scene.stars:
-            # The stars' expected charge joins the streaks' (a sum of its own: the model is
-            # written as it is), so that each pixel's charge is drawn from its block's stream.
-            varying = np.zeros(det.shape)
-            add_stars(varying)
+        if stars is not None:
+            varying = stars
             if truth:
                 varying += streaks
         # float32, as written: the counts are integers, exact in float32 to 2**24 e-.
         image, variance = noise.draw(level, varying, np.float32)
-        del varying
+        del varying, stars
     else:
         image = np.full(det.shape, level) if not truth else streaks + level
         if scene.stars:
