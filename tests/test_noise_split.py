@@ -95,6 +95,25 @@ def test_draws_do_not_depend_on_threads_and_differ_by_seed():
     assert not np.array_equal(a, other)
 
 
+def test_a_scene_is_the_same_whether_its_streaks_render_beside_the_stars(monkeypatch,
+                                                                          small_scene):
+    """With threads to spare, the streaks render on a second thread while the stars are
+    placed: the planes and the truth are those of the one-thread order."""
+    import inject.scene
+
+    sc = small_scene("stars.density_per_deg2=1e5", nx=300, ny=260)
+    results = []
+    for threads in (1, 2):
+        monkeypatch.setattr(inject.scene, "NOISE_THREADS", threads)
+        results.append(simulate(sc))
+    one, two = results
+    for plane in ("image", "mask", "variance", "streak_model"):
+        np.testing.assert_array_equal(getattr(one, plane), getattr(two, plane))
+    assert one.streak_model.max() > 0 and one.truth[0]["charge_in_image_e"] > 0
+    assert [row["charge_in_image_e"] for row in one.truth] == \
+        [row["charge_in_image_e"] for row in two.truth]
+
+
 @pytest.mark.parametrize("chunk", [1, 64, 64 * 7 + 3])
 def test_chunked_draw_takes_the_same_uniforms(monkeypatch, chunk):
     """Drawing an amplifier a few rows at a time (to keep the temporaries in cache) gives
