@@ -5,8 +5,12 @@ A satellite of an ``orbit:`` scene may give ``lumos: {surfaces: [...], earthshin
 earth_albedo: 0.3}``: each surface ``{area: m^2, normal: [x, y, z], brdf: {type: lambertian,
 albedo} | {type: phong, Kd, Ks, n} | {type: abg, A, B, g}}``, normals in lumos's brightness
 frame (z away from the Earth's centre, the Sun in the y-z plane at +y). Each vertex of the
-pass then gets lumos's AB magnitude at that instant (Sun and satellite alt/az from the site,
-height above lumos's spherical Earth), dimmed by the pass's penumbra; it is turned into the
+pass then gets lumos's AB magnitude at that instant (Sun and satellite alt/az from the site),
+dimmed by the pass's penumbra. lumos places the satellite by its alt/az and height above a
+sphere of 6378 km with the observer on it; the height given is the one that puts it at the
+pass's true range there (``sqrt(R^2 + r^2 + 2 R r sin(alt)) - R``), so that its 1/r^2 is the
+pass's (the geodetic height, which lumos's docs name, leaves the range ~0.5% off at Rubin's
+latitude: 0.01 mag). That magnitude is turned into the
 ``mag`` the streak model scales with ``cos(theta_N) / r^2`` so that the model's apparent
 magnitude is lumos's. lumos computes that magnitude at one wavelength (532 nm,
 ``lumos.constants.WAVELENGTH``), whatever the scene's band: it is taken as the band's.
@@ -29,10 +33,14 @@ def _lumos():
     try:
         import lumos.brdf.library
         import lumos.calculator
+        import lumos.constants
         import lumos.conversions
         import lumos.geometry
     except ImportError:
-        raise SceneError("lumos: needs lumos-sat (pip install lumos-sat --no-deps)") from None
+        # lumos-sat pins old numpy/astropy, so inject never installs it itself: say how.
+        raise SceneError("lumos: BRDF brightness needs lumos-sat, which is installed apart: "
+                         "make install-lumos (or pip install --no-deps lumos-sat==1.0.9)"
+                         ) from None
     return lumos
 
 
@@ -93,12 +101,17 @@ def magnitudes(where, spec, dense, idx):
     times = dense.utc[idx]
     sun = get_sun(times).transform_to(AltAz(obstime=times, location=dense.site.location))
     out = []
+    radius = float(lumos.constants.EARTH_RADIUS)
     for k, i in enumerate(idx):
         sun_alt, sun_az = float(sun.alt.deg[k]), float(sun.az.deg[k])
         if sun_alt > 0:
             raise SceneError(f"{where}: lumos: the Sun is up at the site ({sun_alt:.1f} deg)")
+        # The height at which lumos's sphere puts the satellite at the pass's range.
+        rho = float(dense.range_km[i]) * u.km.to(u.m)
+        height = np.sqrt(radius ** 2 + rho ** 2 + 2.0 * radius * rho *
+                         np.sin(np.radians(float(dense.alt_deg[i])))) - radius
         flux = lumos.calculator.get_intensity_observer_frame(
-            surfs, float(dense.height_km[i]) * u.km.to(u.m), float(dense.alt_deg[i]),
+            surfs, float(height), float(dense.alt_deg[i]),
             float(dense.az_deg[i]), sun_alt, sun_az, include_sun=True,
             include_earthshine=earth_brdf is not None, earth_brdf=earth_brdf)
         flux = float(np.asarray(flux))

@@ -1,0 +1,214 @@
+"""Brightness as flown: the survey plan's streaks take a published BRDF model's magnitude.
+
+``sample_fields/constellation_starlink_gen1_brdf.yaml`` carries the Starlink v1.5 model of
+Fankhauser, Tyson & Askari (2023, AJ 166, 59) with the BRDFs they inferred from on-orbit
+observations. A planned streak's magnitude is checked against lumos-sat's own functions called
+here: its satellite's position from lumos's own TLE propagation, the Sun's from lumos's own
+helper, the surfaces built here from the paper's numbers. Skipped without lumos-sat
+(``make install-lumos``), except the missing-lumos error.
+"""
+import math
+import os
+
+import numpy as np
+import pytest
+import yaml
+
+ROOT = os.path.join(os.path.dirname(__file__), os.pardir, "sample_fields")
+GEN1 = os.path.join(ROOT, "constellation_starlink_gen1.yaml")
+GEN1_BRDF = os.path.join(ROOT, "constellation_starlink_gen1_brdf.yaml")
+#: Starlink v1.5 as Fankhauser et al. (2023) model it with their BRDFs inferred from on-orbit
+#: observations: (area m^2, normal in lumos's brightness frame, Phong Kd, Ks, n) of the
+#: chassis and of the solar array.
+V1P5 = [(1.0, (0.0, 0.0, -1.0), 0.34, 0.40, 8.9), (1.0, (0.0, 1.0, 0.0), 0.15, 0.25, 0.26)]
+#: An instant of the sample June night at Rubin (the Sun ~15 deg down).
+T_CROSS = "2026-06-15T23:12:15"
+
+
+def _raw(path):
+    with open(path) as stream:
+        return yaml.safe_load(stream)
+
+
+def test_the_brdf_sample_file_is_gen1_with_the_papers_v1p5_surfaces():
+    """It loads as ``inject survey`` reads it: the first generation's shells and epoch as the
+    fixed-magnitude file gives them, and the two Phong surfaces of the paper's inferred model,
+    built into lumos Surfaces that scatter as lumos's own PHONG with the paper's numbers."""
+    library = pytest.importorskip("lumos.brdf.library",
+                                  reason="needs lumos-sat: make install-lumos")
+    from inject.orbits.lumos import surfaces
+    from inject.survey.constellation import read_constellation
+
+    raw, fixed = _raw(GEN1_BRDF), _raw(GEN1)
+    assert raw["shells"] == fixed["shells"] and raw["epoch"] == fixed["epoch"]
+    constellation = read_constellation(GEN1_BRDF)
+    assert len(constellation) == 4408
+    assert constellation.lumos.get("earthshine") is False
+    got = [(s["area"], tuple(s["normal"]), s["brdf"]["type"], s["brdf"]["Kd"], s["brdf"]["Ks"],
+            s["brdf"]["n"]) for s in constellation.lumos["surfaces"]]
+    assert got == [(a, n, "phong", kd, ks, e) for a, n, kd, ks, e in V1P5]
+    built, earth_brdf = surfaces("lumos", constellation.lumos)
+    assert earth_brdf is None
+    # Incidence and exits on either side of each normal's specular direction.
+    rng = np.random.default_rng(5)
+    for surface, (area, normal, kd, ks, n) in zip(built, V1P5):
+        assert surface.area == area and np.allclose(surface.normal, normal)
+        reference = library.PHONG(kd, ks, n)
+        for _ in range(20):
+            i, o = (v / np.linalg.norm(v) for v in rng.normal(size=(2, 3)) + normal)
+            assert float(surface.brdf(i, surface.normal, o)) == pytest.approx(
+                float(reference(i, np.array(normal), o)), rel=1e-12)
+
+
+@pytest.fixture(scope="module")
+def planned(tmp_path_factory):
+    """Satellites aimed at four points of the sky at ``T_CROSS`` (so at four phase angles),
+    each planned in a 30 s r visit centred on it with the BRDF file's model, and a TLE file
+    of them in lumos's own layout (name line, then two lines)."""
+    pytest.importorskip("lumos.calculator", reason="needs lumos-sat: make install-lumos")
+    from astropy import units as u
+    from astropy.coordinates import AltAz, SkyCoord
+    from astropy.time import Time
+
+    from inject.orbits.passes import RUBIN, aimed_orbit
+    from inject.survey.constellation import parse_constellation
+    from inject.survey.plan import plan_visit
+    from inject.survey.visits import Visit
+
+    folder = tmp_path_factory.mktemp("brdf")
+    t = Time(T_CROSS, scale="utc")
+    aims = [(70.0, 270.0), (45.0, 300.0), (60.0, 200.0), (80.0, 120.0)]
+    sats = [aimed_orbit(t, alt, az, name=f"AIM{k}", satnum=k + 1)
+            for k, (alt, az) in enumerate(aims)]
+    tle = folder / "aimed.tle"
+    tle.write_text("".join(f"{o.name}\n{a}\n{b}\n" for o in sats for a, b in [o.tle_lines()]))
+    raw = {k: v for k, v in _raw(GEN1_BRDF).items() if k not in ("shells", "epoch")}
+    brdf = parse_constellation({**raw, "tle": tle.name}, folder=str(folder))
+    fixed = parse_constellation({k: v for k, v in raw.items() if k != "lumos"} |
+                                {"tle": tle.name}, folder=str(folder))
+    streaks, fixed_mags = {}, {}
+    for k, (alt, az) in enumerate(aims):
+        point = SkyCoord(AltAz(alt=alt * u.deg, az=az * u.deg, obstime=t,
+                               location=RUBIN.location)).icrs
+        visit = Visit(k + 1, float((t - 15.0 * u.s).tai.mjd), point.ra.deg, point.dec.deg, 0.0,
+                      "r", 30.0)
+        for streak in plan_visit(visit, brdf).streaks:
+            if streak.satellite == f"AIM{k}":
+                streaks[streak.satellite] = (visit, streak)
+        for streak in plan_visit(visit, fixed).streaks:
+            if streak.satellite == f"AIM{k}":
+                fixed_mags[streak.satellite] = streak.mag
+    return {"tle": str(tle), "streaks": streaks, "fixed": fixed_mags}
+
+
+def _skyfield_range_m(tle, name, when):
+    """The topocentric range (m) of satellite ``name`` of the TLE file from Rubin, skyfield's."""
+    from skyfield.api import EarthSatellite, load, wgs84
+
+    from inject.orbits.passes import RUBIN
+
+    with open(tle) as stream:
+        lines = stream.read().splitlines()
+    k = lines.index(name)
+    ts = load.timescale(builtin=True)
+    site = wgs84.latlon(RUBIN.location.lat.deg, RUBIN.location.lon.deg,
+                        elevation_m=RUBIN.location.height.to_value("m"))
+    sat = EarthSatellite(lines[k + 1], lines[k + 2], name, ts)
+    return float((sat - site).at(ts.from_astropy(when)).distance().m)
+
+
+def _lumos_mag(tle, name, when):
+    """lumos-sat's own AB magnitude and solar phase angle (deg) of satellite ``name`` of the
+    TLE file at ``when``, seen from Rubin: its propagation, its Sun, its calculator."""
+    import lumos.brdf.library
+    import lumos.calculator
+    import lumos.constants
+    import lumos.constellation.library
+    import lumos.conversions
+    import lumos.geometry
+
+    from inject.orbits.passes import RUBIN
+
+    sats = lumos.constellation.library.ConstellationFromTLE(tle)
+    alts, azs, _ = sats.get_hcs_position(when, RUBIN.location)
+    k = sats.satellite_ids.index(name)
+    # lumos's sphere (6378 km, the observer on it) at the satellite's true range: the height
+    # from the triangle Earth's centre - observer - satellite, the range from skyfield.
+    radius, rho = lumos.constants.EARTH_RADIUS, _skyfield_range_m(tle, name, when)
+    heights = {k: math.sqrt(radius ** 2 + rho ** 2
+                            + 2 * radius * rho * math.sin(math.radians(alts[k]))) - radius}
+    sun_alt, sun_az = lumos.calculator.get_sun_alt_az(when, RUBIN.location)
+    model = [lumos.geometry.Surface(a, np.array(n), lumos.brdf.library.PHONG(kd, ks, e))
+             for a, n, kd, ks, e in V1P5]
+    flux = lumos.calculator.get_intensity_observer_frame(
+        model, float(heights[k]), float(alts[k]), float(azs[k]), float(sun_alt), float(sun_az),
+        include_earthshine=False)
+    mag = float(lumos.conversions.intensity_to_ab_mag(float(flux), clip=False))
+    # The solar phase angle: between the directions from the satellite to the Sun and to the
+    # observer (the Sun taken as infinitely far; lumos's frame puts it in the y-z plane).
+    obs_x, obs_y, obs_z, past = lumos.calculator.get_brightness_coords(
+        float(alts[k]), float(azs[k]), float(heights[k]), float(sun_alt), float(sun_az))
+    to_obs = np.array([obs_x, obs_y, obs_z - (lumos.constants.EARTH_RADIUS + heights[k])],
+                      float)
+    to_sun = np.array([0.0, math.cos(past), -math.sin(past)])
+    phase = math.degrees(math.acos(float(to_obs @ to_sun) / np.linalg.norm(to_obs)))
+    return mag, phase
+
+
+def test_a_planned_streaks_magnitude_is_lumos_sats_at_that_geometry(planned):
+    """Each streak's magnitude (the plan's model at the middle of its crossing, t_mid_s) is
+    lumos-sat's for the Sun, satellite and observer at that instant.
+
+    The satellite's alt/az come here from lumos's own astropy propagation of the same TLE
+    and its range from skyfield's (inject's plan takes them from SGP4 through its own frames);
+    lumos is given the height at which its 6378 km sphere puts the satellite at that range.
+    Tolerance 0.002 mag: the three propagations agree within arcseconds and metres, and the
+    Phong lobe of n = 8.9 changes its flux by at most n tan(angle), under 1e-3 mag for 10
+    arcsec, the 1/r^2 term by 2e-5 mag a metre at ~600 km. (lumos's own geodetic height
+    instead would put the satellite 0.5% too far on that sphere, 0.01 mag fainter.) The
+    streak is fully sunlit (no penumbra dimming, which lumos does not model).
+    The four aims give four phase angles (63-117 deg): the BRDF's magnitudes less the
+    paper's fixed model's (g = 5.0 at 550 km face-on, scaled by cos/r^2 alone) for the same
+    crossings differ from aim to aim by more than 0.3 mag: the light scattered, not only the
+    range and foreshortening, changes with the geometry."""
+    from astropy import units as u
+
+    streaks = planned["streaks"]
+    assert len(streaks) == 4, sorted(streaks)
+    assert sorted(planned["fixed"]) == sorted(streaks)
+    phases, excess = [], []
+    for name, (visit, streak) in sorted(streaks.items()):
+        assert streak.sun_fraction_min == 1.0
+        when = visit.start.utc + streak.t_mid_s * u.s
+        expected, phase = _lumos_mag(planned["tle"], name, when)
+        assert streak.mag == pytest.approx(expected, abs=0.002), (name, phase)
+        phases.append(phase)
+        excess.append(streak.mag - planned["fixed"][name])
+    assert max(phases) - min(phases) > 45.0
+    assert max(excess) - min(excess) > 0.3
+
+
+def test_without_lumos_sat_the_brdf_file_is_a_one_line_error(cli, monkeypatch, tmp_path):
+    """``inject survey`` with the BRDF file and no lumos-sat: exit status 2, one line naming
+    the file and ``make install-lumos``, nothing written."""
+    import builtins
+
+    real = builtins.__import__
+
+    def no_lumos(name, *args, **kwargs):
+        if name == "lumos" or name.startswith("lumos."):
+            raise ImportError(name)
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_lumos)
+    (tmp_path / "v.csv").write_text(
+        "observationId,observationStartMJD,fieldRA,fieldDec,rotSkyPos,band,visitExposureTime\n"
+        "1,61206.97,250,-30,0,r,30\n")
+    status, _, err = cli("survey", tmp_path / "v.csv", "-o", tmp_path / "out",
+                         "--constellation", GEN1_BRDF, "--no-plots")
+    assert status == 2
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "constellation_starlink_gen1_brdf.yaml" in lines[0]
+    assert "make install-lumos" in lines[0]
+    assert not (tmp_path / "out").exists()
