@@ -212,3 +212,68 @@ def test_without_lumos_sat_the_brdf_file_is_a_one_line_error(cli, monkeypatch, t
     assert "constellation_starlink_gen1_brdf.yaml" in lines[0]
     assert "make install-lumos" in lines[0]
     assert not (tmp_path / "out").exists()
+
+
+def test_into_earths_shadow_the_brdf_magnitude_runs_on_through_the_penumbra():
+    """A satellite aimed to enter the Earth's shadow mid-exposure (alt 36, az 120 at
+    ``T_CROSS``): lumos's own shadow, a point Sun behind its 6378 km sphere, ends in the
+    middle of the pass's penumbra (a finite Sun, the WGS84 Earth). Where lumos has the
+    satellite lit, each vertex is lumos's own magnitude (its function called here) dimmed by
+    the penumbra; where lumos has it dark but the pass lit, the vertex keeps a magnitude (no
+    99) that runs on from its neighbours: with the penumbra's dimming taken off, no step over
+    0.05 mag between vertices (the geometry moves by ~0.1 deg a second; the lit vertices change
+    by 0.01-0.02 mag a step)."""
+    pytest.importorskip("lumos.calculator", reason="needs lumos-sat: make install-lumos")
+    import lumos.brdf.library
+    import lumos.calculator
+    import lumos.constants
+    import lumos.conversions
+    import lumos.geometry
+    from astropy import units as u
+    from astropy.coordinates import AltAz, SkyCoord, get_sun
+    from astropy.time import Time
+
+    from inject import Exposure, Pointing, compute_pass
+    from inject.geometry import nadir_angle
+    from inject.orbits.passes import RUBIN, aimed_orbit
+    from inject.orbits.tracks import sunlit_runs
+    from inject.photometry import apparent_magnitude
+
+    t = Time(T_CROSS, scale="utc")
+    orbit = aimed_orbit(t, 36.0, 120.0)
+    point = SkyCoord(AltAz(alt=36.0 * u.deg, az=120.0 * u.deg, obstime=t,
+                           location=RUBIN.location)).icrs
+    dense = compute_pass(orbit, Exposure(t - 15.0 * u.s, 30.0),
+                         Pointing(point.ra.deg, point.dec.deg, 0.0))
+    runs, _ = sunlit_runs("orbit", dense, 5.0, _raw(GEN1_BRDF)["lumos"], 550.0)
+    assert len(runs) == 1
+    run, values = runs[0]
+    fraction = dense.sun_fraction[run]
+    assert fraction.min() < 0.5 and fraction.max() > 0.9
+    # The vertex's apparent magnitude (the streak model's cos/r^2 scaling of its mag) less
+    # the penumbra's dimming.
+    apparent = np.array([apparent_magnitude(v["mag"], v["range"],
+                                            nadir_angle(v["height"], v["zenith"]), 550.0)
+                         for v in values]) + 2.5 * np.log10(fraction)
+    model = [lumos.geometry.Surface(a, np.array(n), lumos.brdf.library.PHONG(kd, ks, e))
+             for a, n, kd, ks, e in V1P5]
+    sun = get_sun(dense.utc[run]).transform_to(AltAz(obstime=dense.utc[run],
+                                                     location=RUBIN.location))
+    radius = lumos.constants.EARTH_RADIUS
+    dark = 0
+    for k, i in enumerate(run):
+        rho = dense.range_km[i] * 1e3
+        height = math.sqrt(radius ** 2 + rho ** 2
+                           + 2 * radius * rho * math.sin(math.radians(dense.alt_deg[i]))) - radius
+        flux = float(lumos.calculator.get_intensity_observer_frame(
+            model, height, dense.alt_deg[i], dense.az_deg[i], sun.alt.deg[k], sun.az.deg[k],
+            include_earthshine=False))
+        if flux > 0:
+            expected = lumos.conversions.intensity_to_ab_mag(flux, clip=False)
+            assert apparent[k] == pytest.approx(expected, abs=1e-6)
+        else:
+            dark += 1
+            assert fraction[k] > 0.0
+    assert dark >= 2 and dark < len(run)  # lit by the pass, dark to lumos: both kinds
+    assert apparent.max() < 10.0
+    assert np.abs(np.diff(apparent)).max() < 0.05

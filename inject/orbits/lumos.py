@@ -10,7 +10,10 @@ dimmed by the pass's penumbra. lumos places the satellite by its alt/az and heig
 sphere of 6378 km with the observer on it; the height given is the one that puts it at the
 pass's true range there (``sqrt(R^2 + r^2 + 2 R r sin(alt)) - R``), so that its 1/r^2 is the
 pass's (the geodetic height, which lumos's docs name, leaves the range ~0.5% off at Rubin's
-latitude: 0.01 mag). That magnitude is turned into the
+latitude: 0.01 mag). The pass decides the shadow: lumos's own (a point Sun behind its
+sphere) ends in the middle of the pass's penumbra, and a sample the pass has lit but lumos in
+its shadow takes lumos's magnitude with the Sun at that shadow's edge (grazing the limb, as
+through the penumbra), dimmed by the penumbra. That magnitude is turned into the
 ``mag`` the streak model scales with ``cos(theta_N) / r^2`` so that the model's apparent
 magnitude is lumos's. lumos computes that magnitude at one wavelength (532 nm,
 ``lumos.constants.WAVELENGTH``), whatever the scene's band: it is taken as the band's.
@@ -110,9 +113,18 @@ def magnitudes(where, spec, dense, idx):
         rho = float(dense.range_km[i]) * u.km.to(u.m)
         height = np.sqrt(radius ** 2 + rho ** 2 + 2.0 * radius * rho *
                          np.sin(np.radians(float(dense.alt_deg[i])))) - radius
-        flux = lumos.calculator.get_intensity_observer_frame(
-            surfs, float(height), float(dense.alt_deg[i]),
-            float(dense.az_deg[i]), sun_alt, sun_az, include_sun=True,
+        # lumos's get_intensity_observer_frame in its two steps, so that the pass decides
+        # the shadow: lumos's is a point Sun behind its sphere, whose edge runs through the
+        # middle of the pass's penumbra (a finite Sun, the WGS84 Earth). Where it has a lit
+        # sample in its shadow, the Sun is taken at its shadow's edge (grazing, as in the
+        # penumbra) and the penumbra's dimming is added by the caller.
+        obs_x, obs_y, obs_z, past = lumos.calculator.get_brightness_coords(
+            np.array([float(dense.alt_deg[i])]), np.array([float(dense.az_deg[i])]),
+            np.array([height]), sun_alt, sun_az)
+        edge = float(np.arccos(radius / (radius + height)))
+        flux = lumos.calculator.get_intensity_satellite_frame(
+            surfs, float(height), min(float(past[0]), edge),
+            (float(obs_x[0]), float(obs_y[0]), float(obs_z[0])), include_sun=True,
             include_earthshine=earth_brdf is not None, earth_brdf=earth_brdf)
         flux = float(np.asarray(flux))
         out.append(float(lumos.conversions.intensity_to_ab_mag(flux, clip=False))
