@@ -69,6 +69,18 @@ def test_lumos_inputs_are_checked():
     with pytest.raises(SceneError, match="type: one of"):
         parse_focal_scene(_raw({"surfaces": [{"area": 1, "normal": [0, 0, 1],
                                               "brdf": {"type": "mirror"}}]}))
+    binomial = {"type": "binomial", "B": [[1.0, -30.0]], "C": [[1.0, 2.0], [3.0, 4.0]],
+                "d": 3.0, "l1": -3}
+    with pytest.raises(SceneError, match="B has 1 rows, C 2: needs as many"):
+        parse_focal_scene(_raw({"surfaces": [{"area": 1, "normal": [0, 0, -1],
+                                              "brdf": binomial}]}))
+    with pytest.raises(SceneError, match=r"brdf\.C=.*needs a matrix"):
+        parse_focal_scene(_raw({"surfaces": [{"area": 1, "normal": [0, 0, -1],
+                                              "brdf": {**binomial, "C": [[1.0], [2.0, 3.0]]}}]}))
+    with pytest.raises(SceneError, match=r"brdf\.l1=-2\.5: must be an integer"):
+        parse_focal_scene(_raw({"surfaces": [{"area": 1, "normal": [0, 0, -1],
+                                              "brdf": {**binomial, "C": [[1.0, 2.0]],
+                                                       "l1": -2.5}}]}))
     raw = _raw(PLATE)
     raw["satellites"][0] = {k: v for k, v in raw["satellites"][0].items() if k != "orbit"} | {
         "height": 550, "track": {"x0_mm": 0, "y0_mm": 0, "angle": 0}}

@@ -3,7 +3,9 @@
 
 A satellite of an ``orbit:`` scene may give ``lumos: {surfaces: [...], earthshine: false,
 earth_albedo: 0.3}``: each surface ``{area: m^2, normal: [x, y, z], brdf: {type: lambertian,
-albedo} | {type: phong, Kd, Ks, n} | {type: abg, A, B, g}}``, normals in lumos's brightness
+albedo} | {type: phong, Kd, Ks, n} | {type: abg, A, B, g} | {type: binomial, B, C, d, l1}}``
+(binomial: Greynolds's model, lumos's BINOMIAL, ``B`` and ``C`` matrices of as many rows, ``l1``
+an integer), normals in lumos's brightness
 frame (z away from the Earth's centre, the Sun in the y-z plane at +y). Each vertex of the
 pass then gets lumos's AB magnitude at that instant (Sun and satellite alt/az from the site),
 dimmed by the pass's penumbra. lumos places the satellite by its alt/az and height above a
@@ -26,8 +28,9 @@ import numpy as np
 from inject.errors import SceneError
 from inject.schema import check_keys, number
 
-#: Parameters of each BRDF type (lumos.brdf.library's LAMBERTIAN, PHONG, ABG).
-BRDF_KEYS = {"lambertian": ("albedo",), "phong": ("Kd", "Ks", "n"), "abg": ("A", "B", "g")}
+#: Parameters of each BRDF type (lumos.brdf.library's LAMBERTIAN, PHONG, ABG, BINOMIAL).
+BRDF_KEYS = {"lambertian": ("albedo",), "phong": ("Kd", "Ks", "n"), "abg": ("A", "B", "g"),
+             "binomial": ("B", "C", "d", "l1")}
 #: The faintest magnitude given to a vertex lumos sees dark (surfaces turned away).
 DARK_MAG = 99.0
 
@@ -80,7 +83,8 @@ def surfaces(where, spec):
         if kind not in BRDF_KEYS:
             raise SceneError(f"{here}.brdf={brdf!r}: needs type: one of {', '.join(BRDF_KEYS)}")
         check_keys(f"{here}.brdf", brdf, {"type", *BRDF_KEYS[kind]}, {"type", *BRDF_KEYS[kind]})
-        params = [number(f"{here}.brdf.{k}", brdf[k]) for k in BRDF_KEYS[kind]]
+        params = _binomial(f"{here}.brdf", brdf) if kind == "binomial" else \
+            [number(f"{here}.brdf.{k}", brdf[k]) for k in BRDF_KEYS[kind]]
         make = getattr(lumos.brdf.library, kind.upper())
         out.append(lumos.geometry.Surface(area, n / np.linalg.norm(n), make(*params)))
     earth_brdf = None
@@ -92,6 +96,22 @@ def surfaces(where, spec):
     elif spec.get("earthshine", False) is not False:
         raise SceneError(f"{where}.earthshine={spec['earthshine']!r}: must be true or false")
     return out, earth_brdf
+
+
+def _binomial(where, brdf):
+    """BINOMIAL's ``B``, ``C`` (2-D arrays of as many rows: the powers of V they weigh), ``d``
+    and ``l1``, checked."""
+    out = []
+    for key in ("B", "C"):
+        rows = brdf[key]
+        if not (isinstance(rows, list) and rows and all(
+                isinstance(r, list) and r and len(r) == len(rows[0]) for r in rows)):
+            raise SceneError(f"{where}.{key}={rows!r}: needs a matrix, a list of rows of "
+                             f"numbers of one length")
+        out.append(np.array([[number(f"{where}.{key}", v) for v in r] for r in rows]))
+    if len(out[0]) != len(out[1]):
+        raise SceneError(f"{where}: B has {len(out[0])} rows, C {len(out[1])}: needs as many")
+    return [*out, number(f"{where}.d", brdf["d"]), number(f"{where}.l1", brdf["l1"], int)]
 
 
 def magnitudes(where, spec, dense, idx):
