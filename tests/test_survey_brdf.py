@@ -13,7 +13,6 @@ import os
 
 import numpy as np
 import pytest
-import yaml
 
 ROOT = os.path.join(os.path.dirname(__file__), os.pardir, "sample_fields")
 GEN1 = os.path.join(ROOT, "constellation_starlink_gen1.yaml")
@@ -60,8 +59,9 @@ T_CROSS = "2026-06-15T23:12:15"
 
 
 def _raw(path):
-    with open(path) as stream:
-        return yaml.safe_load(stream)
+    from inject.schema import load_scene_file
+
+    return load_scene_file(path)
 
 
 def _brdf(spec):
