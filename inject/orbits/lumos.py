@@ -4,9 +4,9 @@
 A satellite of an ``orbit:`` scene may give ``lumos: {surfaces: [...], earthshine: false,
 earth_albedo: 0.3}``: each surface ``{area: m^2, normal: [x, y, z], brdf: {type: lambertian,
 albedo} | {type: phong, Kd, Ks, n} | {type: abg, A, B, g} | {type: binomial, B, C, d, l1}}``
-(binomial: Greynolds's model, lumos's BINOMIAL, ``B`` and ``C`` matrices of as many rows, ``l1``
-an integer), normals in lumos's brightness
-frame (z away from the Earth's centre, the Sun in the y-z plane at +y). Each vertex of the
+(binomial: Greynolds's model, lumos's BINOMIAL, ``B`` and ``C`` matrices of as many rows,
+``l1`` an integer), normals in lumos's brightness frame (z away from the Earth's centre, the
+Sun in the y-z plane at +y). Each vertex of the
 pass then gets lumos's AB magnitude at that instant (Sun and satellite alt/az from the site),
 dimmed by the pass's penumbra. lumos places the satellite by its alt/az and height above a
 sphere of 6378 km with the observer on it; the height given is the one that puts it at the
