@@ -105,7 +105,8 @@ TESTS = {
     # independent numbers first (a bug they catch costs seconds, not the skyfield night's).
     "survey": ("tests/test_survey_independent*.py", "tests/test_survey_trust*.py",
                "tests/test_survey.py", "tests/test_survey*.py"),
-    "optics": ("tests/test_optics*.py", "tests/test_pupil*.py"),
+    "optics": ("tests/test_optics*.py", "tests/test_pupil*.py", "tests/test_rotator*.py",
+               "tests/test_sed*.py"),
 }
 #: Test files issue 19 added (``--new``): run for every mutation.
 NEW_TESTS = ("tests/test_independent_checks*.py", "tests/test_reliability*.py",
@@ -467,6 +468,24 @@ SURVEY_MUTATIONS = [
     _survey("field position angle measured from y, not x", "optics", _OPTICS,
             "np.array([np.cos(np.radians(pa)), np.sin(np.radians(pa))])",
             "np.array([np.sin(np.radians(pa)), np.cos(np.radians(pa))])"),
+    _survey("the vanes turned by the rotator the other way", "optics", _OPTICS,
+            "return float((radius - rotator) % 90.0)", "return float((radius + rotator) % 90.0)"),
+    _survey("a visit's rotTelPos from paraAngle with rotSkyPos's sign flipped", "optics",
+            _VISITS, "return float((parallactic_deg - rot_sky_pos_deg - 90.0 + 180.0) % 360.0",
+            "return float((parallactic_deg + rot_sky_pos_deg - 90.0 + 180.0) % 360.0"),
+    _survey("the parallactic angle measured to the zenith's opposite", "optics",
+            "inject/orbits/passes.py", "alt=horizontal.alt + 10 * u.arcsec",
+            "alt=horizontal.alt - 10 * u.arcsec"),
+    _survey("the satellite's spectrum not passed to the kernel", "optics", "inject/streak.py",
+            "                             self.sed_temperature_k)",
+            "                             )"),
+    _survey("a colour's temperature from the red band's magnitude twice", "optics", _OPTICS,
+            "return float(magnitude(blue) - magnitude(red))",
+            "return float(magnitude(red) - magnitude(red))"),
+    _survey("the band's photons weighted by the blackbody's energy, not its photons",
+            "optics", _OPTICS,
+            "photons = throughput(wave) * wave ** -4.0 / np.expm1(",
+            "photons = throughput(wave) * wave ** -5.0 / np.expm1("),
 ]
 MUTATIONS += SURVEY_MUTATIONS
 

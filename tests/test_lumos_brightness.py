@@ -20,9 +20,12 @@ def _raw(lumos):
 
 def test_vertices_take_lumos_magnitudes():
     """Each vertex's apparent magnitude (the streak model's, after its cos/r^2 scaling) is
-    lumos's for that sample (its alt/az, height and the Sun's alt/az from the site)."""
+    lumos's for that sample (its alt/az, the Sun's alt/az from the site, and the height at
+    which lumos's 6378 km sphere puts the satellite at the pass's range, by the triangle
+    Earth's centre - observer - satellite)."""
     calc = pytest.importorskip("lumos.calculator", reason="needs lumos-sat: make install-lumos")
     import lumos.brdf.library
+    import lumos.constants
     import lumos.conversions
     import lumos.geometry
     from astropy.coordinates import AltAz, get_sun
@@ -43,8 +46,11 @@ def test_vertices_take_lumos_magnitudes():
         i = int(np.nanargmin(np.hypot(x - xv, y - yv)))
         sun = get_sun(dense.utc[i]).transform_to(AltAz(obstime=dense.utc[i],
                                                        location=dense.site.location))
+        radius, rho = lumos.constants.EARTH_RADIUS, dense.range_km[i] * 1e3
+        height = np.sqrt(radius ** 2 + rho ** 2
+                         + 2 * radius * rho * np.sin(np.radians(dense.alt_deg[i]))) - radius
         flux = calc.get_intensity_observer_frame(
-            plate, dense.height_km[i] * 1e3, dense.alt_deg[i], dense.az_deg[i],
+            plate, height, dense.alt_deg[i], dense.az_deg[i],
             sun.alt.deg, sun.az.deg, include_earthshine=False)
         expected = lumos.conversions.intensity_to_ab_mag(float(flux), clip=False)
         assert vertex_model(fscene, 0, values).apparent_mag == pytest.approx(expected, abs=1e-6)
@@ -63,6 +69,18 @@ def test_lumos_inputs_are_checked():
     with pytest.raises(SceneError, match="type: one of"):
         parse_focal_scene(_raw({"surfaces": [{"area": 1, "normal": [0, 0, 1],
                                               "brdf": {"type": "mirror"}}]}))
+    binomial = {"type": "binomial", "B": [[1.0, -30.0]], "C": [[1.0, 2.0], [3.0, 4.0]],
+                "d": 3.0, "l1": -3}
+    with pytest.raises(SceneError, match="B has 1 rows, C 2: needs as many"):
+        parse_focal_scene(_raw({"surfaces": [{"area": 1, "normal": [0, 0, -1],
+                                              "brdf": binomial}]}))
+    with pytest.raises(SceneError, match=r"brdf\.C=.*needs a matrix"):
+        parse_focal_scene(_raw({"surfaces": [{"area": 1, "normal": [0, 0, -1],
+                                              "brdf": {**binomial, "C": [[1.0], [2.0, 3.0]]}}]}))
+    with pytest.raises(SceneError, match=r"brdf\.l1=-2\.5: must be an integer"):
+        parse_focal_scene(_raw({"surfaces": [{"area": 1, "normal": [0, 0, -1],
+                                              "brdf": {**binomial, "C": [[1.0, 2.0]],
+                                                       "l1": -2.5}}]}))
     raw = _raw(PLATE)
     raw["satellites"][0] = {k: v for k, v in raw["satellites"][0].items() if k != "orbit"} | {
         "height": 550, "track": {"x0_mm": 0, "y0_mm": 0, "angle": 0}}
@@ -82,5 +100,5 @@ def test_without_lumos_a_clear_error(monkeypatch):
         return real(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_lumos)
-    with pytest.raises(SceneError, match="pip install lumos-sat --no-deps"):
+    with pytest.raises(SceneError, match="make install-lumos"):
         parse_focal_scene(_raw(PLATE))

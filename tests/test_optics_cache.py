@@ -105,7 +105,7 @@ CHANGES = {
     "rays": lambda mp, tmp: mp.setattr(optics, "GRID_RAYS", 100_000),
     "sampling": lambda mp, tmp: mp.setattr(optics, "KERNEL_SCALE_ARCSEC", 0.005),
     "wavelengths": lambda mp, tmp: mp.setattr(optics, "N_WAVELENGTHS", 5),
-    "spectrum": lambda mp, tmp: mp.setattr(optics, "SUN_TEMPERATURE_K", 6000.0),
+    "spectrum": lambda mp, tmp: ("g", 500, 0, 0.0, None, 6000.0),
     "throughput file": _another_throughput,
     "pupil seed": lambda mp, tmp: mp.setattr(optics, "_PUPIL_SEED", 1),
     "pupil margin": lambda mp, tmp: mp.setattr(optics, "_PUPIL_MARGIN_M", 0.2),

@@ -104,6 +104,10 @@ def test_a_scenes_sed_reaches_its_streaks_model_and_truth(cheap_grid):
         9000.0, colour_temperature("g", "r", 0.62), SUN_TEMPERATURE_K]
     assert models[0].profile_key != models[2].profile_key
     assert models[0].summary()["sed_temperature_k"] == 9000.0
+    # The kernel each model draws is the one traced over its own spectrum.
+    for model in models:
+        assert model.traced_kernel.wavelengths_nm == kernel(
+            "g", model.geometry.range_km, temperature_k=model.sed_temperature_k).wavelengths_nm
 
 
 def test_an_sed_is_refused_without_the_traced_pupil_or_in_a_bad_form():

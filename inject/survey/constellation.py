@@ -237,7 +237,10 @@ def parse_constellation(raw, default_epoch=None, folder=".", source="constellati
     if lumos is not None:
         from inject.orbits.lumos import surfaces
 
-        surfaces("lumos", lumos)  # checked now, not at the first sunlit crossing
+        try:
+            surfaces("lumos", lumos)  # checked now, not at the first sunlit crossing
+        except SceneError as err:
+            raise SceneError(f"{source}: {err}") from None
     orbits, sources, tle_files, epoch = [], [], [], None
     shells = raw.get("shells", [])
     if not isinstance(shells, list) or ("shells" in raw and not shells):
