@@ -59,6 +59,29 @@ STREAMS = {"stars": 0, "noise": 1, "cosmic_rays": 2, "raw": 3, "signal_noise": 4
            "read_noise": 5}
 
 
+#: Arrays of at least this many bytes that :func:`sparse_zeros` maps page by page.
+SPARSE_MIN_BYTES = 1 << 22
+
+
+def sparse_zeros(shape, dtype=np.float64):
+    """A zero array for a plane most of which may stay zero (a streak's model, the mask).
+
+    numpy asks the kernel for 2 MiB pages for large arrays: each first touch then zeroes
+    (and counts in memory) 2 MiB, and where the kernel compacts memory to find them, costs
+    system time. A streak's band touches every 2 MiB of the CCD's rows. This array is fresh
+    private anonymous memory instead, mapped 4 KiB at a time as it is touched (untouched, it
+    reads as zeros from the kernel's zero page); its values are np.zeros' in every way.
+    """
+    import mmap
+
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape)) * dtype.itemsize
+    if nbytes < SPARSE_MIN_BYTES or not hasattr(mmap, "MAP_PRIVATE"):
+        return np.zeros(shape, dtype)
+    memory = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+    return np.frombuffer(memory, dtype).reshape(shape)
+
+
 def rng(seed, purpose, detector_index=0, *block):
     """Independent generator for one purpose of one detector of a scene seed (and of one
     block of it, such as an amplifier's number, when given)."""
@@ -159,7 +182,7 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0,
     truth : list of dict
         One row per streak.
     """
-    model_image = np.zeros(shape)
+    model_image = sparse_zeros(shape)
     budgets = [own_budget(budget, model, noise_sigma) for model in models]
     truth = [None] * len(tracks)
     counter = Progress(len(tracks), "rendering streaks", "streak", log,
@@ -814,7 +837,7 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
     if not truth:
         # No streak: no model to add, keep or write (a read-only zero view costs nothing).
         streaks = np.broadcast_to(np.float32(0), det.shape)
-    mask = np.zeros(det.shape, dtype=np.int32)
+    mask = sparse_zeros(det.shape, np.int32)
     if noise is not None:
         varying = streaks if truth else None
         if stars is not None:

@@ -302,3 +302,18 @@ def test_a_write_without_its_digest_gives_the_same_bytes(tmp_path, small_scene):
     assert write_exposure(plain, sc, res, sc.detector.gain, digest=False) is None
     assert plain.read_bytes() == hashed.read_bytes()
     assert digest == hashlib.sha256(plain.read_bytes()).hexdigest()
+
+
+@pytest.mark.parametrize("shape, dtype", [((3, 5), np.float64), ((1100, 1024), np.int32),
+                                          ((600, 1000), np.float64)])
+def test_sparse_zeros_are_zeros_of_the_shape_and_type(shape, dtype):
+    import pickle
+
+    from inject.scene import sparse_zeros
+
+    a = sparse_zeros(shape, dtype)
+    assert a.shape == shape and a.dtype == dtype and a.flags.writeable
+    assert not a.any()
+    a[-1, -1] = 7
+    assert a.sum() == 7 and np.count_nonzero(a) == 1
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(a)), a)
