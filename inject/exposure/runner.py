@@ -1074,7 +1074,11 @@ def dask_executor(scheduler, workers=None, memory_limit=DASK_MEMORY_LIMIT, retri
     scheduler (``tcp://host:8786``); ``workers`` defaults to the CPUs this job may use. Tasks
     are impure (``pure=False``) and retried
     ``retries`` times by Dask when they raise (a CCD that fails on its input returns a failed
-    row instead: see :func:`run`)."""
+    row instead: see :func:`run`).
+
+    The workers found at the start must run this inject (:func:`_check_workers`); the
+    executor's ``lost_pids()`` names those lost since, whose temporary files the runner
+    removes (:func:`remove_lost_temporaries`)."""
     try:
         from dask.distributed import Client, LocalCluster
     except ImportError:
@@ -1109,8 +1113,8 @@ def dask_executor(scheduler, workers=None, memory_limit=DASK_MEMORY_LIMIT, retri
 
 def _worker_inject():
     """On a Dask worker: one thread per library (:func:`limit_threads`); return the version
-    of the inject this worker imports (read afresh: a task may have set ``__version__``) and
-    where it is."""
+    of the inject this worker imports (read afresh: a task may have set ``__version__``),
+    where it is, and the worker's process id."""
     import inject
     from inject._version import get_version
 
