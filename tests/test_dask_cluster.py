@@ -174,6 +174,17 @@ def test_focalplane_on_the_cluster_equals_the_process_pool(cluster, pool_run, lo
     assert os.listdir(cluster.elsewhere) == []  # nothing written where the workers run
 
 
+def test_workers_write_the_runs_version_whatever_they_read(cluster, pool_run, monkeypatch):
+    """A worker's ``inject.__version__`` is read once, when it first asks (a checkout's
+    follows its commits and edits): the files carry the command's. Before: a worker without
+    a nanny (no one's child process) wrote its own in INJVER and the truth tables, while the
+    manifest said the command's."""
+    monkeypatch.chdir(pool_run)
+    cluster.client.run(lambda: setattr(__import__("inject"), "__version__", "0.0.0+stale"))
+    _focalplane("-o", "stale", "--scheduler", cluster.address)
+    assert _digests(pool_run / "stale") == _digests(pool_run / "pool")
+
+
 def _survey(out, *extra):
     assert main(["survey", "night.db", "-o", out, "--constellation", "const.yaml",
                  "--no-plots", *extra]) == 0
