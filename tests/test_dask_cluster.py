@@ -207,7 +207,7 @@ def test_survey_plan_on_the_cluster_equals_the_plan_made_here(cluster, tmp_path,
     assert os.listdir(cluster.elsewhere) == []
 
 
-@pytest.mark.slow  # ~2 min on 2 busy cores: each visit's plan, nine CCDs rendered and masked
+@pytest.mark.slow  # 1-2 min on 2 busy cores: each visit's plan, nine CCDs rendered and masked
 def test_survey_render_on_the_cluster_equals_the_process_pool(cluster, tmp_path, monkeypatch):
     """The render (64 px cut-outs of the nine CCDs) equals the process pool's: the tables'
     bytes, the manifests, and each CCD file's HDUs (their GZIP tiles carry the time they were
