@@ -40,15 +40,16 @@ def add_survey_parser(sub):
                    help="also count a fixed-width mask, as studies of constellations did: a "
                         "band of this full width (e.g. 300px or 60arcsec, at 0.2 arcsec/px) "
                         "along every streak on the CCDs, in pixels_fixed_mask columns and a "
-                        "fixed_mask block of summary.json")
+                        "fixed_mask block of summary.json (with --rule rubin_sim: the rule's "
+                        "own mask, inside the circle)")
     p.add_argument("--rule", choices=("inject", "rubin_sim"), default="inject",
                    help="inject: sunlit tracks on the science CCDs (TAI, light time, "
                         "aberration, the WGS84 penumbra) with the masker's mask; rubin_sim: "
                         "count as rubin_sim's check_pointings, as the literature did (the "
                         "1.75 deg circle, 20 deg, sunlit at the start or end by a sphere's "
                         "shadow, visitTime, observationStartMJD read as UT1 so ~37 s late) "
-                        "with a fixed band of --mask-width (default 300px) inside the circle "
-                        "(default: inject)")
+                        "with a fixed band of --mask-width (300px without it) inside the "
+                        "circle")
     p.add_argument("--render", action="store_true",
                    help="render the streaked CCDs (OUTDIR/visits/<observationId>/<CCD>.fits), "
                         "mask them with the masker and add the measured FWHM, mask width "
