@@ -87,8 +87,9 @@ def visit_span(visit):
 
 
 def sample_times(span_s, step_s=STEP_S):
-    """rubin_sim's samples of a span: ``round(span / step)`` times from 0 to ``span``."""
-    n = int(np.round(span_s / step_s))
+    """rubin_sim's samples of a span: ``round(span / step)`` times from 0 to ``span`` (the
+    ratio taken in days, as rubin_sim takes it, so that a half rounds the same way)."""
+    n = int(np.round((span_s / 3600.0 / 24.0) / (step_s / 3600.0 / 24.0)))
     return np.linspace(0.0, span_s, max(n, 2))
 
 
