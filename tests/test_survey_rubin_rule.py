@@ -353,6 +353,12 @@ def test_inject_survey_rule_rubin_sim_writes_the_rule_and_its_band(sf, tmp_path,
     assert summary["rule"]["visits_span_from"] == {"visitTime": 1, "exposure+readouts": 0}
     assert summary["rule"]["mask_width_px"] == 300.0 and "fixed_mask" not in summary
     assert summary["streaks"] == 1 and summary["pixels_lost"] == int(row["pixels_lost"])
+    # The default rule says so too, and reads the start as TAI: the satellite reaches the
+    # boresight 37 + 17 s after the visit's real start, when the shutter has closed.
+    cli("survey", str(tmp_path / "visits.csv"), "-o", str(tmp_path / "phys"), "--constellation",
+        str(tmp_path / "const.yaml"), "--no-plots")
+    phys = json.load(open(tmp_path / "phys" / "summary.json"))
+    assert phys["rule"]["name"] == "inject" and phys["streaks"] == 0
 
 
 def test_the_rule_has_no_ccds_to_render(cli, tmp_path):
@@ -360,3 +366,26 @@ def test_the_rule_has_no_ccds_to_render(cli, tmp_path):
                          "--constellation", "c.yaml", "--rule", "rubin_sim", "--render")
     assert status != 0 and "--rule inject" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_visits_read_visittime_when_given(tmp_path):
+    """visitTime is read (the rule's span) when the column is there, refused at 0, and
+    absent otherwise."""
+    from inject.errors import InputError
+    from inject.survey.visits import read_visits
+
+    head = ["observationId", "observationStartMJD", "fieldRA", "fieldDec", "rotSkyPos",
+            "band", "visitExposureTime", "numExposures"]
+    for extra, value, expect in ((["visitTime"], [34.0], 34.0), ([], [], None)):
+        path = tmp_path / f"v{len(extra)}.csv"
+        with open(path, "w", newline="") as stream:
+            w = csv.writer(stream)
+            w.writerow(head + extra)
+            w.writerow([1, MJD, 10.0, -30.0, 0.0, "r", 30.0, 2] + value)
+        assert read_visits(str(path))[0].visit_time_s == expect
+    with open(tmp_path / "bad.csv", "w", newline="") as stream:
+        w = csv.writer(stream)
+        w.writerow(head + ["visitTime"])
+        w.writerow([1, MJD, 10.0, -30.0, 0.0, "r", 30.0, 2, 0.0])
+    with pytest.raises(InputError, match="visitTime"):
+        read_visits(str(tmp_path / "bad.csv"))
