@@ -304,7 +304,7 @@ def inject_track(visit, orbit):
             "clear": [sun_line_height(r, s, rubin_rule.SKYFIELD_EARTH_RADIUS_KM)
                       for r, s in zip(got["r_km"][0], got["sun_km"])],
             "closest": float(np.degrees(np.nanmin(np.hypot(x, y)))),
-            "length": float(np.degrees(rubin_rule.length_in_circle(
+            "length": float(np.degrees(rubin_rule.length_in_polygon(
                 x, y, np.radians(rubin_rule.RADIUS_DEG))))}
 
 
@@ -379,9 +379,7 @@ def literature(args, sat_utils, data_path, tles, visits, width_px=300.0):
         agreement(label, plans, rs_n, rs_found, rs_len)
     found = {(k, s.satellite) for k, p in enumerate(rule) for s in p.streaks}
     n_rule = [len(p.streaks) for p in rule]
-    same = sum(int(a) == b for a, b in zip(rs_n, n_rule))
     len_rule = np.array([p.streak_length_deg for p in rule])
-    del same
     by_name = {t.split("\n")[0]: t for t in tles}
     orbit = {o.name: o for o in constellation.orbits}
     for label, pairs in (("rubin_sim only", rs_found - found), ("inject only", found - rs_found)):
