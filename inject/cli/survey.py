@@ -134,7 +134,8 @@ def run_survey(args):
     claim = None
     try:
         claim = claim_outdir(args.output, _run_key(inputs), inputs, args.overwrite)
-        warn_fallbacks(visits)
+        if args.rule == "inject":  # the rubin_sim rule takes no seeing and no sky
+            warn_fallbacks(visits)
         started = time.perf_counter()
         plans = _plan(visits, constellation, args, fixed)
         if args.rule == "rubin_sim":
