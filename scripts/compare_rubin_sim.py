@@ -29,7 +29,24 @@ Per visit it counts:
   between CCDs and the corners beyond 1.75 deg included, the 2 s readout between snaps
   excluded).
 
-and prints the totals, the satellites both find and each alone (rubin_sim's satellites are
+With ``--literature`` rubin_sim is run as the literature ran it (``observationStartMJD``
+given as it is, read as UT1 by rubin_sim; each visit lasting its ``visitTime``), and set
+beside ``inject survey --rule rubin_sim`` (:mod:`inject.survey.rubin_rule`, which reads the
+times the same way): the satellites both count and each alone, with each difference's
+numbers (the track's closest approach, the altitudes and the shadow test at the start and
+end, by skyfield and by inject), and the literature's table: streaked visits, streaks, total
+length and pixels lost by the rule with a 300 px band against inject's physics (CCDs, gaps,
+the masker's width).
+
+``--constellation oneweb`` takes rubin_sim's ``oneweb_tles`` (6,372 at 1,200 km). Its shells
+have 49 planes of 36 at 87.9 deg and 72 planes of 32 at 40 and 55 deg, the numbers of planes
+and of satellites per plane swapped against OneWeb's filing (36 of 49 and 32 of 72,
+sample_fields/constellation_oneweb.yaml), and every plane's satellites at the same mean
+anomalies; the comparison gives both codes the same TLEs. ``--model YAML`` takes the
+satellites' model (shape, mag, ref_range, lumos) from a constellation file instead of a
+7.25 m x 2.65 m box of g = 5.0.
+
+It prints the totals, the satellites both find and each alone (rubin_sim's satellites are
 read from inside its loop), the visits where the counts agree, and the seconds per visit of
 ``check_pointings`` (all the visits in one call, as it is meant to be used) and of inject's
 plan (:func:`inject.survey.plan.plan_visits`) on the same visits and satellites, one core.
@@ -39,6 +56,8 @@ Usage (in the rubin_sim environment)::
     python scripts/make_opsim_night.py -o out/night.db
     python scripts/compare_rubin_sim.py out/night.db --constellation v1 [--twilight]
         [--every N] [--csv out/compare_v1.csv]
+    python scripts/compare_rubin_sim.py out/night.db --constellation oneweb --literature \
+        --model sample_fields/constellation_oneweb.yaml
 """
 import argparse
 import csv
@@ -48,6 +67,7 @@ import sys
 import tempfile
 import time
 import warnings
+from dataclasses import replace
 
 #: rubin_sim's defaults: the circle's radius (deg) and the altitude limit (deg).
 RADIUS_DEG = 1.75
@@ -76,7 +96,8 @@ def tle_epoch(time):
 
 def make_tles(sat_utils, which, epoch):
     """rubin_sim's Starlink TLEs (``v1`` or ``v2``) with their epoch moved to ``epoch``."""
-    make = {"v1": sat_utils.starlink_tles_v1, "v2": sat_utils.starlink_tles_v2}[which]
+    make = {"v1": sat_utils.starlink_tles_v1, "v2": sat_utils.starlink_tles_v2,
+            "oneweb": sat_utils.oneweb_tles}[which]
     original = sat_utils.create_constellation
     sat_utils.create_constellation = functools.partial(original, epoch=tle_epoch(epoch))
     try:
@@ -96,8 +117,19 @@ def twilight(visits, site):
     return np.asarray(alt) > -18.0
 
 
-def rubin_sim_counts(sat_utils, data_path, tles, visits):
-    """check_pointings on the visits: (seconds, n_streaks per visit, {(visit index, name)})."""
+#: rubin_sim's length (rad) of each (visit index, satellite index) it counted.
+RS_LENGTHS = {}
+
+
+def found_key(caller):
+    return int(caller["ob_indx"]), int(caller["sat_in"])
+
+
+def rubin_sim_counts(sat_utils, data_path, tles, visits, literature=False):
+    """check_pointings on the visits: (build seconds, seconds, n_streaks per visit,
+    {(visit index, name)}, lengths per visit (deg)). ``literature``: the MJDs as given (read
+    as UT1) and ``visitTime``; else the TAI starts converted to UT1 and the span of the
+    snaps."""
     import numpy as np
     from astropy.time import Time
     from skyfield.api import Loader
@@ -105,33 +137,65 @@ def rubin_sim_counts(sat_utils, data_path, tles, visits):
     sat_utils.load = Loader(data_path, verbose=False)  # de421 from skyfield-data: offline
     found = set()
     original = sat_utils._streak_length
+    RS_LENGTHS.clear()
 
     def recorded(*args):
         length = original(*args)
         if length > 0:  # the visit and satellite of rubin_sim's own loop
             caller = sys._getframe(1).f_locals
             found.add((int(caller["ob_indx"]), int(caller["sat_in"])))
+            RS_LENGTHS[found_key(caller)] = float(length)
         return length
 
     build = time.perf_counter()
     constellation = sat_utils.Constellation(tles)
     build = time.perf_counter() - build
+    sat_utils._cached = constellation  # for skyfield_track
     starts = Time([v.mjd_tai for v in visits], format="mjd", scale="tai")
-    span = np.array([v.snaps()[-1][0] + v.snaps()[-1][1] for v in visits])
+    if literature:
+        from inject.survey.rubin_rule import visit_span
+
+        mjds = np.array([v.mjd_tai for v in visits])
+        span = np.array([visit_span(v)[0] for v in visits])
+    else:
+        mjds = np.asarray(starts.ut1.mjd)
+        span = np.array([v.snaps()[-1][0] + v.snaps()[-1][1] for v in visits])
     sat_utils._streak_length = recorded
     try:
         start = time.perf_counter()
-        _, n = constellation.check_pointings(
+        lengths, n = constellation.check_pointings(
             np.array([v.ra_deg for v in visits]), np.array([v.dec_deg for v in visits]),
-            np.asarray(starts.ut1.mjd), span)
+            mjds, span)
         seconds = time.perf_counter() - start
     finally:
         sat_utils._streak_length = original
     names = [t.split("\n")[0] for t in tles]
-    return build, seconds, n, {(k, names[i]) for k, i in found}
+    for (k, i) in list(RS_LENGTHS):
+        RS_LENGTHS[(k, names[i])] = RS_LENGTHS.pop((k, i))
+    return build, seconds, n, {(k, names[i]) for k, i in found}, lengths
 
 
-def inject_counts(tles, visits, folder):
+def write_constellation(tles, folder, model=None):
+    """The TLEs as an inject constellation file in ``folder``: the satellites' model from
+    the constellation file ``model`` (its orbits left out), else a box of g = 5.0."""
+    import yaml
+
+    tle_file = os.path.join(folder, "satellites.tle")
+    with open(tle_file, "w") as stream:
+        stream.write("\n".join(tles) + "\n")
+    spec = {"shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0}
+    if model is not None:
+        with open(model) as stream:
+            spec = {k: v for k, v in yaml.safe_load(stream).items()
+                    if k not in ("shells", "tle", "epoch", "satellites")}
+    spec["tle"] = "satellites.tle"
+    const_file = os.path.join(folder, "constellation.yaml")
+    with open(const_file, "w") as stream:
+        yaml.safe_dump(spec, stream)
+    return const_file
+
+
+def inject_counts(tles, visits, folder, model=None):
     """inject's plan and its exact passes on the visits: (seconds of the plan, plans,
     {(visit index, name)} by the rubin_sim rule, {(visit index, name)} sunlit in circle)."""
     import numpy as np
@@ -142,13 +206,7 @@ def inject_counts(tles, visits, folder):
     from inject.survey.constellation import read_constellation
     from inject.survey.prefilter import NightPrefilter
 
-    tle_file = os.path.join(folder, "satellites.tle")
-    with open(tle_file, "w") as stream:
-        stream.write("\n".join(tles) + "\n")
-    const_file = os.path.join(folder, "constellation.yaml")
-    with open(const_file, "w") as stream:
-        stream.write("shape: {type: box, length: 7.25, width: 2.65}\nmag: 5.0\n"
-                     "tle: satellites.tle\n")
+    const_file = write_constellation(tles, folder, model)
     constellation = read_constellation(const_file, visits[0].start.utc)
     engine.plan_visit(visits[0], constellation)  # astropy's first-call set-up, untimed
     start = time.perf_counter()
@@ -187,11 +245,188 @@ def inject_counts(tles, visits, folder):
     return seconds, plans, rule, lit
 
 
+def skyfield_track(sat_utils, tle, visit):
+    """rubin_sim's own numbers for one satellite and visit (skyfield, as check_pointings
+    computes them): altitudes and shadow at the start and end, the Sun line's height above
+    skyfield's sphere there (km; None on the day side), the track's closest approach to the
+    boresight (deg, gnomonic) and its length in the circle (deg)."""
+    import numpy as np
+    from rubin_scheduler.utils import gnomonic_project_toxy
+    from skyfield.api import EarthSatellite
+
+    from inject.survey.rubin_rule import sample_times, visit_span
+
+    name, l1, l2 = tle.split("\n")
+    c = sat_utils._cached  # the Constellation of rubin_sim_counts
+    sat = EarthSatellite(l1, l2, name, c.ts)
+    span, _ = visit_span(visit)
+    mjd = visit.mjd_tai + sample_times(span) / 86400.0
+    t = c.ts.ut1_jd(mjd + 2400000.5)
+    at = sat.at(t)
+    topo = at - c.observatory_site.at(t)
+    alt = topo.altaz()[0].degrees[[0, -1]]
+    lit = at.is_sunlit(c.eph)[[0, -1]]
+    sun = (c.eph["sun"] - c.eph["earth"]).at(t).position.km[:, [0, -1]].T
+    r = at.position.km[:, [0, -1]].T
+    ra, dec, _ = topo.radec()
+    x, y = gnomonic_project_toxy(ra.radians, dec.radians, np.radians(visit.ra_deg),
+                                 np.radians(visit.dec_deg))
+    length = sat_utils._streak_length(ra.radians, dec.radians, np.radians(visit.ra_deg),
+                                      np.radians(visit.dec_deg), np.radians(RADIUS_DEG))
+    return {"alt": alt, "lit": lit, "clear": [sun_line_height(a, b, 6378.1366)
+                                              for a, b in zip(r, sun)],
+            "closest": float(np.degrees(np.nanmin(np.hypot(x, y)))),
+            "length": float(np.degrees(length))}
+
+
+def sun_line_height(r, sun, radius):
+    """Height (km) above the sphere of ``radius`` of the line from ``r`` to the Sun, where
+    it passes the Earth (None when the Earth is not between: the satellite is on the day
+    side)."""
+    import numpy as np
+
+    u = (sun - r) / np.linalg.norm(sun - r)
+    s = -float(r @ u)
+    if s <= 0:
+        return None
+    return float(np.linalg.norm(r + s * u) - radius)
+
+
+def inject_track(visit, orbit):
+    """The same numbers by inject's rule (:func:`inject.survey.rubin_rule.tracks`)."""
+    import numpy as np
+
+    from inject.survey import rubin_rule
+
+    got = rubin_rule.tracks(visit, [orbit])
+    x, y = rubin_rule.gnomonic(got["d"][0], visit.ra_deg, visit.dec_deg)
+    return {"alt": got["alt_deg"][0, [0, -1]], "lit": got["sunlit"][0],
+            "clear": [sun_line_height(r, s, rubin_rule.SKYFIELD_EARTH_RADIUS_KM)
+                      for r, s in zip(got["r_km"][0], got["sun_km"])],
+            "closest": float(np.degrees(np.nanmin(np.hypot(x, y)))),
+            "length": float(np.degrees(rubin_rule.length_in_polygon(
+                x, y, np.radians(rubin_rule.RADIUS_DEG))))}
+
+
+def ut1_shift(sat_utils, visits):
+    """Per visit, (TAI - UT1) of its MJD read as UT1 by astropy minus by skyfield, s."""
+    import numpy as np
+    from astropy.time import Time
+
+    mjd = np.array([v.mjd_tai for v in visits])
+    astropy = (Time(mjd, format="mjd", scale="ut1").tai.mjd - mjd) * 86400.0
+    t = sat_utils._cached.ts.ut1_jd(mjd + 2400000.5)
+    skyfield = (t.tai - (mjd + 2400000.5)) * 86400.0
+    return astropy - skyfield
+
+
+def agreement(label, plans, rs_n, rs_found, rs_len):
+    """Print how ``plans`` (inject --rule rubin_sim) agree with rubin_sim's counts."""
+    import numpy as np
+
+    found = {(k, s.satellite) for k, p in enumerate(plans) for s in p.streaks}
+    n = [len(p.streaks) for p in plans]
+    same = sum(int(a) == b for a, b in zip(rs_n, n))
+    length = {(k, s.satellite): s.length_deg for k, p in enumerate(plans) for s in p.streaks}
+    diffs = [abs(np.degrees(RS_LENGTHS[key]) - length[key]) for key in rs_found & found]
+    print(f"\n{label}: satellites x visits: rubin_sim {len(rs_found)}, inject --rule "
+          f"rubin_sim {len(found)}, both {len(rs_found & found)}, rubin_sim only "
+          f"{len(rs_found - found)}, inject only {len(found - rs_found)}; visits with equal "
+          f"counts {same} of {len(plans)}; streaked visits rubin_sim "
+          f"{int(np.count_nonzero(rs_n))}, inject {sum(c > 0 for c in n)}; total length "
+          f"rubin_sim {float(np.sum(rs_len)):.4f} deg, inject "
+          f"{sum(length.values()):.4f} deg; largest difference of a satellite both count "
+          f"{max(diffs, default=0.0):.4f} deg", flush=True)
+    for key in sorted(rs_found & found):
+        print(f"    visit index {key[0]} {key[1]}: rubin_sim {np.degrees(RS_LENGTHS[key]):.4f} "
+              f"deg, inject {length[key]:.4f} deg")
+
+
+def literature(args, sat_utils, data_path, tles, visits, width_px=300.0):
+    """rubin_sim as the literature ran it against ``inject survey --rule rubin_sim``, and the
+    literature's table (the rule with a ``width_px`` band against inject's physics)."""
+    import numpy as np
+
+    from inject.survey import plan as engine
+    from inject.survey import rubin_rule
+    from inject.survey.constellation import read_constellation
+
+    build, rs_s, rs_n, rs_found, rs_len = rubin_sim_counts(sat_utils, data_path, tles, visits,
+                                                           literature=True)
+    print(f"rubin_sim check_pointings (MJD as given, visitTime): {rs_s / len(visits):.4f} s "
+          f"per visit ({rs_s:.1f} s; its Constellation built in {build:.1f} s)", flush=True)
+    shift = ut1_shift(sat_utils, visits)
+    print(f"TAI - UT1 of the MJDs read as UT1: astropy's minus skyfield's "
+          f"{shift.min():.4f} to {shift.max():.4f} s", flush=True)
+    with tempfile.TemporaryDirectory() as folder:
+        const_file = write_constellation(tles, folder, args.model)
+        constellation = read_constellation(const_file, visits[0].start.utc)
+        start = time.perf_counter()
+        rule = rubin_rule.plan_visits(visits, constellation, width_px=width_px)
+        rule_s = time.perf_counter() - start
+        # The same on skyfield's UT1: each MJD moved so that astropy's UT1 instant is
+        # skyfield's (a check of the explanation, not a rule).
+        moved = [replace(v, mjd_tai=v.mjd_tai - d / 86400.0) for v, d in zip(visits, shift)]
+        rule_sf = rubin_rule.plan_visits(moved, constellation, width_px=width_px)
+        start = time.perf_counter()
+        physics = engine.plan_visits(visits, constellation, fixed_width_px=width_px)
+        phys_s = time.perf_counter() - start
+    print(f"inject --rule rubin_sim: {rule_s / len(visits):.4f} s per visit ({rule_s:.1f} s); "
+          f"inject's physics: {phys_s / len(visits):.4f} s per visit ({phys_s:.1f} s)",
+          flush=True)
+    for label, plans in (("on astropy's UT1 (the rule)", rule),
+                         ("on skyfield's UT1 (MJDs moved)", rule_sf)):
+        agreement(label, plans, rs_n, rs_found, rs_len)
+    found = {(k, s.satellite) for k, p in enumerate(rule) for s in p.streaks}
+    n_rule = [len(p.streaks) for p in rule]
+    len_rule = np.array([p.streak_length_deg for p in rule])
+    by_name = {t.split("\n")[0]: t for t in tles}
+    orbit = {o.name: o for o in constellation.orbits}
+    for label, pairs in (("rubin_sim only", rs_found - found), ("inject only", found - rs_found)):
+        for k, name in sorted(pairs):
+            v = visits[k]
+            a = skyfield_track(sat_utils, by_name[name], v)
+            b = inject_track(v, orbit[name])
+            print(f"  {label}: visit {v.observation_id} {name}")
+            for who, x in (("skyfield", a), ("inject", b)):
+                clear = ", ".join("day side" if c is None else f"{c:+.2f} km" for c in x["clear"])
+                print(f"    {who:<8} alt start/end {x['alt'][0]:.3f}/{x['alt'][1]:.3f} deg, "
+                      f"sunlit {bool(x['lit'][0])}/{bool(x['lit'][1])} (Sun line above the "
+                      f"sphere: {clear}), closest {x['closest']:.4f} deg, length in circle "
+                      f"{x['length']:.4f} deg")
+    # The literature's table: the rule with a fixed band, and inject's physics.
+    rows = [("rubin_sim check_pointings", int(np.count_nonzero(rs_n)), int(np.sum(rs_n)),
+             float(np.sum(rs_len)), None),
+            (f"inject --rule rubin_sim, {width_px:g} px band in the circle",
+             sum(c > 0 for c in n_rule), sum(n_rule), float(len_rule.sum()),
+             sum(p.pixels_lost for p in rule)),
+            ("inject physics: CCDs, the masker's width", sum(len(p.streaks) > 0 for p in physics),
+             sum(len(p.streaks) for p in physics),
+             float(sum(p.streak_length_deg for p in physics)),
+             sum(p.pixels_lost for p in physics)),
+            (f"inject physics: CCDs, a {width_px:g} px band",
+             sum(len(p.streaks) > 0 for p in physics), sum(len(p.streaks) for p in physics),
+             float(sum(p.streak_length_deg for p in physics)),
+             sum(p.pixels_fixed_mask for p in physics))]
+    print(f"\n{'':<48} {'visits':>7} {'streaks':>7} {'length deg':>10} {'pixels lost':>12}")
+    for label, nv, ns, length, px in rows:
+        print(f"{label:<48} {nv:>7} {ns:>7} {length:>10.2f} "
+              f"{'-' if px is None else format(px, ','):>12}")
+    return 0
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("visits", help="opsim database (scripts/make_opsim_night.py)")
-    parser.add_argument("--constellation", choices=("v1", "v2"), default="v1",
-                        help="rubin_sim's starlink_tles_v1 (4,408) or v2 (29,988)")
+    parser.add_argument("--constellation", choices=("v1", "v2", "oneweb"), default="v1",
+                        help="rubin_sim's starlink_tles_v1 (4,408), v2 (29,988) or "
+                             "oneweb_tles (6,372)")
+    parser.add_argument("--literature", action="store_true",
+                        help="rubin_sim as the literature ran it (MJD as given, visitTime) "
+                             "against inject survey --rule rubin_sim, and the literature's "
+                             "table")
+    parser.add_argument("--model", help="the satellites' model from this constellation file "
+                                        "(its orbits left out)")
     parser.add_argument("--twilight", action="store_true",
                         help="only the visits with the Sun above -18 deg")
     parser.add_argument("--every", type=int, default=1, help="every N-th visit")
@@ -208,15 +443,19 @@ def main():
         visits = tuple(v for v, t in zip(visits, twilight(visits, RUBIN)) if t)
     tles = make_tles(sat_utils, args.constellation, visits[0].start)
     print(f"{len(visits)} visits of {args.visits}"
-          f"{' (twilight)' if args.twilight else ''}; rubin_sim's starlink_tles_"
-          f"{args.constellation}: {len(tles)} satellites, epoch moved to "
+          f"{' (twilight)' if args.twilight else ''}; rubin_sim's "
+          f"{'oneweb_tles' if args.constellation == 'oneweb' else 'starlink_tles_'}"
+          f"{'' if args.constellation == 'oneweb' else args.constellation}: {len(tles)} "
+          f"satellites, epoch moved to "
           f"{visits[0].start.utc.isot[:19]} UTC", flush=True)
 
-    build, rs_s, rs_n, rs_found = rubin_sim_counts(sat_utils, data_path, tles, visits)
+    if args.literature:
+        return literature(args, sat_utils, data_path, tles, visits)
+    build, rs_s, rs_n, rs_found, _ = rubin_sim_counts(sat_utils, data_path, tles, visits)
     print(f"rubin_sim check_pointings: {rs_s / len(visits):.4f} s per visit "
           f"({rs_s:.1f} s; its Constellation built in {build:.1f} s)", flush=True)
     with tempfile.TemporaryDirectory() as folder:
-        in_s, plans, rule, lit = inject_counts(tles, visits, folder)
+        in_s, plans, rule, lit = inject_counts(tles, visits, folder, args.model)
     print(f"inject plan:               {in_s / len(visits):.4f} s per visit ({in_s:.1f} s): "
           f"{rs_s / in_s:.1f} x faster", flush=True)
 

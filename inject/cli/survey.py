@@ -40,7 +40,16 @@ def add_survey_parser(sub):
                    help="also count a fixed-width mask, as studies of constellations did: a "
                         "band of this full width (e.g. 300px or 60arcsec, at 0.2 arcsec/px) "
                         "along every streak on the CCDs, in pixels_fixed_mask columns and a "
-                        "fixed_mask block of summary.json")
+                        "fixed_mask block of summary.json (with --rule rubin_sim: the rule's "
+                        "own mask, inside the circle)")
+    p.add_argument("--rule", choices=("inject", "rubin_sim"), default="inject",
+                   help="inject: sunlit tracks on the science CCDs (TAI, light time, "
+                        "aberration, the WGS84 penumbra) with the masker's mask; rubin_sim: "
+                        "count as rubin_sim's check_pointings, as the literature did (the "
+                        "1.75 deg circle, 20 deg, sunlit at the start or end by a sphere's "
+                        "shadow, visitTime, observationStartMJD read as UT1 so ~37 s late) "
+                        "with a fixed band of --mask-width (300px without it) inside the "
+                        "circle")
     p.add_argument("--render", action="store_true",
                    help="render the streaked CCDs (OUTDIR/visits/<observationId>/<CCD>.fits), "
                         "mask them with the masker and add the measured FWHM, mask width "
@@ -84,6 +93,9 @@ def run_survey(args):
         raise InputError("--workers", args.workers, "must be >= 1")
     options = _render_options(args)
     fixed = _fixed_mask(args)
+    if args.rule == "rubin_sim" and options is not None:
+        raise InputError("--render", True, "only with --rule inject (the rubin_sim rule has "
+                                           "no CCDs)")
     array = slurm_slice(args)
     if array is not None:
         log.info("inject survey: %s", array)
@@ -122,9 +134,12 @@ def run_survey(args):
     claim = None
     try:
         claim = claim_outdir(args.output, _run_key(inputs), inputs, args.overwrite)
-        warn_fallbacks(visits)
+        if args.rule == "inject":  # the rubin_sim rule takes no seeing and no sky
+            warn_fallbacks(visits)
         started = time.perf_counter()
         plans = _plan(visits, constellation, args, fixed)
+        if args.rule == "rubin_sim":
+            fixed = None  # its band is the rule's mask: recorded under "rule"
         elapsed = time.perf_counter() - started
         rendered = sizing = None
         if options is not None:
@@ -164,6 +179,8 @@ def _inputs(args, constellation, options, fixed=None):
               "render": None if options is None else [options.cutout, options.compression]}
     if fixed is not None:  # only then: a run without it keeps its key
         inputs["mask_width_px"] = fixed.width_px
+    if args.rule != "inject":
+        inputs["rule"] = args.rule
     return inputs
 
 
@@ -289,6 +306,16 @@ def _plan(visits, constellation, args, fixed=None):
     from inject.survey.plan import plan_chunk, plan_visits
 
     width = None if fixed is None else fixed.width_px
+    if args.rule == "rubin_sim":  # the band is the rule's own mask, not one beside it
+        from inject.survey import rubin_rule
+
+        band = rubin_rule.DEFAULT_WIDTH_PX if width is None else width
+        plan_visits = partial(rubin_rule.plan_visits, width_px=band)
+        plan_chunk = partial(rubin_rule.plan_chunk, width_px=band)
+        width = None
+    else:
+        plan_visits = partial(plan_visits, fixed_width_px=width)
+        plan_chunk = partial(plan_chunk, fixed_width_px=width)
     progress = Progress(len(visits), "planning visits", "visit", log)
     workers = args.workers or 1
     try:
@@ -296,11 +323,10 @@ def _plan(visits, constellation, args, fixed=None):
             with warnings.catch_warnings():
                 # An epoch's warning is said once, for the night (check_epochs).
                 warnings.simplefilter("ignore", OrbitWarning)
-                return plan_visits(visits, constellation, progress=progress.update,
-                                   fixed_width_px=width)
+                return plan_visits(visits, constellation, progress=progress.update)
         chunks = [visits[k:k + CHUNK_VISITS] for k in range(0, len(visits), CHUNK_VISITS)]
         path = os.path.abspath(args.constellation)
-        task = partial(plan_chunk, fixed_width_px=width)
+        task = plan_chunk
         if args.scheduler:
             from inject.exposure.runner import dask_executor
 
@@ -354,6 +380,7 @@ def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, re
              "plan_seconds_per_visit": round(elapsed / len(visits), 4)}
     if fixed is not None:
         about["fixed_mask"] = {"width": fixed.given}
+    about["rule"] = _rule_record(args, visits)
     measured = None
     if rendered is not None:
         from inject.survey.compare import measured_columns, render_summary
@@ -373,6 +400,38 @@ def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, re
              result["streaks"], result["pixel_fraction_lost_total"], elapsed / len(visits),
              ", ".join(written.values()))
     return written
+
+
+def _rule_record(args, visits):
+    """summary.json's ``rule``: which rule counted the streaks, and for ``rubin_sim`` what it
+    takes (the circle, the limit, the time's reading, the spans' source, the band)."""
+    if args.rule == "inject":
+        return {"name": "inject", "streaks": "sunlit tracks on the science CCDs",
+                "time": "observationStartMJD as TAI", "mask": "the masker's width per streak"}
+    from inject.survey import rubin_rule
+    from inject.survey.fixed_mask import parse_mask_width
+
+    width = (rubin_rule.DEFAULT_WIDTH_PX if args.mask_width is None
+             else parse_mask_width(args.mask_width).width_px)
+    sources = [rubin_rule.visit_span(v)[1] for v in visits]
+    return {"name": "rubin_sim",
+            "streaks": f"rubin_sim's check_pointings: sunlit (sphere of "
+                       f"{rubin_rule.SKYFIELD_EARTH_RADIUS_KM} km, the Sun's centre) and above "
+                       f"{rubin_rule.ALT_LIMIT_DEG:g} deg at the start or end, the track "
+                       f"every ~{rubin_rule.STEP_S:g} s entering the "
+                       f"{rubin_rule.RADIUS_DEG} deg circle (gnomonic); no CCDs",
+            "time": "observationStartMJD read as UT1 (opsim's TAI: ~37 s late), as rubin_sim "
+                    "reads it, to reproduce the literature",
+            "radius_deg": rubin_rule.RADIUS_DEG, "alt_limit_deg": rubin_rule.ALT_LIMIT_DEG,
+            "step_s": rubin_rule.STEP_S,
+            "visits_span_from": {s: sources.count(s) for s in ("visitTime",
+                                                               "exposure+readouts")},
+            "mask": "a fixed band along the track inside the circle",
+            "mask_width_px": width,
+            "mask_width_given": args.mask_width or f"{rubin_rule.DEFAULT_WIDTH_PX:g}px "
+                                                   f"(default)",
+            "pixels": "the circle's 0.2 arcsec pixels; pixel fractions are of the 189 CCDs' "
+                      "pixels"}
 
 
 def _failed(rendered, outdir):

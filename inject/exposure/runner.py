@@ -43,6 +43,7 @@ import multiprocessing
 import os
 import resource
 import signal
+import sys
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -156,7 +157,7 @@ def render_ccd(task):
     Without locks (``task.lock`` false) the finished file is left under its temporary name,
     given in the row's ``part``, for the runner to commit in its own process.
     """
-    if multiprocessing.parent_process() is not None:
+    if _worker_process():
         limit_threads()
         if task.version is not None:
             # A worker process writes as the run it serves (INJVER too), whatever it would read.
@@ -210,6 +211,23 @@ def render_ccd(task):
         "measure_s": end - written, "measured": measured,
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "pid": os.getpid()})
+
+
+def _worker_process():
+    """Whether this process is a worker, not the caller's own: a child process (a process
+    pool's, a LocalCluster's, a nanny's) or a Dask worker started on its own (``dask worker
+    --no-nanny``, which is no one's child). A worker takes its threads and the run's version
+    from the task; the caller's process (a thread pool) keeps its own."""
+    if multiprocessing.parent_process() is not None:
+        return True
+    distributed = sys.modules.get("distributed")  # never imported here: a worker has it
+    if distributed is None:
+        return False
+    try:
+        distributed.get_worker()
+    except ValueError:  # not in a Dask worker's task
+        return False
+    return True
 
 
 def commit(outdir, row, part=None):
@@ -728,9 +746,9 @@ class Batch:
         box = None if self.cutout is None else cutout_box(ccd, streaks, self.cutout)
         from inject.io.atomic import locking
 
-        return Task(plan.fscene, ccd.name, self.outdir, streaks, box=box, version=__version__,
-                    lock=locking(),
-                    **self.task)
+        # Absolute: a worker elsewhere (a Dask cluster's) has another working directory.
+        return Task(plan.fscene, ccd.name, os.path.abspath(self.outdir), streaks, box=box,
+                    version=__version__, lock=locking(), **self.task)
 
 
 def _claim(batch, overwrite, verify=False):
@@ -900,8 +918,41 @@ def run_batches(batches, executor, overwrite=False, retries=2, progress=None, ve
         stop_workers(executor, [batch.outdir for batch in batches])
         raise
     finally:
+        remove_lost_temporaries(executor, [batch.outdir for batch in batches])
         progress.close()
     return RunResult(rendered, skipped, failed)
+
+
+def remove_lost_temporaries(executor, outdirs):
+    """Remove the temporary files that the workers lost during the run (a Dask worker killed
+    or crashed: Dask ran its tasks again on another) left in ``outdirs``.
+
+    The executor says which worker processes it lost (``lost_pids()``, set by
+    :func:`dask_executor`; other executors have none). Their files (a CCD's, when the worker
+    died while writing it) would otherwise stay until a rerun finds them stale
+    (:func:`inject.io.atomic.remove_stale_temporaries`). A file still locked by a live
+    process is left alone (:func:`inject.io.atomic.remove_temporaries_of`).
+
+    Returns
+    -------
+    list of str
+        The files removed.
+    """
+    lost = getattr(executor, "lost_pids", None)
+    if lost is None:
+        return []
+    try:
+        pids = lost()
+    except Exception:  # the cluster is gone too: a rerun's clean-up will do
+        return []
+    if not pids:
+        return []
+    from inject.io.atomic import remove_temporaries_of
+
+    removed = [path for outdir in outdirs for path in remove_temporaries_of(outdir, pids)]
+    log.warning("%d worker(s) lost during the run (their CCDs were rendered again); removed "
+                "%d temporary file(s) they left", len(pids), len(removed))
+    return removed
 
 
 def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=None,
@@ -1024,7 +1075,11 @@ def dask_executor(scheduler, workers=None, memory_limit=DASK_MEMORY_LIMIT, retri
     scheduler (``tcp://host:8786``); ``workers`` defaults to the CPUs this job may use. Tasks
     are impure (``pure=False``) and retried
     ``retries`` times by Dask when they raise (a CCD that fails on its input returns a failed
-    row instead: see :func:`run`)."""
+    row instead: see :func:`run`).
+
+    The workers found at the start must run this inject (:func:`_check_workers`); the
+    executor's ``lost_pids()`` names those lost since, whose temporary files the runner
+    removes (:func:`remove_lost_temporaries`)."""
     try:
         from dask.distributed import Client, LocalCluster
     except ImportError:
@@ -1047,9 +1102,69 @@ def dask_executor(scheduler, workers=None, memory_limit=DASK_MEMORY_LIMIT, retri
             raise InputError("--scheduler", scheduler, f"cannot reach the Dask scheduler "
                                                        f"({err})") from None
     try:
-        client.run(limit_threads)
-        yield client.get_executor(retries=retries, pure=False)
+        pids = _check_workers(client, scheduler)
+        executor = client.get_executor(retries=retries, pure=False)
+        executor.lost_pids = lambda: _lost_pids(client, pids)
+        yield executor
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _worker_inject():
+    """On a Dask worker: one thread per library (:func:`limit_threads`); return the version
+    of the inject this worker imports (read afresh: a task may have set ``__version__``),
+    where it is, and the worker's process id."""
+    import inject
+    from inject._version import get_version
+
+    limit_threads()
+    return (get_version(), os.path.dirname(os.path.dirname(os.path.abspath(inject.__file__))),
+            os.getpid())
+
+
+def _check_workers(client, scheduler):
+    """Limit the threads of the cluster's workers and check that they run this inject.
+
+    A worker started elsewhere imports whatever inject its environment holds (another
+    checkout, an older install): its CCDs would not be this run's, yet bear its version.
+
+    Returns
+    -------
+    dict
+        ``{address: pid}`` of the workers.
+
+    Raises
+    ------
+    InputError
+        A worker cannot import inject, or imports another version of it.
+    """
+    import inject
+
+    here = os.path.dirname(os.path.dirname(os.path.abspath(inject.__file__)))
+    try:
+        found = client.run(_worker_inject)
+    except Exception as err:  # raised on the worker: no inject there, most likely
+        raise InputError("--scheduler", scheduler,
+                         f"its workers cannot run inject ({error_text(err)}); start them "
+                         f"where this inject is installed (or with PYTHONPATH={here})") from None
+    for address, (version, where, _) in sorted(found.items()):
+        if version != __version__:
+            raise InputError("--scheduler", scheduler,
+                             f"worker {address} runs inject {version} from {where}, this "
+                             f"command inject {__version__} from {here}; start the workers "
+                             f"with this inject (e.g. PYTHONPATH={here})")
+    log.info("Dask scheduler %s: %d worker%s running inject %s", scheduler, len(found),
+             "s" if len(found) != 1 else "", __version__)
+    return {address: pid for address, (_, _, pid) in found.items()}
+
+
+def _lost_pids(client, pids):
+    """The process ids of the workers ``pids`` (``{address: pid}``) no longer in the
+    cluster."""
+    try:
+        now = client.scheduler_info(n_workers=-1)["workers"]
+    except TypeError:  # a Dask before n_workers: all the workers, always
+        now = client.scheduler_info()["workers"]
+    return sorted(pid for address, pid in pids.items() if address not in now)

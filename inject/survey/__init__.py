@@ -10,6 +10,8 @@
   length, magnitude, FWHM, peak surface brightness, mask width and the pixels its mask takes.
 - :mod:`~inject.survey.fixed_mask`: ``--mask-width``, a band of one width along every
   streak counted beside the plan's mask.
+- :mod:`~inject.survey.rubin_rule`: ``--rule rubin_sim``, the visits counted as rubin_sim's
+  ``check_pointings`` counts them (the literature's rule), with a fixed band in the circle.
 - :mod:`~inject.survey.render`: ``--render``: the streaked CCDs of each visit rendered as a
   focal-plane scene of the visit on the focal plane's runner.
 - :mod:`~inject.survey.compare`: what the masker measures on a rendered CCD, matched to the

@@ -71,7 +71,7 @@ SNAP_BREAK_S = 1.5
 STREAK_FIELDS = ("observationId", "satellite", "n_ccds", "ccds", "length_deg", "mag",
                  "fwhm_arcsec", "peak_e_per_px", "mask_width_px", "pixels_lost", "band",
                  "mjd", "t_mid_s", "alt_deg", "range_km", "height_km",
-                 "angular_speed_deg_s", "sun_fraction_min", "sunlit_parts")
+                 "angular_speed_deg_s", "sun_fraction_min", "sunlit_parts", "rule")
 #: Columns of ``visits.csv``.
 VISIT_FIELDS = ("observationId", "mjd", "band", "n_streaks", "n_ccds_streaked",
                 "streak_length_deg", "pixels_lost", "pixel_fraction_lost", "fieldRA", "fieldDec",
@@ -109,6 +109,10 @@ class Streak:
         included: the visit's total counts them once).
     pixels_fixed_mask : int or None
         The same for a band of the fixed width ``--mask-width`` (None without it).
+    rule : str
+        The rule that counted it: ``inject`` (this module) or ``rubin_sim``
+        (:mod:`inject.survey.rubin_rule`: no CCDs, the length and a fixed band inside the
+        1.75 deg circle).
     """
 
     satellite: str
@@ -127,6 +131,7 @@ class Streak:
     sun_fraction_min: float = math.nan
     sunlit_parts: int = 1
     pixels_fixed_mask: int | None = None
+    rule: str = "inject"
 
 
 @dataclass
@@ -172,7 +177,7 @@ class VisitPlan:
     def streak_rows(self):
         """The visit's rows of ``streaks.csv`` (:data:`STREAK_FIELDS`)."""
         v = self.visit
-        return [{"observationId": v.observation_id, "satellite": s.satellite,
+        return [{"observationId": v.observation_id, "satellite": s.satellite, "rule": s.rule,
                  "n_ccds": len(s.ccds), "ccds": " ".join(s.ccds),
                  "length_deg": s.length_deg, "mag": s.mag, "fwhm_arcsec": s.fwhm_arcsec,
                  "peak_e_per_px": s.peak_e_per_px, "mask_width_px": s.mask_width_px,

@@ -60,7 +60,8 @@ READOUT_S = 2.0
 REQUIRED = ("observationId", "observationStartMJD", "fieldRA", "fieldDec", "rotSkyPos", "band",
             "visitExposureTime")
 #: Columns read when present.
-OPTIONAL = ("numExposures", "seeingFwhmEff", "skyBrightness", "rotTelPos", "paraAngle")
+OPTIONAL = ("numExposures", "seeingFwhmEff", "skyBrightness", "rotTelPos", "paraAngle",
+            "visitTime")
 
 #: Where a visit's rotator angle came from: its ``rotTelPos``, its ``paraAngle`` and
 #: ``rotSkyPos``, or the parallactic angle computed for its start (:func:`with_rotators`).
@@ -101,6 +102,9 @@ class Visit:
         ``rotTelPos``, the camera rotator's angle, deg (None when not known).
     rotator_source : str or None
         Where ``rotator_deg`` came from (:data:`ROTATOR_SOURCES`).
+    visit_time_s : float or None
+        ``visitTime``, the visit's span from its first shutter opening to its last closing,
+        s (read by ``--rule rubin_sim`` only: :mod:`inject.survey.rubin_rule`).
     """
 
     observation_id: int
@@ -115,6 +119,7 @@ class Visit:
     sky_brightness: float | None = None
     rotator_deg: float | None = None
     rotator_source: str | None = None
+    visit_time_s: float | None = None
 
     @property
     def start(self):
@@ -297,6 +302,9 @@ def _visit(path, k, row, names):
     seeing = optional("seeingFwhmEff")
     if seeing is not None and not seeing > 0:
         raise InputError(f"{path} row {k + 1} seeingFwhmEff", seeing, "must be > 0 arcsec")
+    visit_time = optional("visitTime")
+    if visit_time is not None and not visit_time > 0:
+        raise InputError(f"{path} row {k + 1} visitTime", visit_time, "must be > 0 s")
     mjd = get("observationStartMJD")
     check_mjd(f"{path} row {k + 1} observationStartMJD (visit {row[names['observationId']]})",
               mjd)
@@ -309,7 +317,8 @@ def _visit(path, k, row, names):
                  ra_deg=get("fieldRA") % 360.0, dec_deg=dec, rotation_deg=rotation, band=band,
                  exptime_s=exptime, n_exposures=n_exp, seeing_fwhm_eff=seeing,
                  sky_brightness=optional("skyBrightness"), rotator_deg=rotator,
-                 rotator_source=None if rotator is None else source)
+                 rotator_source=None if rotator is None else source,
+                 visit_time_s=visit_time)
 
 
 def rotator_angle(rot_sky_pos_deg, parallactic_deg):
