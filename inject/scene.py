@@ -59,6 +59,29 @@ STREAMS = {"stars": 0, "noise": 1, "cosmic_rays": 2, "raw": 3, "signal_noise": 4
            "read_noise": 5}
 
 
+#: Arrays of at least this many bytes that :func:`sparse_zeros` maps page by page.
+SPARSE_MIN_BYTES = 1 << 22
+
+
+def sparse_zeros(shape, dtype=np.float64):
+    """A zero array for a plane most of which may stay zero (a streak's model, the mask).
+
+    numpy asks the kernel for 2 MiB pages for large arrays: each first touch then zeroes
+    (and counts in memory) 2 MiB, and where the kernel compacts memory to find them, costs
+    system time. A streak's band touches every 2 MiB of the CCD's rows. This array is fresh
+    private anonymous memory instead, mapped 4 KiB at a time as it is touched (untouched, it
+    reads as zeros from the kernel's zero page); its values are np.zeros' in every way.
+    """
+    import mmap
+
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape)) * dtype.itemsize
+    if nbytes < SPARSE_MIN_BYTES or not hasattr(mmap, "MAP_PRIVATE"):
+        return np.zeros(shape, dtype)
+    memory = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+    return np.frombuffer(memory, dtype).reshape(shape)
+
+
 def rng(seed, purpose, detector_index=0, *block):
     """Independent generator for one purpose of one detector of a scene seed (and of one
     block of it, such as an amplifier's number, when given)."""
@@ -159,7 +182,7 @@ def render_tracks(shape, models, tracks, budget=Budget(), noise_sigma=0.0,
     truth : list of dict
         One row per streak.
     """
-    model_image = np.zeros(shape)
+    model_image = sparse_zeros(shape)
     budgets = [own_budget(budget, model, noise_sigma) for model in models]
     truth = [None] * len(tracks)
     counter = Progress(len(tracks), "rendering streaks", "streak", log,
@@ -455,14 +478,23 @@ class PoissonTable:
     MAX_MEAN = 1e6
 
     def __init__(self, mean):
-        from scipy import stats
+        # pdtr is what scipy.stats.poisson.cdf evaluates, without importing scipy.stats
+        # (about half a second of a process's start).
+        from scipy.special import pdtr
 
         kmax = _kmax(mean)
-        self.cdf = stats.poisson.cdf(np.arange(kmax + 1), mean)
+        self.cdf = pdtr(np.arange(kmax + 1), mean)
         self.cdf[-1] = 1.0  # every u < 1 maps inside the table
         self.guide = np.searchsorted(self.cdf, np.arange(self.GUIDE) / self.GUIDE, side="right")
         # Slice j maps to guide[j] .. guide[j + 1]: more than one step needs the search.
         self.wide = np.diff(self.guide, append=kmax) > 1
+        # u below ``low`` or from ``high`` on: every wide slice (and the narrow ones among
+        # them in the tails, which the search draws alike), picked out by two comparisons
+        # instead of a lookup per draw.
+        wide = np.flatnonzero(self.wide)
+        half = self.GUIDE // 2
+        self.low = (wide[wide < half].max(initial=-1) + 1) / self.GUIDE
+        self.high = wide[wide >= half].min(initial=self.GUIDE) / self.GUIDE
 
     def draw(self, gen, shape):
         """An int64 array of ``shape`` of Poisson draws from generator ``gen``."""
@@ -470,7 +502,7 @@ class PoissonTable:
         cell = (u * self.GUIDE).astype(np.intp)  # exact: GUIDE is a power of 2
         k = self.guide[cell]
         k += self.cdf[k] <= u
-        rare = np.nonzero(self.wide[cell])
+        rare = np.nonzero((u < self.low) | (u >= self.high))
         if rare[0].size:
             k[rare] = np.searchsorted(self.cdf, u[rare], side="right")
         return k
@@ -778,6 +810,26 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
         raise SceneError(f"scene={type(scene).__name__}: pass a Scene "
                          f"(inject.config.parse_scene of the mapping)")
     det = scene.detector
+    if scene.stars and add_stars is None:
+        def add_stars(image):
+            # Random stars over the whole sensor: a cut-out has the whole CCD's stars.
+            return add_star_field(image, scene, rng(scene.seed, "stars", detector_index),
+                                  wcs=wcs, field_shape=det.full_shape)
+    noise = AmplifierNoise(det, scene.seed, detector_index) if scene.noise else None
+    stars = None
+    if noise is not None and scene.stars:
+        # The stars' expected charge, to join the streaks' (a sum of its own: the model is
+        # written as it is), so that each pixel's charge is drawn from its block's stream.
+        # With a core to spare, the streaks render meanwhile (each into its own array: the
+        # same numbers in either order).
+        stars = np.zeros(det.shape)
+        if rendered is None and noise.threads > 1:
+            with ThreadPoolExecutor(1) as pool:
+                pending = pool.submit(render_streaks, scene, budget)
+                add_stars(stars)
+                rendered = pending.result()
+        else:
+            add_stars(stars)
     streaks, truth = render_streaks(scene, budget) if rendered is None else rendered
     sky = sky_level(scene)
     # Expected charge = level (uniform: sky, dark current) + streaks + stars.
@@ -785,25 +837,16 @@ def simulate(scene, budget=Budget(), detector_index=0, wcs=None, rendered=None,
     if not truth:
         # No streak: no model to add, keep or write (a read-only zero view costs nothing).
         streaks = np.broadcast_to(np.float32(0), det.shape)
-    if scene.stars and add_stars is None:
-        def add_stars(image):
-            # Random stars over the whole sensor: a cut-out has the whole CCD's stars.
-            return add_star_field(image, scene, rng(scene.seed, "stars", detector_index),
-                                  wcs=wcs, field_shape=det.full_shape)
-    mask = np.zeros(det.shape, dtype=np.int32)
-    noise = AmplifierNoise(det, scene.seed, detector_index) if scene.noise else None
+    mask = sparse_zeros(det.shape, np.int32)
     if noise is not None:
         varying = streaks if truth else None
-        if scene.stars:
-            # The stars' expected charge joins the streaks' (a sum of its own: the model is
-            # written as it is), so that each pixel's charge is drawn from its block's stream.
-            varying = np.zeros(det.shape)
-            add_stars(varying)
+        if stars is not None:
+            varying = stars
             if truth:
                 varying += streaks
         # float32, as written: the counts are integers, exact in float32 to 2**24 e-.
         image, variance = noise.draw(level, varying, np.float32)
-        del varying
+        del varying, stars
     else:
         image = np.full(det.shape, level) if not truth else streaks + level
         if scene.stars:

@@ -464,8 +464,10 @@ class PsfStamps:
             folded *= ramp_y[j][None, :, None] * ramp_x[:, None, :]
             # I(x) = (dk / 2 pi)^2 sum_k K e^{ikx}: with the inverse FFT's 1/n^2 and the
             # pixel area p^2, the factor is (n dk p / 2 pi)^2 = 1.
-            field = np.fft.irfft2(folded, s=(n, n))
-            stamps[j] = field[:, idx[:, None], idx[None, :]]
+            # irfft2 in its two steps (as numpy does them), the real transform only for the
+            # stamp's rows: the same numbers, for half the work.
+            rows = np.fft.ifft(folded, n, axis=1)[:, idx]
+            stamps[j] = np.fft.irfft(rows, n, axis=2)[:, :, idx]
         return stamps
 
 

@@ -95,6 +95,25 @@ def test_draws_do_not_depend_on_threads_and_differ_by_seed():
     assert not np.array_equal(a, other)
 
 
+def test_a_scene_is_the_same_whether_its_streaks_render_beside_the_stars(monkeypatch,
+                                                                          small_scene):
+    """With threads to spare, the streaks render on a second thread while the stars are
+    placed: the planes and the truth are those of the one-thread order."""
+    import inject.scene
+
+    sc = small_scene("stars.density_per_deg2=1e5", nx=300, ny=260)
+    results = []
+    for threads in (1, 2):
+        monkeypatch.setattr(inject.scene, "NOISE_THREADS", threads)
+        results.append(simulate(sc))
+    one, two = results
+    for plane in ("image", "mask", "variance", "streak_model"):
+        np.testing.assert_array_equal(getattr(one, plane), getattr(two, plane))
+    assert one.streak_model.max() > 0 and one.truth[0]["charge_in_image_e"] > 0
+    assert [row["charge_in_image_e"] for row in one.truth] == \
+        [row["charge_in_image_e"] for row in two.truth]
+
+
 @pytest.mark.parametrize("chunk", [1, 64, 64 * 7 + 3])
 def test_chunked_draw_takes_the_same_uniforms(monkeypatch, chunk):
     """Drawing an amplifier a few rows at a time (to keep the temporaries in cache) gives
@@ -227,6 +246,26 @@ def test_poisson_table_is_the_inverse_cdf(mean):
     assert chi_square_pvalue(k, mean) > 1e-4
 
 
+@pytest.mark.parametrize("mean", [0.3, 50.0, 465.0, 3000.5, 9e5])
+def test_poisson_table_at_the_edges_of_its_slices_and_in_its_tails(mean):
+    """Uniforms on and beside every slice edge of the guide table's tails, and at the ends of
+    [0, 1), draw the plain inversion of scipy's CDF (where the table's search takes over)."""
+    table = PoissonTable(mean)
+    edges = np.concatenate([np.arange(64), table.GUIDE - 64 + np.arange(64)]) / table.GUIDE
+    u = np.concatenate([edges, np.nextafter(edges, 0), np.nextafter(edges, 1),
+                        [1e-300, 1e-17, 0.5, 1 - 2 ** -53]])
+    u = np.clip(u, 0.0, 1 - 2 ** -53)
+
+    class Fixed:
+        def random(self, shape):
+            return u.reshape(shape)
+
+    cdf = stats.poisson.cdf(np.arange(table.cdf.size), mean)
+    np.testing.assert_array_equal(table.draw(Fixed(), u.shape),
+                                  np.minimum(np.searchsorted(cdf, u, side="right"),
+                                             table.cdf.size - 1))
+
+
 def test_means_beyond_the_table_use_numpys_sampler():
     mean = 2 * PoissonTable.MAX_MEAN
     k = draw_poisson(np.random.default_rng(1), mean, 20_000)
@@ -253,3 +292,28 @@ def test_digest_stream_holes_keep_the_bytes(tmp_path):
     data = np.concatenate(pieces).tobytes()
     assert path.read_bytes() == data
     assert stream.digest.hexdigest() == hashlib.sha256(data).hexdigest()
+
+
+def test_a_write_without_its_digest_gives_the_same_bytes(tmp_path, small_scene):
+    sc = small_scene(nx=300, ny=260)
+    res = simulate(sc)
+    hashed, plain = tmp_path / "hashed.fits", tmp_path / "plain.fits"
+    digest = write_exposure(hashed, sc, res, sc.detector.gain)
+    assert write_exposure(plain, sc, res, sc.detector.gain, digest=False) is None
+    assert plain.read_bytes() == hashed.read_bytes()
+    assert digest == hashlib.sha256(plain.read_bytes()).hexdigest()
+
+
+@pytest.mark.parametrize("shape, dtype", [((3, 5), np.float64), ((1100, 1024), np.int32),
+                                          ((600, 1000), np.float64)])
+def test_sparse_zeros_are_zeros_of_the_shape_and_type(shape, dtype):
+    import pickle
+
+    from inject.scene import sparse_zeros
+
+    a = sparse_zeros(shape, dtype)
+    assert a.shape == shape and a.dtype == dtype and a.flags.writeable
+    assert not a.any()
+    a[-1, -1] = 7
+    assert a.sum() == 7 and np.count_nonzero(a) == 1
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(a)), a)

@@ -70,7 +70,7 @@ def run_simulate(args):
         result = simulate(scene, wcs=wcs)
         write_exposure(args.output, scene, result, scene.detector.gain,
                        wcs_header=None if wcs is None else wcs.to_header(relax=True),
-                       overwrite=args.overwrite)
+                       overwrite=args.overwrite, digest=False)
         if args.exr:
             from inject.io.exr import write_exr
 

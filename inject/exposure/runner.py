@@ -985,7 +985,8 @@ def run(plan, outdir, executor, ccds=None, overwrite=False, retries=2, progress=
 
 #: Modules every worker needs, imported once by the fork server the workers come from: a
 #: worker then starts in milliseconds instead of importing GalSim, astropy and SciPy (~1.5 s).
-WORKER_MODULES = ("inject.exposure.ccd", "inject.io.fits", "inject.exposure.runner", "scipy.stats")
+WORKER_MODULES = ("inject.exposure.ccd", "inject.io.fits", "inject.exposure.runner",
+                  "scipy.special")
 
 
 def start_fork_server():
