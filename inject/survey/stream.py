@@ -276,11 +276,18 @@ SUMMARY_STREAK_COLUMNS = ("observationId", "fwhm_arcsec", "mask_width_px", "peak
 
 
 def columns_of(table):
-    """``{column: ndarray}`` of a pyarrow Table (null as NaN in a number column)."""
+    """``{column: ndarray}`` of a pyarrow Table (null as NaN in a number column); the
+    ``night`` column (``YYYY-MM-DD``) as ``year`` (int), a string a visit being 60 bytes."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
     out = {}
     for name in table.column_names:
         column = table.column(name)
-        if column.type in ("string", "large_string"):
+        if name == "night":
+            out["year"] = pc.cast(pc.utf8_slice_codeunits(column, 0, 4),
+                                  pa.int64()).to_numpy(zero_copy_only=False)
+        elif column.type in ("string", "large_string"):
             out[name] = np.asarray(column.to_pylist(), object)
         else:
             out[name] = column.to_numpy(zero_copy_only=False)
@@ -297,8 +304,9 @@ def summary_from_tables(visits, streaks, about, fallbacks, site_lon_deg, fixed_w
     Parameters
     ----------
     visits, streaks : dict of ndarray
-        :data:`SUMMARY_VISIT_COLUMNS` and :data:`SUMMARY_STREAK_COLUMNS` (and
-        ``pixels_fixed_mask`` of the visits with a fixed width).
+        :data:`SUMMARY_VISIT_COLUMNS` and :data:`SUMMARY_STREAK_COLUMNS` as
+        :func:`columns_of` gives them (the night as its ``year``; and ``pixels_fixed_mask``
+        of the visits with a fixed width).
     about : dict
         The inputs, first in the mapping.
     fallbacks : dict
@@ -346,7 +354,7 @@ def summary_from_tables(visits, streaks, about, fallbacks, site_lon_deg, fixed_w
     hours = local_hours(visits["mjd"], site_lon_deg).astype(int)
     out["by_hour"] = {f"{h % 24:02d}": _totals(*chosen(hours == h), TOTAL_PIXELS)
                       for h in sorted(set(hours.tolist()))}
-    years = np.array([int(str(n)[:4]) for n in visits["night"]], int)
+    years = np.asarray(visits["year"], int)
     out["by_year"] = {str(y): _totals(*chosen(years == y), TOTAL_PIXELS)
                       for y in sorted(set(years.tolist()))}
     bins = np.array([sun_alt_bin(a) for a in np.asarray(visits["sun_alt_deg"], float)], object)
