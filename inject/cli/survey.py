@@ -359,6 +359,10 @@ def _plan(source, todo, counts, constellation, args, fixed, manifest, keep=False
                 (f", ~{_duration(left)} left" if math.isfinite(left) else ""))
 
     def finish(night, visits, plans, sun_alt):
+        if len(plans) != counts[night]:  # the file changed since its first pass
+            raise InputError("VISITS", args.visits, f"night {night_label(night)} read with "
+                                                    f"{len(plans)} visits, counted with "
+                                                    f"{counts[night]}: changed while read?")
         visit_table, streak_table = night_tables(night, plans, sun_alt, fixed is not None)
         paths = night_paths(args.output, night)
         write_parquet(visit_table, paths["visits"])

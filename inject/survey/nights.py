@@ -52,6 +52,8 @@ def night_of(mjd, lon_deg):
     -------
     int or ndarray of int64
     """
+    if isinstance(mjd, (float, int)):  # a visit's: math's floor, the same arithmetic
+        return math.floor(mjd + lon_deg / 360.0 - 0.5)
     value = np.floor(np.asarray(mjd, float) + lon_deg / 360.0 - 0.5).astype(np.int64)
     return int(value) if value.ndim == 0 else value
 
