@@ -1,13 +1,16 @@
-"""What ``inject survey`` writes: ``streaks.csv``, ``visits.csv``, ``summary.json`` and three
-plots, all or none of them (:func:`inject.io.atomic.output_group`).
+"""What ``inject survey`` writes: ``streaks.csv``, ``visits.csv``, ``summary.json`` and the
+plots, all or none of them (:func:`inject.io.atomic.output_group`); a run of many nights
+writes them from its nights' files (:mod:`inject.survey.stream`, :func:`write_run_outputs`).
 
 ``streaks.csv`` has one row per visit and satellite whose sunlit streak crosses a science CCD
 (:data:`inject.survey.plan.STREAK_FIELDS`), ``visits.csv`` one row per visit, streaked or not
 (:data:`inject.survey.plan.VISIT_FIELDS`). ``summary.json`` holds the totals, the
 distributions of FWHM and mask width over the streaks, and the same per band and per hour of
-the night (local mean solar time at the site). The plots: streaks per visit through the night
-(``streaks_per_visit.png``), the pixel fraction lost per visit (``pixel_fraction.png``) and a
-sky map of the visits coloured by it (``sky_map.png``).
+the night (local mean solar time at the site), and for a run of nights per year and per
+altitude of the Sun. The plots: streaks per visit through the night
+(``streaks_per_visit.png``), the pixel fraction lost per visit (``pixel_fraction.png``), a
+sky map of it (``sky_map.png``, a HEALPix map with healpy), and per year and Sun altitude
+(``by_year.png``, ``by_sun_alt.png``).
 
 A ``--job J --njobs N`` slice writes the same files with ``-jobJ-of-N`` before the extension,
 so that the slices of a night can share one folder. A run claims its folder before any work
