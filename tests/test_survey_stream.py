@@ -107,7 +107,7 @@ def _files(folder):
     return out
 
 
-def _stopped(visits, out, const, after):
+def _stopped(visits, out, const, after, *extra):
     """Run in a subprocess sent SIGINT once its manifest holds ``after`` nights."""
     code = ("import os, signal, sys\n"
             "from inject.survey import stream\n"
@@ -121,7 +121,7 @@ def _stopped(visits, out, const, after):
             "sys.exit(main(sys.argv[1:]))\n")
     env = {**os.environ, "PYTHONPATH": os.path.abspath(ROOT)}
     return subprocess.run([sys.executable, "-c", code, "survey", str(visits), "-o", str(out),
-                           "--constellation", str(const), "--csv", "always"],
+                           "--constellation", str(const), "--csv", "always", *extra],
                           env=env, capture_output=True, text=True, timeout=600)
 
 
@@ -133,21 +133,22 @@ def test_the_nights_stream_some_streaks(nights):
     assert streaked == {"2026-06-15", "2026-06-16", "2026-06-17", "2026-06-18"}
 
 
-@pytest.mark.parametrize("stops", [(2,), (1, 3)], ids=["once", "twice"])
-def test_a_stopped_run_resumed_writes_the_same_bytes(nights, tmp_path, stops):
-    """SIGINT after the 2nd of 4 nights (or after the 1st, then after the 3rd): the rerun as
-    typed plans only the nights not done, and every file (the nights' Parquet files, the
-    manifest, the CSV files, the plots, summary.json but for its timings) is the
-    uninterrupted run's, byte for byte."""
+@pytest.mark.parametrize("stops, extra", [((2,), ()), ((1, 3), ()), ((2,), ("--workers", "2"))],
+                         ids=["once", "twice", "two-workers"])
+def test_a_stopped_run_resumed_writes_the_same_bytes(nights, tmp_path, stops, extra):
+    """SIGINT after the 2nd of 4 nights (or after the 1st, then after the 3rd; or after the
+    2nd on two workers, resumed on two): the rerun as typed plans only the nights not done,
+    and every file (the nights' Parquet files, the manifest, the CSV files, the plots,
+    summary.json but for its timings) is the uninterrupted run's, byte for byte."""
     out = tmp_path / "out"
     for after in stops:
-        result = _stopped(nights["visits"], out, nights["const"], after)
+        result = _stopped(nights["visits"], out, nights["const"], after, *extra)
         assert result.returncode != 0, result.stderr
         manifest = json.loads((out / "nights" / "manifest.json").read_text())
         assert len(manifest["nights"]) == after
         assert not (out / "summary.json").exists()
     assert survey(nights["visits"], "-o", out, "--constellation", nights["const"],
-                  "--csv", "always") == 0
+                  "--csv", "always", *extra) == 0
     timings = json.loads((out / "summary.json").read_text())["timings"]
     assert timings["nights_done_before"] == stops[-1]
     assert timings["nights_planned"] == NIGHTS - stops[-1]

@@ -404,10 +404,11 @@ def plot_bins(path, summary_map, key, title, overwrite=True):
         ax.set_xticklabels(names, fontsize=7, rotation=30 if len(names) > 4 else 0)
         ax.set_ylabel(label, fontsize=8)
         ax.tick_params(labelsize=7)
-        for k, n in enumerate(names):
-            ax.annotate(f"{bins[n]['visits']:,}", (k, 0), xytext=(0, 2),
-                        textcoords="offset points", ha="center", fontsize=6, color="white")
-    fig.suptitle(f"{title} (visits on each bar)", fontsize=9)
+        for k, n in enumerate(names):  # above each bar, however short
+            ax.annotate(f"{bins[n]['visits']:,}", (k, values[k]), xytext=(0, 2),
+                        textcoords="offset points", ha="center", fontsize=6)
+        ax.margins(y=0.1)
+    fig.suptitle(f"{title} (visits above each bar)", fontsize=9)
     with atomic_path(path, overwrite) as tmp:
         fig.savefig(tmp, format="png", dpi=100)
 
