@@ -376,3 +376,12 @@ def test_the_per_year_and_sun_plots_are_written(nights):
     for name in ("by_year.png", "by_sun_alt.png", "sky_map.png"):
         assert (nights["whole"] / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
+
+
+def test_the_sun_bins_hold_their_lower_edges():
+    from inject.survey.nights import SUN_ALT_BINS, sun_alt_bins
+
+    names = [SUN_ALT_BINS[k][0] for k in sun_alt_bins([5.0, -12.0, -12.001, -18.0, -18.001,
+                                                       -70.0])]
+    assert names == ["above_-12", "above_-12", "-18_to_-12", "-18_to_-12", "below_-18",
+                     "below_-18"]

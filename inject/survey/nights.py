@@ -318,14 +318,23 @@ def select_nights(nights, job=None, njobs=None):
 
 def sun_altitudes(visits, site):
     """The Sun's altitude at each visit's start, deg (astropy, geometric: no refraction),
-    one vectorised call for the visits (a night's)."""
+    one vectorised call for the visits (a night's). Beyond the bundled IERS table the Earth's
+    orientation is extrapolated, as the orbits' frames take it (a warning said there)."""
     if not len(visits):
         return np.zeros(0)
+    import warnings
+
     from astropy.coordinates import AltAz, get_sun
     from astropy.time import Time
+    from erfa import ErfaWarning
+
+    from inject.orbits.passes import _earth_orientation
 
     times = Time([v.mjd_tai for v in visits], format="mjd", scale="tai")
-    sun = get_sun(times).transform_to(AltAz(obstime=times, location=site.location))
+    with _earth_orientation(times), warnings.catch_warnings():
+        # A year past the leap-second table's: UTC is taken as TAI - 37 s (a second at most).
+        warnings.simplefilter("ignore", ErfaWarning)
+        sun = get_sun(times).transform_to(AltAz(obstime=times, location=site.location))
     return np.asarray(sun.alt.deg, float)
 
 
@@ -334,9 +343,8 @@ SUN_ALT_BINS = (("above_-12", -12.0, math.inf), ("-18_to_-12", -18.0, -12.0),
                 ("below_-18", -math.inf, -18.0))
 
 
-def sun_alt_bin(alt_deg):
-    """The :data:`SUN_ALT_BINS` name of a Sun altitude (a bin holds its lower bound)."""
-    for name, low, high in SUN_ALT_BINS:
-        if low <= alt_deg < high:
-            return name
-    return SUN_ALT_BINS[0][0]  # +inf or NaN: not below any bound
+def sun_alt_bins(alt_deg):
+    """The index in :data:`SUN_ALT_BINS` of each Sun altitude (a bin holds its lower bound;
+    NaN is above every bound)."""
+    alt = np.asarray(alt_deg, float)
+    return (alt < SUN_ALT_BINS[1][2]).astype(int) + (alt < SUN_ALT_BINS[2][2])

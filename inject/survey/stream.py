@@ -113,7 +113,7 @@ def plan_night(constellation, visits, site=None, progress=None, **options):
         # An epoch's warning is said once, for the survey (check_epochs).
         warnings.simplefilter("ignore", OrbitWarning)
         plans = plan_visits(visits, constellation, site, progress=progress, **options)
-    return plans, sun_altitudes(visits, site)
+        return plans, sun_altitudes(visits, site)
 
 
 def night_tables(night, plans, sun_alt_deg, fixed):
@@ -258,12 +258,18 @@ def _totals(visits, streaks, total_pixels):
 
 def local_hours(mjd_tai, site_lon_deg):
     """:func:`inject.survey.visits.night_hours` of start MJDs (TAI)."""
+    import warnings
+
     from astropy.time import Time
+    from erfa import ErfaWarning
 
     mjd_tai = np.asarray(mjd_tai, float)
     if not mjd_tai.size:
         return np.array([])
-    mjd = Time(mjd_tai, format="mjd", scale="tai").utc.mjd
+    with warnings.catch_warnings():
+        # A year past the leap-second table's: UTC is taken as TAI - 37 s.
+        warnings.simplefilter("ignore", ErfaWarning)
+        mjd = Time(mjd_tai, format="mjd", scale="tai").utc.mjd
     local = (np.asarray(mjd, float) + site_lon_deg / 360.0) % 1.0 * 24.0
     return np.where(local < 12.0, local + 24.0, local)
 
@@ -315,7 +321,7 @@ def summary_from_tables(visits, streaks, about, fallbacks, site_lon_deg, fixed_w
     fixed_width_px : float or None
         ``--mask-width``'s width, px.
     """
-    from inject.survey.nights import sun_alt_bin
+    from inject.survey.nights import sun_alt_bins
     from inject.survey.plan import TOTAL_PIXELS
 
     ids = np.asarray(visits["observationId"])
@@ -357,9 +363,9 @@ def summary_from_tables(visits, streaks, about, fallbacks, site_lon_deg, fixed_w
     years = np.asarray(visits["year"], int)
     out["by_year"] = {str(y): _totals(*chosen(years == y), TOTAL_PIXELS)
                       for y in sorted(set(years.tolist()))}
-    bins = np.array([sun_alt_bin(a) for a in np.asarray(visits["sun_alt_deg"], float)], object)
-    out["by_sun_alt"] = {name: _totals(*chosen(bins == name), TOTAL_PIXELS)
-                         for name, _, _ in SUN_ALT_BINS if (bins == name).any()}
+    bins = sun_alt_bins(visits["sun_alt_deg"])
+    out["by_sun_alt"] = {name: _totals(*chosen(bins == k), TOTAL_PIXELS)
+                         for k, (name, _, _) in enumerate(SUN_ALT_BINS) if (bins == k).any()}
     return out
 
 
