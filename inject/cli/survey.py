@@ -59,7 +59,8 @@ def add_survey_parser(sub):
                         "lossy: IMAGE and VARIANCE quantised to a tenth of the noise with "
                         "dithering, adding 0.029 of it) (default: lossless)")
     p.add_argument("--workers", type=int, metavar="N",
-                   help="worker processes over the visits (default: 1, this process); with "
+                   help="worker processes over the nights, a night a task (default: 1, this "
+                        "process); with "
                         "--render, over the CCDs (default: the CPUs this job may use, its "
                         "affinity and control group's quota, and no more than its memory "
                         "holds)")
@@ -341,6 +342,8 @@ def _plan(source, todo, counts, constellation, args, fixed, manifest, keep=False
     """
     from concurrent.futures import FIRST_COMPLETED, wait
 
+    import numpy as np
+
     from inject.progress import Progress
     from inject.survey.nights import night_label
     from inject.survey.plan import fallbacks
@@ -396,28 +399,38 @@ def _plan(source, todo, counts, constellation, args, fixed, manifest, keep=False
                 log.debug("night %s done (%s)", night_label(night), note())
         else:
             path = os.path.abspath(args.constellation)
+            # Fewer nights than workers (a night alone): each night in as many contiguous
+            # parts, each with its own prefilter (a visit's plan is the same in any part).
+            parts = -(-workers // len(todo)) if todo else 1
             with _executor(args, workers) as executor:
-                pending = {}
+                pending, done_parts = {}, {}
 
-                def collect(block):
-                    ready, _ = wait(pending, return_when=FIRST_COMPLETED) if block else \
-                        ([f for f in pending if f.done()], None)
-                    for future in sorted(ready, key=lambda f: pending[f][0]):
-                        night, visits = pending.pop(future)
-                        plans, sun_alt = future.result()
-                        finish(night, visits, plans, sun_alt)
+                def collect():
+                    ready, _ = wait(pending, return_when=FIRST_COMPLETED)
+                    for future in sorted(ready, key=lambda f: pending[f][:2]):
+                        night, part, visits = pending.pop(future)
+                        done_parts[night][part] = future.result()
+                        if any(r is None for r in done_parts[night]):
+                            continue
+                        results = done_parts.pop(night)
+                        finish(night, visits, [p for r in results for p in r[0]],
+                               np.concatenate([r[1] for r in results]))
                         finished[1] += len(visits)
                         progress.update(f"night {night_label(night)} done ({note()})",
                                         n=len(visits))
 
                 for night, visits in nights:
                     visits = rotators(visits)
-                    pending[executor.submit(plan_night, path, visits, **options)] = \
-                        (night, visits)
+                    size = -(-len(visits) // parts)
+                    pieces = [visits[k:k + size] for k in range(0, len(visits), size)]
+                    done_parts[night] = [None] * len(pieces)
+                    for part, piece in enumerate(pieces):
+                        pending[executor.submit(plan_night, path, piece, **options)] = \
+                            (night, part, visits)
                     while len(pending) >= NIGHTS_AHEAD * workers:
-                        collect(True)
+                        collect()
                 while pending:
-                    collect(True)
+                    collect()
     finally:
         progress.close()
     return [p for night in sorted(kept) for p in kept[night]]
