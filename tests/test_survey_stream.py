@@ -385,3 +385,20 @@ def test_the_sun_bins_hold_their_lower_edges():
                                                        -70.0])]
     assert names == ["above_-12", "above_-12", "-18_to_-12", "-18_to_-12", "below_-18",
                      "below_-18"]
+
+
+def test_progress_by_whole_nights_says_each_night_that_ends_a_tenth(caplog):
+    """A night's visits counted at once (the workers' progress): one line for each update
+    that enters a new tenth, with its note."""
+    import logging
+
+    from inject.progress import Progress
+
+    logger = logging.getLogger("inject.test_stream_progress")
+    with caplog.at_level(logging.INFO, logger=logger.name):
+        progress = Progress(100, "planning 4 nights", "visit", logger)
+        for k in range(4):
+            progress.update(f"{k + 1}/4 nights", n=25)
+        progress.close()
+    assert [r.getMessage() for r in caplog.records] == [
+        f"[{25 * k}/100] planning 4 nights: {k}/4 nights" for k in range(1, 5)]
