@@ -402,3 +402,20 @@ def test_progress_by_whole_nights_says_each_night_that_ends_a_tenth(caplog):
         progress.close()
     assert [r.getMessage() for r in caplog.records] == [
         f"[{25 * k}/100] planning 4 nights: {k}/4 nights" for k in range(1, 5)]
+
+
+def test_nights_of_another_inject_version_are_not_taken(tmp_path):
+    """A manifest's nights count as done for the same run key and inject version only."""
+    from inject.survey.stream import NightManifest
+
+    night = tmp_path / "nights" / "visits-2026-06-15.parquet"
+    night.parent.mkdir()
+    night.write_bytes(b"rows")
+    fallbacks = {"visits_default_seeing": 0}
+    NightManifest(str(tmp_path), "k", version="1.0").add(61206, 3, 1, {"visits": str(night)},
+                                                         fallbacks)
+    assert NightManifest(str(tmp_path), "k", version="1.0").load().done([61206]) == {61206}
+    assert NightManifest(str(tmp_path), "k", version="1.1").load().done([61206]) == set()
+    assert NightManifest(str(tmp_path), "other", version="1.0").load().done([61206]) == set()
+    night.write_bytes(b"rowz")  # another file under the name: not done
+    assert NightManifest(str(tmp_path), "k", version="1.0").load().done([61206]) == set()

@@ -153,10 +153,15 @@ class NightManifest:
         The run's key (:func:`inject.survey.outputs.claim_outdir`): the entries of a manifest
         with another key are not this run's.
     job, njobs : int or None
+    version : str, optional
+        inject's version (default: this one's): nights planned by another version are
+        planned again, never mixed with this one's.
     """
 
-    def __init__(self, outdir, key, job=None, njobs=None):
-        self.outdir, self.key = outdir, key
+    def __init__(self, outdir, key, job=None, njobs=None, version=None):
+        if version is None:
+            from inject import __version__ as version
+        self.outdir, self.key, self.version = outdir, key, version
         name = "manifest.json" if job is None else f"manifest-job{job}-of-{njobs}.json"
         self.path = os.path.join(outdir, NIGHTS_DIR, name)
         self.entries = {}
@@ -169,8 +174,13 @@ class NightManifest:
                 data = json.load(stream)
         except (OSError, ValueError):
             return self
-        if isinstance(data, dict) and data.get("key") == self.key:
-            self.entries = {int(e["mjd"]): e for e in data.get("nights", [])}
+        if not isinstance(data, dict) or data.get("key") != self.key:
+            return self
+        if data.get("inject_version") != self.version:
+            log.info("%s: its nights were planned by inject %s, not %s: planned again",
+                     self.path, data.get("inject_version"), self.version)
+            return self
+        self.entries = {int(e["mjd"]): e for e in data.get("nights", [])}
         return self
 
     def done(self, nights):
@@ -204,7 +214,8 @@ class NightManifest:
                                     "files": files, "fallbacks": fallbacks}
         lines = ",\n".join(json.dumps(self.entries[n], sort_keys=True)
                            for n in sorted(self.entries))
-        text = f'{{"key": {json.dumps(self.key)}, "nights": [\n{lines}\n]}}\n'
+        text = (f'{{"key": {json.dumps(self.key)}, "inject_version": '
+                f'{json.dumps(self.version)}, "nights": [\n{lines}\n]}}\n')
         with atomic_path(self.path, True) as tmp:
             with open(tmp, "w", encoding="utf-8") as stream:
                 stream.write(text)
