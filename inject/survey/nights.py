@@ -12,7 +12,8 @@ own rule) is not read.
 Reading is in two passes, neither holding the survey. The first (:class:`VisitSource`'s
 constructor) checks every row as :func:`inject.survey.visits.read_visits` does, so that a bad
 value anywhere is a one-line error before any work, and keeps the night of each visit only as
-counts per night (and the ids, 8 bytes a visit, for the check that no id is given twice). The
+counts per night (while it reads, each visit's night and id, 16 bytes a visit, for the counts
+and the check that no id is given twice). The
 second (:meth:`VisitSource.nights`) yields one night's visits at a time: from SQLite through
 one cursor ordered by start time, from a CSV in one pass over its lines when they are in night
 order (the scheduler's order). A CSV whose nights are out of order is read whole instead (a
