@@ -72,20 +72,20 @@ class Progress:
         if self.shown and (_stderr_is_terminal() or in_notebook()):
             self.bar = _bar(self.total, desc, unit)
 
-    def update(self, note=None):
-        """One more item done; ``note`` (e.g. ``"R22_S11 done"``) goes on the bar, or on the
-        line if this item completes a tenth."""
-        self.done += 1
+    def update(self, note=None, n=1):
+        """``n`` more items done (one by default); ``note`` (e.g. ``"R22_S11 done"``) goes on
+        the bar, or on the line if these items complete a tenth."""
+        self.done += n
         if not self.shown:
             return
         if self.bar is not None:
             if note:
                 self.bar.set_postfix_str(note, refresh=False)
-            self.bar.update(1)
+            self.bar.update(n)
             return
         # A line when the count enters a new tenth of the total: ten lines for any total of
         # ten or more, one per item below that.
-        if self.done * 10 // self.total > (self.done - 1) * 10 // self.total:
+        if self.done * 10 // self.total > (self.done - n) * 10 // self.total:
             self.logger.info("[%d/%d] %s%s", self.done, self.total, self.desc,
                              f": {note}" if note else "")
 

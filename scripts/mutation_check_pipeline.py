@@ -435,9 +435,9 @@ SURVEY_MUTATIONS = [
             "survey", _CLI, "json.dumps(inputs, sort_keys=True)",
             'json.dumps({k: v for k, v in inputs.items() if k != "visits_sha256"}, '
             'sort_keys=True)'),
-    _survey("worker chunks drop each chunk's last visit", "survey", _CLI,
-            "chunks = [visits[k:k + CHUNK_VISITS] for k in",
-            "chunks = [visits[k:k + CHUNK_VISITS - 1] for k in"),
+    _survey("a night's parts on the workers drop each part's last visit", "survey", _CLI,
+            "pieces = [visits[k:k + size] for k in",
+            "pieces = [visits[k:k + size - 1] for k in"),
     # --- the optics: the traced kernel, its grid and its cache ---------------------------------
     _survey("traced kernel turned the wrong way across the track", "optics", _OPTICS,
             "parts = [self.profile(gsparams).rotate(-float(track_angle_deg) * galsim.degrees)]",

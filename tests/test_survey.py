@@ -554,8 +554,8 @@ def test_outputs_appear_together_and_are_not_replaced(cli, tmp_path, digest):
     const = _shell_file(tmp_path)
     status, _, out = _survey(cli, tmp_path, db, const, "--no-plots")
     assert status == 0
-    assert sorted(os.listdir(out)) == ["streaks.csv", "summary.json", "survey_claim.json",
-                                       "visits.csv"]
+    assert sorted(os.listdir(out)) == ["nights", "streaks.csv", "summary.json",
+                                       "survey_claim.json", "visits.csv"]
     before = digest(out / "visits.csv")
     status, err, _ = _survey(cli, tmp_path, db, const, "--no-plots")
     assert status == 2 and "exists" in err and digest(out / "visits.csv") == before

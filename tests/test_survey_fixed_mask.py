@@ -218,7 +218,9 @@ def test_another_width_into_the_same_outdir_is_another_run(cli, tmp_path):
     """The band's width is part of the run's key: the other --job slice of a run with
     another width is refused at once, though its files' names are free; with the same width
     it is the same run's slice."""
-    visits = write_csv(tmp_path / "night.csv", aimed_rows()[:2])
+    first, second = aimed_rows()[:2]
+    second = {**second, "observationStartMJD": repr(float(second["observationStartMJD"]) + 1)}
+    visits = write_csv(tmp_path / "night.csv", [first, second])  # two nights: two slices
     const = write_const(str(tmp_path))
     out = tmp_path / "out"
 

@@ -306,8 +306,9 @@ def test_an_edited_visits_file_is_another_run(cli, crossing, nine, tmp_path):
     status, _, _ = cli("survey", visits, "-o", out, "--constellation", crossing["const"],
                        "--no-plots", "--job", 0, "--njobs", 2)
     assert status == 0
-    lines = open(nine).read().splitlines()
-    visits.write_text("\n".join(lines[:5]) + "\n")
+    rows = read_csv(nine)[:4]  # four visits, the last a day later: two nights, two slices
+    rows[-1]["observationStartMJD"] = repr(float(rows[-1]["observationStartMJD"]) + 1.0)
+    write_csv(visits, rows)
     status, _, err = cli("survey", visits, "-o", out, "--constellation", crossing["const"],
                          "--no-plots", "--job", 1, "--njobs", 2, strict=True)
     assert status == 2 and "another survey run" in err

@@ -60,6 +60,11 @@ def survey(*args):
     return main(["survey", *[str(a) for a in args]])
 
 
+def days_later(row, days):
+    """``row`` moved ``days`` later: into another night (--job slices take nights)."""
+    return {**row, "observationStartMJD": repr(float(row["observationStartMJD"]) + days)}
+
+
 def _visit_rows():
     """The visits' rows: the aimed ones pointed at the highest satellite of the shell 15 s
     after their start (its topocentric direction from SGP4 and astropy's frames)."""
@@ -253,12 +258,15 @@ def test_a_mask_across_a_ccd_edge_keeps_its_rows_on_the_ccd():
 
 def test_a_visit_plans_the_same_whole_alone_and_in_a_job_slice(night):
     """Visit 11's rows of streaks.csv: the whole night, a CSV of visit 11 alone, and the
-    second of three --job slices (the shells' epoch is the constellation's, not the first
-    visit's)."""
+    second of three --job slices of three nights, visit 10 moved a day earlier and 12 a day
+    later (the shells' epoch is the constellation's, not the first visit's)."""
     folder, const = night["folder"], night["const"]
     alone = write_csv(folder / "alone.csv", [night["rows"][1]])
     assert survey(alone, "-o", folder / "alone", "--constellation", const, "--no-plots") == 0
-    assert survey(night["visits"], "-o", folder / "job", "--constellation", const,
+    rows = night["rows"]
+    three = write_csv(folder / "three.csv", [days_later(rows[0], -1.0), rows[1],
+                                             days_later(rows[2], 1.0)])
+    assert survey(three, "-o", folder / "job", "--constellation", const,
                   "--no-plots", "--job", 1, "--njobs", 3) == 0
     whole = [r for r in night["streaks"] if r["observationId"] == "11"]
     assert len(whole) == 1
@@ -445,9 +453,10 @@ def test_a_visit_without_seeing_is_warned_and_counted(cli, night, tmp_path):
 # --- one OUTDIR, one run ----------------------------------------------------------------------
 
 def _two_nights(tmp_path, night):
-    """Two VISITS files (visits 10 and 12; visit 10 alone) and the constellation."""
+    """Two VISITS files (visits 10 and 12, 12 a day later: two nights; visit 10 alone) and
+    the constellation."""
     rows = night["rows"]
-    return (write_csv(tmp_path / "a.csv", [rows[0], rows[2]]),
+    return (write_csv(tmp_path / "a.csv", [rows[0], days_later(rows[2], 1.0)]),
             write_csv(tmp_path / "b.csv", [rows[0]]), night["const"])
 
 
@@ -473,8 +482,9 @@ def test_overwrite_leaves_only_this_runs_outputs(cli, night, tmp_path):
     file of the earlier run's slices, and the visits/<id> folders this run does not render."""
     a, b, const = _two_nights(tmp_path, night)
     out = tmp_path / "out"
-    tables = ["streaks.csv", "summary.json", "survey_claim.json", "visits.csv"]
-    plots = ["pixel_fraction.png", "sky_map.png", "streaks_per_visit.png"]
+    tables = ["nights", "streaks.csv", "summary.json", "survey_claim.json", "visits.csv"]
+    plots = ["by_sun_alt.png", "by_year.png", "pixel_fraction.png", "sky_map.png",
+             "streaks_per_visit.png"]
     assert cli("survey", a, "-o", out, "--constellation", const)[0] == 0
     assert sorted(os.listdir(out)) == sorted(tables + plots)
     assert cli("survey", a, "-o", out, "--constellation", const, "--no-plots",
@@ -484,8 +494,8 @@ def test_overwrite_leaves_only_this_runs_outputs(cli, night, tmp_path):
     assert cli("survey", a, "-o", out, "--constellation", const, "--job", 0, "--njobs", 2,
                "--overwrite")[0] == 0
     assert sorted(os.listdir(out)) == sorted(
-        ["survey_claim.json"] + [n.replace(".", "-job0-of-2.") for n in tables + plots
-                                 if n != "survey_claim.json"])
+        ["nights", "survey_claim.json"] + [n.replace(".", "-job0-of-2.") for n in tables + plots
+                                           if n not in ("nights", "survey_claim.json")])
     (out / "visits" / "12").mkdir(parents=True)  # as an earlier --render leaves it
     (out / "visits" / "12" / "R22_S11.fits").write_text("")
     assert cli("survey", b, "-o", out, "--constellation", const, "--no-plots",

@@ -4,13 +4,15 @@ masks cost (the plan); with ``--render``, the streaked CCDs rendered, masked and
 import contextlib
 import json
 import logging
+import math
 import os
+import shutil
 import sys
 import time
 import warnings
 
 from inject.cli.options import add_resume_options, slurm_slice
-from inject.errors import InputError, OrbitWarning
+from inject.errors import InputError
 from inject.io.atomic import locks_off
 
 log = logging.getLogger(__name__)
@@ -28,8 +30,10 @@ def add_survey_parser(sub):
                     "constellation whose sunlit track crosses a science CCD during the "
                     "exposure: the CCDs, length, magnitude, FWHM, peak surface brightness, "
                     "the mask the masker's rule gives it against the visit's sky, and the "
-                    "pixels that mask takes. Writes streaks.csv, visits.csv, summary.json "
-                    "and three plots in OUTDIR.")
+                    "pixels that mask takes. Plans night by night (each night's tables in "
+                    "OUTDIR/nights/ as it finishes: a stopped run rerun as typed goes on "
+                    "where it stopped), then writes streaks.csv, visits.csv, summary.json "
+                    "and the plots in OUTDIR.")
     p.add_argument("visits", metavar="VISITS", help="opsim SQLite database or CSV of visits")
     p.add_argument("-o", "--output", "--out", dest="output", required=True, metavar="OUTDIR",
                    help="output directory (made if missing; its parent must exist)")
@@ -64,7 +68,8 @@ def add_survey_parser(sub):
                         "lossy: IMAGE and VARIANCE quantised to a tenth of the noise with "
                         "dithering, adding 0.029 of it) (default: lossless)")
     p.add_argument("--workers", type=int, metavar="N",
-                   help="worker processes over the visits (default: 1, this process); with "
+                   help="worker processes over the nights, a night a task (default: 1, this "
+                        "process); with "
                         "--render, over the CCDs (default: the CPUs this job may use, its "
                         "affinity and control group's quota, and no more than its memory "
                         "holds)")
@@ -72,11 +77,15 @@ def add_survey_parser(sub):
                    help="a Dask scheduler address, or 'local' for a Dask LocalCluster of "
                         "--workers processes (default: a process pool)")
     p.add_argument("--job", type=int, metavar="J",
-                   help="plan the J-th (0-based) of --njobs interleaved slices of the visits "
+                   help="plan the J-th (0-based) of --njobs interleaved slices of the nights "
                         "(in a SLURM job array, default: the task's place in it)")
     p.add_argument("--njobs", type=int, metavar="N",
                    help="with --job: the number of slices (in a SLURM job array, "
                         "default: its task count)")
+    p.add_argument("--csv", choices=("auto", "always", "never"), default="auto",
+                   help="write the combined visits.csv and streaks.csv: always, never, or "
+                        "(auto, the default) for runs of at most 100,000 visits; every night's "
+                        "tables are in OUTDIR/nights/ as Parquet files anyway")
     p.add_argument("--no-plots", action="store_true", help="write the tables only")
     p.add_argument("--json", action="store_true", help="print summary.json on stdout")
     p.add_argument("--overwrite", action="store_true", help="replace earlier outputs")
@@ -84,8 +93,9 @@ def add_survey_parser(sub):
     p.set_defaults(func=run_survey)
 
 
-#: Visits sent to a worker at a time.
-CHUNK_VISITS = 8
+#: Nights sent to the workers ahead of those being written, per worker (a bound on the
+#: visits and plans held in this process).
+NIGHTS_AHEAD = 2
 
 
 def run_survey(args):
@@ -103,21 +113,17 @@ def run_survey(args):
 
     select_visits((), args.job, args.njobs)  # --job/--njobs, before the engine's imports
     from inject.exposure.runner import check_outdir
+    from inject.orbits.passes import RUBIN
+    from inject.survey.nights import VisitSource, select_nights
     from inject.survey.outputs import claim_outdir, output_paths, remove_earlier
-    from inject.survey.plan import warn_fallbacks
-    from inject.survey.visits import read_visits
+    from inject.survey.stream import NightManifest
 
-    night = read_visits(args.visits)
-    visits = select_visits(night, args.job, args.njobs)
-    if not visits:
-        raise InputError("--job", args.job, f"takes none of the {len(night)} visits "
+    source = VisitSource(args.visits, RUBIN.lon_deg)
+    nights = select_nights(source.nights, args.job, args.njobs)
+    if not len(nights):
+        raise InputError("--job", args.job, f"takes none of the {len(source.nights)} nights "
                                             f"(--njobs {args.njobs})")
-    constellation = _constellation(args.constellation, night)
-    if constellation.pupil == "rubin":  # the vanes need each visit's rotator
-        from inject.orbits.passes import RUBIN
-        from inject.survey.visits import with_rotators
-
-        visits = with_rotators(visits, RUBIN)
+    constellation = _constellation(args.constellation, (source.first, source.last))
     check_outdir(args.output)
     paths = output_paths(args.output, args.job, args.njobs)
     from inject.io.atomic import check_writable
@@ -131,22 +137,42 @@ def run_survey(args):
 
         make_outdir(args.output)
     inputs = _inputs(args, constellation, options, fixed)
-    claim = None
+    claim = manifest = None
     try:
-        claim = claim_outdir(args.output, _run_key(inputs), inputs, args.overwrite)
+        key = _run_key(inputs)
+        claim = claim_outdir(args.output, key, inputs, args.overwrite)
+        if args.overwrite and not claim.same_run:  # another run's nights
+            from inject.survey.stream import NIGHTS_DIR
+
+            shutil.rmtree(os.path.join(args.output, NIGHTS_DIR), ignore_errors=True)
         if args.rule == "inject":  # the rubin_sim rule takes no seeing and no sky
-            warn_fallbacks(visits)
+            _warn_fallbacks(source)
+        manifest = NightManifest(args.output, key, args.job, args.njobs)
+        if not args.overwrite:
+            manifest.load()
+        # --render renders from the plans of every night: they are planned again.
+        done = manifest.done(nights) if options is None else set()
+        counts = dict(zip(source.nights.tolist(), source.counts.tolist()))
+        todo = [int(n) for n in nights if int(n) not in done]
+        if done:
+            log.info("inject survey: %d of %d nights done already (%s), %d to plan",
+                     len(done), len(nights), manifest.path, len(todo))
         started = time.perf_counter()
-        plans = _plan(visits, constellation, args, fixed)
+        plans = _plan(source, todo, counts, constellation, args, fixed, manifest,
+                      keep=options is not None)
         if args.rule == "rubin_sim":
             fixed = None  # its band is the rule's mask: recorded under "rule"
         elapsed = time.perf_counter() - started
         rendered = sizing = None
         if options is not None:
             with locks_off(args.no_lock):
-                rendered, sizing = _render(plans, constellation, args, night[0], options)
-        written = _write(args, paths, plans, night, visits, constellation, elapsed, inputs,
-                         rendered, sizing, fixed)
+                rendered, sizing = _render(plans, constellation, args, source.first, options)
+        timings = {"plan_seconds": round(elapsed, 3),
+                   "plan_seconds_per_visit": (round(elapsed / sum(counts[n] for n in todo), 4)
+                                              if todo else None),
+                   "nights_planned": len(todo), "nights_done_before": len(done)}
+        written = _write(args, paths, source, nights, manifest, constellation, timings,
+                         inputs, plans, rendered, sizing, fixed)
         if args.overwrite:
             remove_earlier(args.output, claim, written.values(),
                            set(rendered.measured) if rendered is not None else set())
@@ -157,12 +183,34 @@ def run_survey(args):
     except BaseException as err:
         from inject.errors import RunError
 
-        if claim is not None and not isinstance(err, RunError):  # a RunError has written
+        # Nights written are this run's, kept for its rerun (with its claim).
+        kept = manifest is not None and bool(manifest.entries)
+        if claim is not None and not isinstance(err, RunError) and not kept:
             claim.release()
-        if made:  # the folder this run made, if nothing else was put there meanwhile
+        if made and not kept:  # the folder this run made, if nothing else was put there
             with contextlib.suppress(OSError):
                 os.rmdir(args.output)
         raise
+
+
+def _warn_fallbacks(source):
+    """One :class:`~inject.errors.InputWarning` per default the plan takes (as
+    :func:`inject.survey.plan.warn_fallbacks` says it), naming the first visits."""
+    from inject.errors import InputWarning
+    from inject.survey.plan import DEFAULT_SEEING
+
+    for missing, column, instead in (
+            (source.missing_seeing, "seeingFwhmEff",
+             f"the streak model's default seeing, {DEFAULT_SEEING:g} arcsec"),
+            (source.missing_sky, "skyBrightness",
+             "the band's dark sky at zenith (SMTN-002) times the airmass")):
+        if missing.count:
+            ids = " ".join(str(i) for i in missing.named)
+            more = (f" and {missing.count - len(missing.named)} more"
+                    if missing.count > len(missing.named) else "")
+            warnings.warn(f"{missing.count} of {source.total} visits have no {column} "
+                          f"(visits {ids}{more}): they take {instead}", InputWarning,
+                          stacklevel=2)
 
 
 def _inputs(args, constellation, options, fixed=None):
@@ -289,84 +337,191 @@ def _render_workers(batches, args, options):
     return {"workers": count, "why": why, **resources.record()}
 
 
-def _constellation(path, night):
+def _constellation(path, visits):
+    """The constellation of ``path``, its TLEs' epochs checked against ``visits`` (the first
+    and the last)."""
     from inject.survey.constellation import read_constellation
 
     constellation = read_constellation(path)
-    constellation.check_epochs(night)
+    constellation.check_epochs(visits)
     return constellation
 
 
-def _plan(visits, constellation, args, fixed=None):
-    """Every visit's plan, in this process or on workers, with its progress
-    (:mod:`inject.progress`)."""
-    from functools import partial
+def _plan(source, todo, counts, constellation, args, fixed, manifest, keep=False):
+    """Plan the nights ``todo`` night by night, in this process or on workers (a night a
+    task), with their progress (:mod:`inject.progress`): each night's tables written and
+    recorded in ``manifest`` as it finishes (:mod:`inject.survey.stream`).
+
+    Returns
+    -------
+    list of inject.survey.plan.VisitPlan
+        With ``keep`` (``--render``), every visit's plan in start order; else empty.
+    """
+    from concurrent.futures import FIRST_COMPLETED, wait
+
+    import numpy as np
 
     from inject.progress import Progress
-    from inject.survey.plan import plan_chunk, plan_visits
+    from inject.survey.nights import night_label
+    from inject.survey.plan import fallbacks
+    from inject.survey.stream import night_paths, night_tables, plan_night, write_parquet
 
     width = None if fixed is None else fixed.width_px
     if args.rule == "rubin_sim":  # the band is the rule's own mask, not one beside it
-        from inject.survey import rubin_rule
+        from inject.survey.rubin_rule import DEFAULT_WIDTH_PX
 
-        band = rubin_rule.DEFAULT_WIDTH_PX if width is None else width
-        plan_visits = partial(rubin_rule.plan_visits, width_px=band)
-        plan_chunk = partial(rubin_rule.plan_chunk, width_px=band)
-        width = None
+        options = {"rule": "rubin_sim", "width_px": DEFAULT_WIDTH_PX if width is None else width}
     else:
-        plan_visits = partial(plan_visits, fixed_width_px=width)
-        plan_chunk = partial(plan_chunk, fixed_width_px=width)
-    progress = Progress(len(visits), "planning visits", "visit", log)
+        options = {"fixed_width_px": width}
+    total = sum(counts[n] for n in todo)
+    progress = Progress(total, f"planning {len(todo)} night{'s' if len(todo) != 1 else ''}",
+                        "visit", log)
+    kept, finished, started = {}, [0, 0], time.perf_counter()
+
+    def note():
+        done = finished[1]
+        left = (time.perf_counter() - started) * (total - done) / done if done else math.nan
+        return (f"{finished[0]}/{len(todo)} nights" +
+                (f", ~{_duration(left)} left" if math.isfinite(left) else ""))
+
+    def finish(night, visits, plans, sun_alt):
+        if len(plans) != counts[night]:  # the file changed since its first pass
+            raise InputError("VISITS", args.visits, f"night {night_label(night)} read with "
+                                                    f"{len(plans)} visits, counted with "
+                                                    f"{counts[night]}: changed while read?")
+        visit_table, streak_table = night_tables(night, plans, sun_alt,
+                                                 fixed is not None and args.rule == "inject")
+        paths = night_paths(args.output, night)
+        write_parquet(visit_table, paths["visits"])
+        write_parquet(streak_table, paths["streaks"])
+        record = fallbacks(visits)
+        if args.rule == "rubin_sim":  # which visits lasted their visitTime (summary's rule)
+            from inject.survey.rubin_rule import visit_span
+
+            spans = [visit_span(v)[1] for v in visits]
+            record["visits_span_from"] = {k: spans.count(k)
+                                          for k in ("visitTime", "exposure+readouts")}
+        manifest.add(night, len(visits), streak_table.num_rows, paths, record)
+        if keep:
+            kept[night] = plans
+        finished[0] += 1
+
+    def rotators(visits):
+        if constellation.pupil == "rubin":  # the vanes need each visit's rotator
+            from inject.orbits.passes import RUBIN
+            from inject.survey.visits import with_rotators
+
+            return tuple(with_rotators(visits, RUBIN))
+        return visits
+
     workers = args.workers or 1
+    nights = source.nights_visits(set(todo)) if todo else iter(())
     try:
         if workers == 1 and not args.scheduler:
-            with warnings.catch_warnings():
-                # An epoch's warning is said once, for the night (check_epochs).
-                warnings.simplefilter("ignore", OrbitWarning)
-                return plan_visits(visits, constellation, progress=progress.update)
-        chunks = [visits[k:k + CHUNK_VISITS] for k in range(0, len(visits), CHUNK_VISITS)]
-        path = os.path.abspath(args.constellation)
-        task = plan_chunk
-        if args.scheduler:
-            from inject.exposure.runner import dask_executor
+            for night, visits in nights:
+                visits = rotators(visits)
 
-            with dask_executor(args.scheduler, args.workers) as executor:
-                return _gather(executor, task, path, chunks, progress)
-        from inject.exposure.runner import process_pool
+                def step():
+                    finished[1] += 1
+                    progress.update(note())
 
-        pool = process_pool(workers)
-        try:
-            result = _gather(pool, task, path, chunks, progress)
-        except BaseException:
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
-        pool.shutdown()
-        return result
+                plans, sun_alt = plan_night(constellation, visits, progress=step, **options)
+                finish(night, visits, plans, sun_alt)
+                log.debug("night %s done (%s)", night_label(night), note())
+        else:
+            path = os.path.abspath(args.constellation)
+            # Fewer nights than workers (a night alone): each night in as many contiguous
+            # parts, each with its own prefilter (a visit's plan is the same in any part).
+            parts = -(-workers // len(todo)) if todo else 1
+            with _executor(args, workers) as executor:
+                pending, done_parts = {}, {}
+
+                def collect():
+                    ready, _ = wait(pending, return_when=FIRST_COMPLETED)
+                    for future in sorted(ready, key=lambda f: pending[f][:2]):
+                        night, part, visits = pending.pop(future)
+                        done_parts[night][part] = future.result()
+                        if any(r is None for r in done_parts[night]):
+                            continue
+                        results = done_parts.pop(night)
+                        finish(night, visits, [p for r in results for p in r[0]],
+                               np.concatenate([r[1] for r in results]))
+                        finished[1] += len(visits)
+                        progress.update(f"night {night_label(night)} done ({note()})",
+                                        n=len(visits))
+
+                for night, visits in nights:
+                    visits = rotators(visits)
+                    size = -(-len(visits) // parts)
+                    pieces = [visits[k:k + size] for k in range(0, len(visits), size)]
+                    done_parts[night] = [None] * len(pieces)
+                    for part, piece in enumerate(pieces):
+                        pending[executor.submit(plan_night, path, piece, **options)] = \
+                            (night, part, visits)
+                    while len(pending) >= NIGHTS_AHEAD * workers:
+                        collect()
+                while pending:
+                    collect()
     finally:
         progress.close()
+    return [p for night in sorted(kept) for p in kept[night]]
 
 
-def _gather(executor, function, path, chunks, progress):
-    from concurrent.futures import as_completed
+@contextlib.contextmanager
+def _executor(args, workers):
+    """Dask's executor (``--scheduler``) or a process pool of ``workers``, shut down at the
+    end (its queued tasks cancelled after an error)."""
+    if args.scheduler:
+        from inject.exposure.runner import dask_executor
 
-    futures = {executor.submit(function, path, chunk): k for k, chunk in enumerate(chunks)}
-    out = [None] * len(chunks)
-    for future in as_completed(futures):
-        out[futures[future]] = future.result()
-        for _ in out[futures[future]]:
-            progress.update()
-    return [plan for chunk in out for plan in chunk]
+        with dask_executor(args.scheduler, args.workers) as executor:
+            yield executor
+        return
+    from inject.exposure.runner import process_pool
+
+    pool = process_pool(workers)
+    try:
+        yield pool
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
 
 
-def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, rendered=None,
-           sizing=None, fixed=None):
-    """Write the run's files (:func:`inject.survey.outputs.write_outputs`) and say so;
-    returns ``{kind: path}`` of the files written. ``sizing``: the render's workers and why
-    (:func:`_render_workers`), recorded in summary.json."""
+def _duration(seconds):
+    """``42 s``, ``17 min``, ``3.2 h``."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def _write(args, paths, source, nights, manifest, constellation, timings, inputs, plans=(),
+           rendered=None, sizing=None, fixed=None):
+    """Write the run's files from its nights' tables (:mod:`inject.survey.stream`,
+    :func:`inject.survey.outputs.write_run_outputs`) and say so; returns ``{kind: path}`` of
+    the files written. ``sizing``: the render's workers and why (:func:`_render_workers`),
+    recorded in summary.json."""
+    import numpy as np
+
     from inject import __version__
     from inject.orbits.passes import RUBIN
-    from inject.survey.outputs import summary, write_outputs
+    from inject.survey.outputs import write_run_outputs
+    from inject.survey.plan import TOTAL_PIXELS
+    from inject.survey.stream import (
+        CSV_AUTO_VISITS,
+        SUMMARY_STREAK_COLUMNS,
+        SUMMARY_VISIT_COLUMNS,
+        add_fallbacks,
+        check_nights,
+        columns_of,
+        local_hours,
+        read_nights,
+        summary_from_tables,
+    )
 
+    check_nights(args.output, manifest, nights)
     about = {"inject_version": __version__,
              "visits_file": inputs["visits_file"], "visits_sha256": inputs["visits_sha256"],
              "constellation_file": os.path.abspath(args.constellation),
@@ -375,36 +530,58 @@ def _write(args, paths, plans, night, visits, constellation, elapsed, inputs, re
              "focus_offset_um": constellation.focus_offset_um,
              "satellites": len(constellation),
              "satellites_by_source": dict(constellation.sources),
-             "night_visits": len(night), "job": args.job, "njobs": args.njobs,
-             "site_lon_deg": RUBIN.lon_deg, "plan_seconds": round(elapsed, 3),
-             "plan_seconds_per_visit": round(elapsed / len(visits), 4)}
+             "night_visits": source.total, "nights": len(nights),
+             "first_night": manifest.entries[int(nights[0])]["night"],
+             "last_night": manifest.entries[int(nights[-1])]["night"],
+             "job": args.job, "njobs": args.njobs, "site_lon_deg": RUBIN.lon_deg}
     if fixed is not None:
         about["fixed_mask"] = {"width": fixed.given}
-    about["rule"] = _rule_record(args, visits)
-    measured = None
+    fallback = None
+    for night in nights:
+        fallback = add_fallbacks(fallback, manifest.entries[int(night)]["fallbacks"])
+    about["rule"] = _rule_record(args, (fallback or {}).pop("visits_span_from", None))
+    visit_columns = SUMMARY_VISIT_COLUMNS + (("pixels_fixed_mask",) if fixed else ())
+    visits = columns_of(read_nights(args.output, nights, "visits", list(visit_columns)))
+    streaks = columns_of(read_nights(args.output, nights, "streaks",
+                                     list(SUMMARY_STREAK_COLUMNS)))
+    measured = extra = None
     if rendered is not None:
-        from inject.survey.compare import measured_columns, render_summary
+        from inject.survey.compare import MEASURED_FIELDS, measured_columns, render_summary
 
-        measured = measured_columns(plans, rendered.measured)
+        measured, extra = measured_columns(plans, rendered.measured), MEASURED_FIELDS
         about["render"] = render_summary(plans, measured, rendered, _render_options(args))
         if sizing is not None:
             about["render"]["sizing"] = sizing
-    result = summary(plans, about, RUBIN.lon_deg)
-    written = write_outputs(paths, plans, result, args.overwrite, plots=not args.no_plots,
-                            measured=measured)
+    result = summary_from_tables(visits, streaks, about, fallback, RUBIN.lon_deg,
+                                 None if fixed is None else fixed.width_px)
+    result["timings"] = timings  # the one block a resumed run's summary differs in
+    n = len(visits["observationId"])
+    tables = None
+    if args.csv == "always" or (args.csv == "auto" and n <= CSV_AUTO_VISITS):
+        tables = (read_nights(args.output, nights, "visits"),
+                  read_nights(args.output, nights, "streaks"))
+    plot_data = None
+    if not args.no_plots:
+        plot_data = {"hours": local_hours(visits["mjd"], RUBIN.lon_deg),
+                     "n_streaks": visits["n_streaks"],
+                     "fraction": np.asarray(visits["pixels_lost"], float) / TOTAL_PIXELS,
+                     "band": visits["band"], "ra": visits["fieldRA"], "dec": visits["fieldDec"]}
+    written = write_run_outputs(paths, result, tables, plot_data, args.overwrite,
+                                measured=measured, extra_fields=extra or ())
     if args.json:
         json.dump(result, sys.stdout)
         sys.stdout.write("\n")
-    log.info("inject survey: %d visits, %d streaked, %d streaks, pixel fraction lost %.3g "
-             "(%.3f s a visit); wrote %s", len(visits), result["streaked_visits"],
-             result["streaks"], result["pixel_fraction_lost_total"], elapsed / len(visits),
+    log.info("inject survey: %d visits in %d nights, %d streaked, %d streaks, pixel fraction "
+             "lost %.3g (%.1f s of plan); wrote %s", n, len(nights), result["streaked_visits"],
+             result["streaks"], result["pixel_fraction_lost_total"], timings["plan_seconds"],
              ", ".join(written.values()))
     return written
 
 
-def _rule_record(args, visits):
+def _rule_record(args, spans):
     """summary.json's ``rule``: which rule counted the streaks, and for ``rubin_sim`` what it
-    takes (the circle, the limit, the time's reading, the spans' source, the band)."""
+    takes (the circle, the limit, the time's reading, ``spans``: how many visits lasted their
+    ``visitTime`` and how many their exposure and readouts, the band)."""
     if args.rule == "inject":
         return {"name": "inject", "streaks": "sunlit tracks on the science CCDs",
                 "time": "observationStartMJD as TAI", "mask": "the masker's width per streak"}
@@ -413,7 +590,6 @@ def _rule_record(args, visits):
 
     width = (rubin_rule.DEFAULT_WIDTH_PX if args.mask_width is None
              else parse_mask_width(args.mask_width).width_px)
-    sources = [rubin_rule.visit_span(v)[1] for v in visits]
     return {"name": "rubin_sim",
             "streaks": f"rubin_sim's check_pointings: sunlit (sphere of "
                        f"{rubin_rule.SKYFIELD_EARTH_RADIUS_KM} km, the Sun's centre) and above "
@@ -424,8 +600,7 @@ def _rule_record(args, visits):
                     "reads it, to reproduce the literature",
             "radius_deg": rubin_rule.RADIUS_DEG, "alt_limit_deg": rubin_rule.ALT_LIMIT_DEG,
             "step_s": rubin_rule.STEP_S,
-            "visits_span_from": {s: sources.count(s) for s in ("visitTime",
-                                                               "exposure+readouts")},
+            "visits_span_from": spans or {"visitTime": 0, "exposure+readouts": 0},
             "mask": "a fixed band along the track inside the circle",
             "mask_width_px": width,
             "mask_width_given": args.mask_width or f"{rubin_rule.DEFAULT_WIDTH_PX:g}px "

@@ -545,7 +545,7 @@ def _check_iers(times):
 
 
 @contextmanager
-def _earth_orientation(times):
+def earth_orientation(times):
     """Warn once (:func:`_check_iers`) if ``times`` lie beyond the bundled IERS table, and
     within the block silence astropy's own warnings of the same (a repeat of it, with advice
     to download a table, which this offline package never does)."""
@@ -580,7 +580,7 @@ def parallactic_angles(ra_deg, dec_deg, times, site):
     frame = AltAz(obstime=times, location=site.location)
     boresight = SkyCoord(np.asarray(ra_deg, float) * u.deg, np.asarray(dec_deg, float) * u.deg,
                          frame="icrs")
-    with _earth_orientation(times):
+    with earth_orientation(times):
         horizontal = boresight.transform_to(frame)
         up = SkyCoord(az=horizontal.az, alt=horizontal.alt + 10 * u.arcsec, frame=frame)
         return boresight.position_angle(up.transform_to("icrs")).to_value(u.deg)
@@ -650,7 +650,7 @@ class FieldFrame:
     def build(cls, times, pointing, site=RUBIN):
         """Compute the frames at ``times`` (warns once if they lie beyond the IERS table)."""
         times = Time(times)
-        with _earth_orientation(times):
+        with earth_orientation(times):
             return cls._build(times, pointing, site)
 
     @classmethod

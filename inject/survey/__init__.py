@@ -2,6 +2,8 @@
 
 - :mod:`~inject.survey.visits`: the visits of an opsim database (SQLite, table
   ``observations``) or a CSV with its columns.
+- :mod:`~inject.survey.nights`: the same read night by night (the local date at the site,
+  noon to noon), never whole; the Sun's altitude at each visit.
 - :mod:`~inject.survey.constellation`: the constellation file (the satellites' model, Walker
   shells and TLE files).
 - :mod:`~inject.survey.prefilter`: the constellation propagated once over the night, and per
@@ -16,6 +18,9 @@
   focal-plane scene of the visit on the focal plane's runner.
 - :mod:`~inject.survey.compare`: what the masker measures on a rendered CCD, matched to the
   planned tracks, and the ``measured_*`` columns of ``streaks.csv``.
+- :mod:`~inject.survey.stream`: each night's tables as Parquet files and a manifest as the
+  night finishes (a stopped run goes on where it stopped), and the run's summary made from
+  them.
 - :mod:`~inject.survey.outputs`: ``streaks.csv``, ``visits.csv``, ``summary.json`` and the
   plots, written together (:func:`inject.io.atomic.output_group`).
 

@@ -1,13 +1,16 @@
-"""What ``inject survey`` writes: ``streaks.csv``, ``visits.csv``, ``summary.json`` and three
-plots, all or none of them (:func:`inject.io.atomic.output_group`).
+"""What ``inject survey`` writes: ``streaks.csv``, ``visits.csv``, ``summary.json`` and the
+plots, all or none of them (:func:`inject.io.atomic.output_group`); a run of many nights
+writes them from its nights' files (:mod:`inject.survey.stream`, :func:`write_run_outputs`).
 
 ``streaks.csv`` has one row per visit and satellite whose sunlit streak crosses a science CCD
 (:data:`inject.survey.plan.STREAK_FIELDS`), ``visits.csv`` one row per visit, streaked or not
 (:data:`inject.survey.plan.VISIT_FIELDS`). ``summary.json`` holds the totals, the
 distributions of FWHM and mask width over the streaks, and the same per band and per hour of
-the night (local mean solar time at the site). The plots: streaks per visit through the night
-(``streaks_per_visit.png``), the pixel fraction lost per visit (``pixel_fraction.png``) and a
-sky map of the visits coloured by it (``sky_map.png``).
+the night (local mean solar time at the site), and for a run of nights per year and per
+altitude of the Sun. The plots: streaks per visit through the night
+(``streaks_per_visit.png``), the pixel fraction lost per visit (``pixel_fraction.png``), a
+sky map of it (``sky_map.png``, a HEALPix map with healpy), and per year and Sun altitude
+(``by_year.png``, ``by_sun_alt.png``).
 
 A ``--job J --njobs N`` slice writes the same files with ``-jobJ-of-N`` before the extension,
 so that the slices of a night can share one folder. A run claims its folder before any work
@@ -44,7 +47,10 @@ from inject.survey.visits import night_hours
 #: Files of a run, by kind (the plots last).
 NAMES = {"streaks": "streaks.csv", "visits": "visits.csv", "summary": "summary.json",
          "night": "streaks_per_visit.png", "fraction": "pixel_fraction.png",
-         "sky": "sky_map.png"}
+         "sky": "sky_map.png", "year": "by_year.png", "sun": "by_sun_alt.png"}
+#: The tables among :data:`NAMES` (``--csv``) and the plots.
+TABLES = ("streaks", "visits")
+PLOTS = ("night", "fraction", "sky", "year", "sun")
 
 
 def output_paths(outdir, job=None, njobs=None):
@@ -161,14 +167,54 @@ def write_outputs(paths, plans, summary_map, overwrite=False, plots=True, measur
                  **measured.get((row["observationId"], row["satellite"]), {})}
                 for row in rows]
     visits = [p.visit_row() for p in plans]
-    wanted = paths if plots else {k: v for k, v in paths.items()
-                                  if k in ("streaks", "visits", "summary")}
+    kinds = ("streaks", "visits", "summary") + (("night", "fraction", "sky") if plots else ())
+    wanted = {k: paths[k] for k in kinds}
     with output_group(list(wanted.values()), overwrite):
         _write_text(paths["streaks"], csv_text(rows, fields), overwrite)
         _write_text(paths["visits"], csv_text(visits, visit_fields), overwrite)
         _write_text(paths["summary"], json.dumps(summary_map, indent=1) + "\n", overwrite)
         if plots:
             write_plots(paths, plans, summary_map.get("site_lon_deg", -70.7494), overwrite)
+    return wanted
+
+
+def write_run_outputs(paths, summary_map, tables=None, plot_data=None, overwrite=False,
+                      measured=None, extra_fields=()):
+    """Write a night-by-night run's files together (or none: an output group): its
+    summary.json; with ``tables`` (``(visits, streaks)``, pyarrow Tables), visits.csv and
+    streaks.csv; with ``plot_data`` (:func:`write_visit_plots`'s), the plots, the per-year and
+    per-Sun-altitude ones from ``summary_map``.
+
+    ``measured`` and ``extra_fields`` (``--render``): the measured columns added to the
+    streaks' rows, as :func:`write_outputs` adds them. Returns ``{kind: path}`` of the files
+    written.
+    """
+    from inject.survey.stream import plot_bins
+
+    wanted = {"summary": paths["summary"]}
+    if tables is not None:
+        wanted.update({k: paths[k] for k in TABLES})
+    if plot_data is not None:
+        wanted.update({k: paths[k] for k in PLOTS})
+    with output_group(list(wanted.values()), overwrite):
+        if tables is not None:
+            visits, streaks = tables
+            rows = streaks.to_pylist()
+            if measured is not None:
+                rows = [{**row, **dict.fromkeys(extra_fields),
+                         **measured.get((row["observationId"], row["satellite"]), {})}
+                        for row in rows]
+            _write_text(paths["streaks"], csv_text(rows, streaks.column_names +
+                                                   list(extra_fields)), overwrite)
+            _write_text(paths["visits"], csv_text(visits.to_pylist(), visits.column_names),
+                        overwrite)
+        _write_text(paths["summary"], json.dumps(summary_map, indent=1) + "\n", overwrite)
+        if plot_data is not None:
+            write_visit_plots(paths, plot_data, overwrite)
+            plot_bins(paths["year"], summary_map, "by_year", "per year (of the night's "
+                      "evening)", overwrite)
+            plot_bins(paths["sun"], summary_map, "by_sun_alt", "per altitude of the Sun at "
+                      "the visit's start (deg)", overwrite)
     return wanted
 
 
@@ -179,15 +225,38 @@ def _write_text(path, text, overwrite):
 
 
 def write_plots(paths, plans, site_lon_deg, overwrite=False):
-    """The night's three plots (PNG): streaks per visit against the hour of the night, the
-    pixel fraction lost per visit, and the visits on the sky coloured by it."""
+    """The night's three per-visit plots (PNG) of ``plans``: :func:`write_visit_plots`."""
+    fraction = np.array([p.pixels_lost for p in plans], float) / TOTAL_PIXELS
+    write_visit_plots(paths, {
+        "hours": night_hours([p.visit for p in plans], site_lon_deg),
+        "n_streaks": np.array([len(p.streaks) for p in plans]), "fraction": fraction,
+        "band": [p.visit.band for p in plans],
+        "ra": np.array([p.visit.ra_deg for p in plans], float),
+        "dec": np.array([p.visit.dec_deg for p in plans], float)}, overwrite)
+
+
+def write_visit_plots(paths, data, overwrite=False):
+    """Streaks per visit against the hour of the night, the pixel fraction lost per visit,
+    and the sky map of the pixel fraction lost (a HEALPix map,
+    :func:`inject.survey.stream.healpix_fraction`, or without healpy the visits coloured by
+    it).
+
+    Parameters
+    ----------
+    paths : dict
+        :func:`output_paths`.
+    data : dict
+        Per visit: ``hours`` (:func:`inject.survey.visits.night_hours`), ``n_streaks``,
+        ``fraction`` (of the pixels lost), ``band``, ``ra`` and ``dec`` (deg).
+    overwrite : bool
+    """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    hours = night_hours([p.visit for p in plans], site_lon_deg)
-    counts = np.array([len(p.streaks) for p in plans])
-    fraction = np.array([p.pixels_lost for p in plans], float) / TOTAL_PIXELS
-    bands = [p.visit.band for p in plans]
+    hours = np.asarray(data["hours"], float)
+    counts = np.asarray(data["n_streaks"])
+    fraction = np.asarray(data["fraction"], float)
+    bands = np.asarray(data["band"], object)
     colours = dict(zip("ugrizy", ("#56b4e9", "#009e73", "#e69f00", "#d55e00", "#cc79a7",
                                   "#000000")))
 
@@ -208,28 +277,46 @@ def write_plots(paths, plans, site_lon_deg, overwrite=False):
                                 ("fraction", fraction, "pixel fraction lost per visit")):
         fig, ax = figure()
         for b in "ugrizy":
-            sel = np.array([x == b for x in bands], bool)
+            sel = bands == b
             if sel.any():
                 ax.plot(hours[sel], values[sel], "o", ms=3, color=colours[b], label=b)
         hour_axis(ax)
         ax.set_ylabel(label)
-        ax.set_title(f"{len(plans)} visits, {int(np.count_nonzero(counts))} streaked",
+        ax.set_title(f"{len(counts)} visits, {int(np.count_nonzero(counts))} streaked",
                      fontsize=9)
-        if plans:
+        if len(counts):
             ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0),
                       title="band", title_fontsize=7)
         _save(fig, paths[kind], overwrite)
 
     # RA and Dec on plain axes, the labels outside them (a Mollweide's RA labels sit on the
     # equator, among the fields).
+    from inject.survey.stream import SKY_NSIDE, healpix_fraction
+
     fig = Figure(figsize=(8, 4.6))
     FigureCanvasAgg(fig)
     ax = fig.add_axes([0.08, 0.11, 0.76, 0.8])
-    ra = np.array([p.visit.ra_deg for p in plans], float)
-    dec = np.array([p.visit.dec_deg for p in plans], float)
-    order = np.argsort(fraction)
-    points = ax.scatter(ra[order], dec[order], c=fraction[order], s=8, cmap="viridis",
-                        vmin=0.0, vmax=max(float(fraction.max(initial=0.0)), 1e-6))
+    ra, dec = np.asarray(data["ra"], float), np.asarray(data["dec"], float)
+    vmax = max(float(fraction.max(initial=0.0)), 1e-6)
+    sky = healpix_fraction(ra, dec, fraction)
+    if sky is not None:
+        import healpy as hp
+
+        # The map sampled on a 0.25 deg grid of RA and Dec, its pixels without a visit blank.
+        grid_ra, grid_dec = np.meshgrid(np.linspace(359.875, 0.125, 1440),
+                                        np.linspace(89.875, -89.875, 720))
+        image = sky[hp.ang2pix(SKY_NSIDE, grid_ra, grid_dec, lonlat=True)]
+        vmax = max(float(np.nanmax(sky, initial=0.0)), 1e-6)
+        points = ax.imshow(image, extent=(360.0, 0.0, -90.0, 90.0), origin="upper",
+                           aspect="auto", cmap="viridis", vmin=0.0, vmax=vmax,
+                           interpolation="nearest")
+        title = (f"pixel fraction lost: mean over the visits in each HEALPix pixel "
+                 f"(nside {SKY_NSIDE})")
+    else:
+        order = np.argsort(fraction)
+        points = ax.scatter(ra[order], dec[order], c=fraction[order], s=8, cmap="viridis",
+                            vmin=0.0, vmax=vmax)
+        title = "visits (RA, Dec), coloured by the pixel fraction lost"
     ax.set_xlim(360.0, 0.0)  # RA increasing to the left, as the sky is seen
     ax.set_ylim(-90.0, 90.0)
     ax.set_xticks(np.arange(0, 361, 30))
@@ -238,7 +325,7 @@ def write_plots(paths, plans, site_lon_deg, overwrite=False):
     ax.set_xlabel("RA (deg)", fontsize=8)
     ax.set_ylabel("Dec (deg)", fontsize=8)
     ax.grid(True, lw=0.3)
-    ax.set_title("visits (RA, Dec), coloured by the pixel fraction lost", fontsize=9)
+    ax.set_title(title, fontsize=9)
     bar = fig.colorbar(points, cax=fig.add_axes([0.87, 0.11, 0.02, 0.8]))
     bar.ax.tick_params(labelsize=6)
     _save(fig, paths["sky"], overwrite)

@@ -176,10 +176,10 @@ def read_visits(path):
         columns, rows = _read_csv(path)
     else:
         raise FileFormatError(f"{path}: neither a SQLite database nor a .csv file")
-    names = _column_names(path, columns)
+    names = column_names(path, columns)
     if not rows:
         raise InputError("VISITS", path, "holds no visit (an empty night)")
-    visits = [_visit(path, k, dict(zip(columns, row)), names) for k, row in enumerate(rows)]
+    visits = [visit_from_row(path, k, dict(zip(columns, row)), names) for k, row in enumerate(rows)]
     ids = [v.observation_id for v in visits]
     if len(set(ids)) != len(ids):
         seen = set()
@@ -204,7 +204,8 @@ def _read_sqlite(path):
         cursor = con.execute("SELECT * FROM observations")
         columns = [d[0] for d in cursor.description]
         wanted = [c for c in columns if c in REQUIRED + OPTIONAL + ("filter",)]
-        cursor = con.execute(f"SELECT {', '.join(_quote(c) for c in wanted)} FROM observations")
+        cursor = con.execute(f"SELECT {', '.join(quote_column(c) for c in wanted)} "
+                             "FROM observations")
         return wanted, cursor.fetchall()
     except sqlite3.Error as err:
         raise FileFormatError(f"{path}: not a readable SQLite database ({err})") from None
@@ -212,7 +213,8 @@ def _read_sqlite(path):
         con.close()
 
 
-def _quote(name):
+def quote_column(name):
+    """``name`` quoted as an SQL identifier."""
     return '"' + name.replace('"', '""') + '"'
 
 
@@ -234,7 +236,7 @@ def _read_csv(path):
     return header, rows
 
 
-def _column_names(path, columns):
+def column_names(path, columns):
     """Which column gives each field (``band`` may come from ``filter``)."""
     names = {}
     for key in REQUIRED:
@@ -269,7 +271,9 @@ def _number(path, k, column, value, kind=float):
     return number
 
 
-def _visit(path, k, row, names):
+def visit_from_row(path, k, row, names):
+    """The :class:`Visit` of row ``k`` of ``path`` (``row``: column -> value; ``names``:
+    :func:`column_names`'s), its values checked."""
     def get(key, kind=float):
         return _number(path, k, names[key], row[names[key]], kind)
 
