@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from inject.errors import FileFormatError, InputError
-from inject.survey.visits import OPTIONAL, REQUIRED, column_names, quote_column, visit_from_row
+from inject.survey.visits import column_names, open_observations, visit_from_row
 
 log = logging.getLogger(__name__)
 
@@ -189,31 +189,7 @@ class VisitSource:
 
     def _sqlite_rows(self, ordered):
         path = self.path
-        try:
-            # Read-only: a database given by mistake is never changed (nor created).
-            con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
-        except sqlite3.Error as err:
-            raise FileFormatError(f"{path}: cannot be opened as SQLite ({err})") from None
-        try:
-            tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type "
-                                                "IN ('table', 'view')")}
-            if "observations" not in tables:
-                raise FileFormatError(f"{path}: has no 'observations' table (tables: "
-                                      f"{', '.join(sorted(tables)) or 'none'}): not an opsim "
-                                      f"database")
-            cursor = con.execute("SELECT * FROM observations LIMIT 0")
-            columns = [d[0] for d in cursor.description]
-            wanted = [c for c in columns if c in REQUIRED + OPTIONAL + ("filter",)]
-            column_names(path, wanted)
-            order = " ORDER BY observationStartMJD, observationId" if ordered else ""
-            cursor = con.execute(f"SELECT {', '.join(quote_column(c) for c in wanted)} FROM "
-                                 f"observations{order}")
-        except sqlite3.Error as err:
-            con.close()
-            raise FileFormatError(f"{path}: not a readable SQLite database ({err})") from None
-        except BaseException:
-            con.close()
-            raise
+        con, wanted, cursor = open_observations(path, ordered)
 
         def rows():
             try:

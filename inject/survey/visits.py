@@ -188,9 +188,18 @@ def read_visits(path):
     return tuple(sorted(visits, key=lambda v: (v.mjd_tai, v.observation_id)))
 
 
-def _read_sqlite(path):
+def open_observations(path, ordered=False):
+    """An opsim database's ``observations`` table, opened read-only (a database given by
+    mistake is never changed, nor created).
+
+    Returns
+    -------
+    connection, columns, cursor
+        The columns inject reads (:data:`REQUIRED`, :data:`OPTIONAL`, ``filter``) in the
+        table's order, checked (:func:`column_names`), and a cursor over them, ``ordered`` by
+        start time and id. The caller closes the connection.
+    """
     try:
-        # Read-only: a database given by mistake is never changed (nor created).
         con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
     except sqlite3.Error as err:
         raise FileFormatError(f"{path}: cannot be opened as SQLite ({err})") from None
@@ -201,11 +210,25 @@ def _read_sqlite(path):
             raise FileFormatError(f"{path}: has no 'observations' table (tables: "
                                   f"{', '.join(sorted(tables)) or 'none'}): not an opsim "
                                   f"database")
-        cursor = con.execute("SELECT * FROM observations")
+        cursor = con.execute("SELECT * FROM observations LIMIT 0")
         columns = [d[0] for d in cursor.description]
         wanted = [c for c in columns if c in REQUIRED + OPTIONAL + ("filter",)]
+        column_names(path, wanted)
+        order = " ORDER BY observationStartMJD, observationId" if ordered else ""
         cursor = con.execute(f"SELECT {', '.join(quote_column(c) for c in wanted)} "
-                             "FROM observations")
+                             f"FROM observations{order}")
+    except sqlite3.Error as err:
+        con.close()
+        raise FileFormatError(f"{path}: not a readable SQLite database ({err})") from None
+    except BaseException:
+        con.close()
+        raise
+    return con, wanted, cursor
+
+
+def _read_sqlite(path):
+    con, wanted, cursor = open_observations(path)
+    try:
         return wanted, cursor.fetchall()
     except sqlite3.Error as err:
         raise FileFormatError(f"{path}: not a readable SQLite database ({err})") from None
