@@ -23,6 +23,21 @@ def cheap_grid(monkeypatch):
     optics._grid_kernel.cache_clear()
 
 
+@pytest.fixture
+def no_lumos(monkeypatch):
+    """A process without lumos-sat: importing it (or any of its modules) fails."""
+    import builtins
+
+    real = builtins.__import__
+
+    def refuse(name, *args, **kwargs):
+        if name == "lumos" or name.startswith("lumos."):
+            raise ImportError(name)
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", refuse)
+
+
 def _sha256(path):
     with open(path, "rb") as stream:
         return hashlib.sha256(stream.read()).hexdigest()

@@ -88,17 +88,8 @@ def test_lumos_inputs_are_checked():
         parse_focal_scene(raw)
 
 
-def test_without_lumos_a_clear_error(monkeypatch):
-    import builtins
-
+def test_without_lumos_a_clear_error(no_lumos):
     from inject import SceneError, parse_focal_scene
-    real = builtins.__import__
 
-    def no_lumos(name, *args, **kwargs):
-        if name == "lumos" or name.startswith("lumos."):
-            raise ImportError(name)
-        return real(name, *args, **kwargs)
-
-    monkeypatch.setattr(builtins, "__import__", no_lumos)
     with pytest.raises(SceneError, match="make install-lumos"):
         parse_focal_scene(_raw(PLATE))

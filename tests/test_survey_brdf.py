@@ -239,19 +239,9 @@ def test_a_planned_streaks_magnitude_is_lumos_sats_at_that_geometry(planned):
     assert max(excess) - min(excess) > 0.2
 
 
-def test_without_lumos_sat_the_brdf_file_is_a_one_line_error(cli, monkeypatch, tmp_path):
+def test_without_lumos_sat_the_brdf_file_is_a_one_line_error(cli, no_lumos, tmp_path):
     """``inject survey`` with the BRDF file and no lumos-sat: exit status 2, one line naming
     the file and ``make install-lumos``, nothing written."""
-    import builtins
-
-    real = builtins.__import__
-
-    def no_lumos(name, *args, **kwargs):
-        if name == "lumos" or name.startswith("lumos."):
-            raise ImportError(name)
-        return real(name, *args, **kwargs)
-
-    monkeypatch.setattr(builtins, "__import__", no_lumos)
     (tmp_path / "v.csv").write_text(
         "observationId,observationStartMJD,fieldRA,fieldDec,rotSkyPos,band,visitExposureTime\n"
         "1,61206.97,250,-30,0,r,30\n")
