@@ -19,7 +19,6 @@ one cursor ordered by start time, from a CSV in one pass over its lines when the
 order (the scheduler's order). A CSV whose nights are out of order is read whole instead (a
 log line says so: such a file is a hand-made one, small).
 """
-import csv
 import logging
 import math
 import os
@@ -29,7 +28,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from inject.errors import FileFormatError, InputError
-from inject.survey.visits import column_names, open_observations, visit_from_row
+from inject.survey.visits import (
+    column_names,
+    csv_rows,
+    open_observations,
+    visit_from_row,
+    visits_kind,
+)
 
 log = logging.getLogger(__name__)
 
@@ -114,20 +119,7 @@ class VisitSource:
     def __init__(self, path, lon_deg):
         path = os.fspath(path)
         self.path, self.lon_deg = path, float(lon_deg)
-        if not os.path.isfile(path):
-            raise FileFormatError(f"{path}: no such file (an opsim database or a CSV of "
-                                  f"visits)")
-        try:
-            with open(path, "rb") as stream:
-                head = stream.read(16)
-        except OSError as err:
-            raise FileFormatError(f"{path}: cannot be read ({err.strerror or err})") from None
-        if head.startswith(b"SQLite format 3"):
-            self.kind = "sqlite"
-        elif path.lower().endswith(".csv"):
-            self.kind = "csv"
-        else:
-            raise FileFormatError(f"{path}: neither a SQLite database nor a .csv file")
+        self.kind = visits_kind(path)
         self.missing_seeing, self.missing_sky = _Fallback(), _Fallback()
         self._index()
 
@@ -207,39 +199,7 @@ class VisitSource:
         return wanted, rows()
 
     def _csv_rows(self):
-        path = self.path
-        try:
-            stream = open(path, newline="", encoding="utf-8")
-        except OSError as err:
-            raise FileFormatError(f"{path}: not a readable CSV ({err})") from None
-        try:
-            reader = csv.reader(stream)
-            header = next(reader, None)
-        except (UnicodeDecodeError, csv.Error) as err:
-            stream.close()
-            raise FileFormatError(f"{path}: not a readable CSV ({err})") from None
-        if header is None:
-            stream.close()
-            raise FileFormatError(f"{path}: empty (a CSV of visits needs a header line)")
-        header = [h.strip() for h in header]
-
-        def rows():
-            try:
-                k = 0
-                for row in reader:
-                    if not any(cell.strip() for cell in row):
-                        continue
-                    k += 1
-                    if len(row) != len(header):
-                        raise FileFormatError(f"{path}: row {k} has {len(row)} fields, the "
-                                              f"header {len(header)}")
-                    yield row
-            except (OSError, UnicodeDecodeError, csv.Error) as err:
-                raise FileFormatError(f"{path}: not a readable CSV ({err})") from None
-            finally:
-                stream.close()
-
-        return header, rows()
+        return csv_rows(self.path)
 
     # --- the second pass ------------------------------------------------------------------------
 

@@ -163,19 +163,7 @@ def read_visits(path):
         It holds no visit, or a value is out of its domain (named by row and column).
     """
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileFormatError(f"{path}: no such file (an opsim database or a CSV of visits)")
-    try:
-        with open(path, "rb") as stream:
-            head = stream.read(16)
-    except OSError as err:
-        raise FileFormatError(f"{path}: cannot be read ({err.strerror or err})") from None
-    if head.startswith(b"SQLite format 3"):
-        columns, rows = _read_sqlite(path)
-    elif path.lower().endswith(".csv"):
-        columns, rows = _read_csv(path)
-    else:
-        raise FileFormatError(f"{path}: neither a SQLite database nor a .csv file")
+    columns, rows = (_read_sqlite if visits_kind(path) == "sqlite" else _read_csv)(path)
     names = column_names(path, columns)
     if not rows:
         raise InputError("VISITS", path, "holds no visit (an empty night)")
@@ -186,6 +174,24 @@ def read_visits(path):
         twice = next(i for i in ids if i in seen or seen.add(i))
         raise InputError(f"{path} observationId", twice, "given to two visits")
     return tuple(sorted(visits, key=lambda v: (v.mjd_tai, v.observation_id)))
+
+
+def visits_kind(path):
+    """``"sqlite"`` or ``"csv"``: what the visits file ``path`` is, by its first bytes (a
+    SQLite database) or its name (``.csv``); FileFormatError if it is missing, unreadable or
+    neither."""
+    if not os.path.isfile(path):
+        raise FileFormatError(f"{path}: no such file (an opsim database or a CSV of visits)")
+    try:
+        with open(path, "rb") as stream:
+            head = stream.read(16)
+    except OSError as err:
+        raise FileFormatError(f"{path}: cannot be read ({err.strerror or err})") from None
+    if head.startswith(b"SQLite format 3"):
+        return "sqlite"
+    if path.lower().endswith(".csv"):
+        return "csv"
+    raise FileFormatError(f"{path}: neither a SQLite database nor a .csv file")
 
 
 def open_observations(path, ordered=False):
@@ -241,22 +247,47 @@ def quote_column(name):
     return '"' + name.replace('"', '""') + '"'
 
 
-def _read_csv(path):
+def csv_rows(path):
+    """A CSV of visits read as it is iterated: ``(header, iterator of rows)``, blank rows
+    left out; FileFormatError for an unreadable or empty file and, as it is reached, a row
+    whose fields are not the header's."""
     try:
-        with open(path, newline="", encoding="utf-8") as stream:
-            reader = csv.reader(stream)
-            header = next(reader, None)
-            rows = [row for row in reader if any(cell.strip() for cell in row)]
-    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        stream = open(path, newline="", encoding="utf-8")
+    except OSError as err:
+        raise FileFormatError(f"{path}: not a readable CSV ({err})") from None
+    try:
+        reader = csv.reader(stream)
+        header = next(reader, None)
+    except (UnicodeDecodeError, csv.Error) as err:
+        stream.close()
         raise FileFormatError(f"{path}: not a readable CSV ({err})") from None
     if header is None:
+        stream.close()
         raise FileFormatError(f"{path}: empty (a CSV of visits needs a header line)")
     header = [h.strip() for h in header]
-    for k, row in enumerate(rows):
-        if len(row) != len(header):
-            raise FileFormatError(f"{path}: row {k + 1} has {len(row)} fields, the header "
-                                  f"{len(header)}")
-    return header, rows
+
+    def rows():
+        try:
+            k = 0
+            for row in reader:
+                if not any(cell.strip() for cell in row):
+                    continue
+                k += 1
+                if len(row) != len(header):
+                    raise FileFormatError(f"{path}: row {k} has {len(row)} fields, the "
+                                          f"header {len(header)}")
+                yield row
+        except (OSError, UnicodeDecodeError, csv.Error) as err:
+            raise FileFormatError(f"{path}: not a readable CSV ({err})") from None
+        finally:
+            stream.close()
+
+    return header, rows()
+
+
+def _read_csv(path):
+    header, rows = csv_rows(path)
+    return header, list(rows)
 
 
 def column_names(path, columns):
