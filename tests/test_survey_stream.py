@@ -2,7 +2,6 @@
 one that was not stopped; nights are grouped by the local date at the site, noon to noon
 (counted here by hand); ``--job`` slices split the nights; the nights' Parquet tables hold the
 rows of the CSV files; ``by_year`` and ``by_sun_alt`` are the hand counts of the tables."""
-import csv
 import importlib.util
 import json
 import os
@@ -13,35 +12,13 @@ import sys
 import numpy as np
 import pytest
 
-from inject.cli.main import main
+# The same shell, satellite model, columns and file helpers as the one-night tests.
+from test_survey_trust import COLUMNS, EPOCH, MODEL, SHELL, read_csv, survey, write_csv
 
 ROOT = os.path.join(os.path.dirname(__file__), os.pardir)
-#: The shell's epoch (UTC) and the first night's first aimed visit.
-EPOCH = "2026-06-15T23:12:00"
-SHELL = "{name: s, height: 550, inclination: 53, planes: 20, per_plane: 20, phasing: 1}"
-MODEL = "shape: {type: box, length: 7.25, width: 2.65}\nmag: 5.0\nref_range: 550\n"
-COLUMNS = ("observationId", "observationStartMJD", "fieldRA", "fieldDec", "rotSkyPos", "band",
-           "visitExposureTime", "numExposures", "seeingFwhmEff")
 #: Each night's visits: minutes after 23:12 UTC, band, aimed at a satellite.
 PATTERN = ((-12.0, "g", False), (0.0, "r", True), (15.0, "i", True))
 NIGHTS = 4
-
-
-def survey(*args):
-    return main(["survey", *[str(a) for a in args]])
-
-
-def write_csv(path, rows, columns=COLUMNS):
-    with open(path, "w", newline="") as stream:
-        writer = csv.DictWriter(stream, columns)
-        writer.writeheader()
-        writer.writerows({c: row.get(c, "") for c in columns} for row in rows)
-    return str(path)
-
-
-def read_csv(path):
-    with open(path, newline="") as stream:
-        return list(csv.DictReader(stream))
 
 
 def _rows():
