@@ -38,6 +38,25 @@ def no_lumos(monkeypatch):
     monkeypatch.setattr(builtins, "__import__", refuse)
 
 
+@pytest.fixture(scope="session")
+def skyfield_timescale(tmp_path_factory):
+    """A skyfield timescale on the IERS table astropy ships (UT1 and polar motion, as inject's
+    frames take them; nothing downloaded)."""
+    api = pytest.importorskip("skyfield.api")
+    import shutil
+
+    import astropy_iers_data
+    from skyfield.data import iers
+
+    folder = tmp_path_factory.mktemp("skyfield")
+    shutil.copy(astropy_iers_data.IERS_A_FILE, os.path.join(folder, "finals2000A.all"))
+    load = api.Loader(str(folder), verbose=False)
+    scale = load.timescale(builtin=False)
+    with load.open("finals2000A.all") as f:
+        iers.install_polar_motion_table(scale, iers.parse_x_y_dut1_from_finals_all(f))
+    return scale
+
+
 def _sha256(path):
     with open(path, "rb") as stream:
         return hashlib.sha256(stream.read()).hexdigest()

@@ -9,7 +9,6 @@ error, a bright star's halo from a tile only its large stamp reaches; and the pr
 """
 import json
 import os
-import shutil
 
 import numpy as np
 import pytest
@@ -189,19 +188,9 @@ def test_ccd_corners_are_obs_lsst_s(name):
 # --- Apparent positions against skyfield, orbit vertices against the WCS ------------------
 
 @pytest.fixture(scope="module")
-def skyfield_ts(tmp_path_factory):
+def skyfield_ts(skyfield_timescale):
     """A skyfield timescale on the IERS table astropy ships (with polar motion)."""
-    sf_api = pytest.importorskip("skyfield.api")
-    import astropy_iers_data
-    from skyfield.data import iers as sf_iers
-
-    folder = tmp_path_factory.mktemp("skyfield")
-    shutil.copy(astropy_iers_data.IERS_A_FILE, os.path.join(folder, "finals2000A.all"))
-    load = sf_api.Loader(str(folder), verbose=False)
-    ts = load.timescale(builtin=False)
-    with load.open("finals2000A.all") as f:
-        sf_iers.install_polar_motion_table(ts, sf_iers.parse_x_y_dut1_from_finals_all(f))
-    return ts
+    return skyfield_timescale
 
 
 def _sf_time(ts, t):

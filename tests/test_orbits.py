@@ -8,11 +8,8 @@ synthetic example TLEs (Starlink-like 550 km, 53 deg shell orbits) built by
 """
 import json
 import math
-import os
-import shutil
 import warnings
 
-import astropy_iers_data
 import numpy as np
 import pytest
 from astropy import units as u
@@ -36,7 +33,6 @@ from inject.orbits.passes import (
 )
 
 skyfield_api = pytest.importorskip("skyfield.api")
-from skyfield.data import iers as sf_iers  # noqa: E402
 from skyfield.framelib import true_equator_and_equinox_of_date  # noqa: E402
 
 #: Exposure start of the example field: 2026 June 15, ~1.6 h after sunset at Rubin (Sun ~20 deg
@@ -46,15 +42,9 @@ ARCSEC = 1.0 / 3600.0
 
 
 @pytest.fixture(scope="module")
-def ts(tmp_path_factory):
+def ts(skyfield_timescale):
     """A skyfield timescale on astropy-iers-data's finals2000A.all, with polar motion."""
-    folder = tmp_path_factory.mktemp("skyfield")
-    shutil.copy(astropy_iers_data.IERS_A_FILE, os.path.join(folder, "finals2000A.all"))
-    load = skyfield_api.Loader(str(folder), verbose=False)
-    scale = load.timescale(builtin=False)
-    with load.open("finals2000A.all") as f:
-        sf_iers.install_polar_motion_table(scale, sf_iers.parse_x_y_dut1_from_finals_all(f))
-    return scale
+    return skyfield_timescale
 
 
 @pytest.fixture(scope="module")

@@ -10,8 +10,6 @@ rubin_sim's skyfield leaves out: the site 10 m off, 3" at 600 km), the satellite
 import csv
 import json
 import math
-import os
-import shutil
 
 import numpy as np
 import pytest
@@ -29,19 +27,10 @@ ERAD_KM = 6378.1366
 
 
 @pytest.fixture(scope="module")
-def sf(tmp_path_factory):
-    """skyfield's timescale (UT1 and polar motion from astropy's bundled IERS table, as
-    inject's frames take them) and Rubin's site."""
+def sf(skyfield_timescale):
+    """skyfield's timescale (:func:`conftest.skyfield_timescale`) and Rubin's site."""
     api = pytest.importorskip("skyfield.api")
-    import astropy_iers_data
-    from skyfield.data import iers
-
-    folder = tmp_path_factory.mktemp("skyfield")
-    shutil.copy(astropy_iers_data.IERS_A_FILE, os.path.join(folder, "finals2000A.all"))
-    load = api.Loader(str(folder), verbose=False)
-    ts = load.timescale(builtin=False)
-    with load.open("finals2000A.all") as f:
-        iers.install_polar_motion_table(ts, iers.parse_x_y_dut1_from_finals_all(f))
+    ts = skyfield_timescale
     site = api.wgs84.latlon(RUBIN.lat_deg, RUBIN.lon_deg, elevation_m=RUBIN.height_m)
     return {"ts": ts, "site": site, "api": api}
 
