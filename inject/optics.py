@@ -59,6 +59,9 @@ SUN_TEMPERATURE_K = 5772.0
 #: (docs/explanation/physics.md).
 N_WAVELENGTHS = 8
 
+# h c / k, nm K: Planck's law in nm.
+_HC_OVER_K_NM_K = 1.438776877e7
+
 # Sampling of the band's photon spectrum for its quantiles, nm.
 _SPECTRUM_STEP_NM = 0.1
 
@@ -210,8 +213,7 @@ def photon_spectrum(band, temperature_k=SUN_TEMPERATURE_K):
     wave = np.arange(throughput.blue_limit, throughput.red_limit + _SPECTRUM_STEP_NM / 2,
                      _SPECTRUM_STEP_NM)
     # Planck's F_lambda times lambda, up to a constant: lambda^-4 / (exp(hc / lambda k T) - 1).
-    hc_over_k_nm_k = 1.438776877e7
-    photons = throughput(wave) * wave ** -4.0 / np.expm1(hc_over_k_nm_k / (wave * temperature_k))
+    photons = throughput(wave) * wave ** -4.0 / np.expm1(_HC_OVER_K_NM_K / (wave * temperature_k))
     return wave, photons / np.trapezoid(photons, wave)
 
 
@@ -239,8 +241,7 @@ def blackbody_colour(blue, red, temperature_k):
     zeropoint.
     """
     wave = np.arange(250.0, 1200.5, 1.0)
-    hc_over_k_nm_k = 1.438776877e7
-    flux = wave ** -5.0 / np.expm1(hc_over_k_nm_k / (wave * float(temperature_k)))
+    flux = wave ** -5.0 / np.expm1(_HC_OVER_K_NM_K / (wave * float(temperature_k)))
     sed = galsim.SED(galsim.LookupTable(wave, flux, interpolant="linear"), "nm", "flambda")
 
     def magnitude(band):
