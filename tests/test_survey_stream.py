@@ -272,14 +272,20 @@ def test_csv_auto_leaves_out_the_csv_only_above_its_size(nights, tmp_path, monke
 
     out = tmp_path / "small"
     assert survey(nights["visits"], "-o", out, "--constellation", nights["const"],
-                  "--no-plots") == 0
+                  "--no-plots", "--csv", "auto") == 0
     assert (out / "visits.csv").exists() and (out / "streaks.csv").exists()
     monkeypatch.setattr(stream, "CSV_AUTO_VISITS", 3 * NIGHTS - 1)
     out = tmp_path / "large"
     assert survey(nights["visits"], "-o", out, "--constellation", nights["const"],
-                  "--no-plots") == 0
+                  "--no-plots", "--csv", "auto") == 0
     assert sorted(os.listdir(out)) == ["nights", "summary.json", "survey_claim.json"]
     assert json.loads((out / "summary.json").read_text())["visits"] == 3 * NIGHTS
+    # By default the combined files are written whatever the run's size (the command's
+    # documented outputs).
+    out = tmp_path / "default"
+    assert survey(nights["visits"], "-o", out, "--constellation", nights["const"],
+                  "--no-plots") == 0
+    assert (out / "visits.csv").exists() and (out / "streaks.csv").exists()
 
 
 # --- per year, per Sun altitude -------------------------------------------------------------
@@ -396,3 +402,4 @@ def test_nights_of_another_inject_version_are_not_taken(tmp_path):
     assert NightManifest(str(tmp_path), "other", version="1.0").load().done([61206]) == set()
     night.write_bytes(b"rowz")  # another file under the name: not done
     assert NightManifest(str(tmp_path), "k", version="1.0").load().done([61206]) == set()
+

@@ -82,10 +82,10 @@ def add_survey_parser(sub):
     p.add_argument("--njobs", type=int, metavar="N",
                    help="with --job: the number of slices (in a SLURM job array, "
                         "default: its task count)")
-    p.add_argument("--csv", choices=("auto", "always", "never"), default="auto",
+    p.add_argument("--csv", choices=("always", "auto", "never"), default="always",
                    help="write the combined visits.csv and streaks.csv: always, never, or "
-                        "(auto, the default) for runs of at most 100,000 visits; every night's "
-                        "tables are in OUTDIR/nights/ as Parquet files anyway")
+                        "(auto) for runs of at most 100,000 visits; every night's tables are in "
+                        "OUTDIR/nights/ as Parquet files anyway")
     p.add_argument("--no-plots", action="store_true", help="write the tables only")
     p.add_argument("--json", action="store_true", help="print summary.json on stdout")
     p.add_argument("--overwrite", action="store_true", help="replace earlier outputs")
