@@ -647,15 +647,3 @@ def plan_visits(visits, constellation, site=RUBIN, progress=None, fixed_width_px
         if progress is not None:
             progress()
     return out
-
-
-def plan_chunk(constellation_path, visits, fixed_width_px=None):
-    """Plan ``visits`` in a worker process, reading the constellation file once per process
-    (:func:`~inject.survey.constellation.read_constellation_once`). Returns a list of
-    :class:`VisitPlan`."""
-    from inject.survey.constellation import read_constellation_once
-
-    constellation = read_constellation_once(constellation_path)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", OrbitWarning)
-        return plan_visits(visits, constellation, fixed_width_px=fixed_width_px)

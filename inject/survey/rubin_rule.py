@@ -447,14 +447,3 @@ def plan_visits(visits, constellation, site=RUBIN, progress=None,
         if progress is not None:
             progress()
     return out
-
-
-def plan_chunk(constellation_path, visits, width_px=DEFAULT_WIDTH_PX):
-    """:func:`plan_visits` in a worker process (the constellation read once per process)."""
-    from inject.errors import OrbitWarning
-    from inject.survey.constellation import read_constellation_once
-
-    constellation = read_constellation_once(constellation_path)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", OrbitWarning)
-        return plan_visits(visits, constellation, width_px=width_px)
