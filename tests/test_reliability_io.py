@@ -6,6 +6,7 @@ The expectations are computed here from the inputs (the streak's flux per pixel 
 length that lands on defined pixels, the sky and read noise over the amplifiers' gains), not
 read back from the code under test.
 """
+import io
 import subprocess
 import sys
 from pathlib import Path
@@ -397,3 +398,32 @@ def test_no_variance_leaves_variance_as_it_was(tmp_path, noise):
     with fits.open(path) as old, fits.open(out) as new:
         assert np.array_equal(new[3].data.view(np.uint32), old[3].data.view(np.uint32))
         assert np.any(new[1].data != old[1].data)  # the streak is in the image
+
+
+def test_compressed_files_written_at_different_times_have_the_same_bytes(tmp_path, monkeypatch):
+    """A GZIP_2 tile and a gzipped file carry no time of writing: the same data written with
+    the clock a day apart give the same bytes, and read back as the data."""
+    import gzip
+    import time
+
+    import numpy as np
+    from astropy.io import fits
+
+    from inject.io.reader import read_exposure
+
+    data = np.random.default_rng(3).normal(size=(40, 30)).astype(np.float32)
+    written = []
+    for k, clock in enumerate((1.0e9, 1.0e9 + 86400.0)):
+        monkeypatch.setattr(time, "time", lambda clock=clock: clock)
+        path = tmp_path / f"tiles{k}.fits"
+        fits.HDUList([fits.PrimaryHDU(), fits.CompImageHDU(
+            data, compression_type="GZIP_2", quantize_level=0.0)]).writeto(path)
+        exposure = read_exposure(path)
+        exposure.write(tmp_path / f"whole{k}.fits.gz")
+        written.append(((tmp_path / f"tiles{k}.fits").read_bytes(),
+                        (tmp_path / f"whole{k}.fits.gz").read_bytes()))
+    assert written[0] == written[1]
+    with fits.open(tmp_path / "tiles1.fits") as hdus:
+        assert hdus[1].data.tobytes() == data.tobytes()
+    with fits.open(io.BytesIO(gzip.decompress(written[1][1]))) as hdus:
+        assert hdus[1].data.tobytes() == data.tobytes()

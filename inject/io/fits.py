@@ -21,8 +21,11 @@ from astropy.time import Time, TimeDelta
 import inject
 from inject.errors import OutputError
 from inject.io.atomic import atomic_path
+from inject.io.gzip_tiles import reproducible_gzip_tiles
 from inject.maskplanes import FLAG_CLIPPED, FLAG_OFF_IMAGE, FLAG_SATURATED, mask_header
 from inject.truth import TRUTH_COLUMNS, VERTEX_COLUMNS, complete, vertex_records
+
+reproducible_gzip_tiles()
 
 #: Extension types of afw's MaskedImage HDUs 1-3, in that order.
 MASKED_IMAGE_TYPES = ("IMAGE", "MASK", "VARIANCE")

@@ -28,6 +28,9 @@ from astropy.wcs import WCS, FITSFixedWarning
 
 from inject.errors import FileFormatError
 from inject.io.atomic import atomic_path
+from inject.io.gzip_tiles import reproducible_gzip_tiles
+
+reproducible_gzip_tiles()
 
 #: numpy type of each FITS BITPIX (big-endian, as stored).
 _BITPIX = {8: ">u1", 16: ">i2", 32: ">i4", 64: ">i8", -32: ">f4", -64: ">f8"}
@@ -334,9 +337,13 @@ class InputExposure:
         """
         with atomic_path(path, overwrite) as tmp:  # an OSError anywhere: OutputError
             content = self._content()
-            opener = gzip.open if os.fspath(path).endswith(".gz") else open
-            with opener(tmp, "wb") as out:
-                out.write(content)
+            with open(tmp, "wb") as out:
+                if os.fspath(path).endswith(".gz"):
+                    # No name or time in the gzip header: the same content, the same bytes.
+                    with gzip.GzipFile(filename="", mode="wb", fileobj=out, mtime=0) as packed:
+                        packed.write(content)
+                else:
+                    out.write(content)
 
     def _content(self):
         """The bytes of the whole file."""
