@@ -599,7 +599,8 @@ class FieldFrame:
     """Everything one exposure's satellites share, from astropy, at each sample time.
 
     Built once per (times, pointing, site) by :meth:`build` with one astropy call per frame
-    chain; each satellite then needs SGP4 and matrix products only.
+    chain (many exposures' in the same calls by :meth:`build_many`); each satellite then needs
+    SGP4 and matrix products only.
 
     Attributes
     ----------

@@ -9,7 +9,8 @@ For each visit (:func:`plan_visit`):
 2. Exact passes of the candidates: :func:`inject.orbits.passes.compute_pass` every
    :data:`~inject.orbits.passes.TRACK_STEP_S` (light time, the stars' aberration, the
    penumbra), all sharing one :class:`~inject.orbits.passes.FieldFrame` of the visit's times
-   (:func:`visit_frame`: astropy every 15 s, interpolated between).
+   (:func:`visit_frame`: astropy every 15 s, interpolated between; :func:`plan_visits` asks
+   astropy for the nodes of many visits at once).
 3. Sunlit runs: :func:`inject.orbits.tracks.sunlit_runs`, the track's sunlit parts as
    focal-plane polylines with the model's values at each vertex (a vertex at least every second
    and wherever the path bends by 0.05 px). A visit of several snaps has no streak during the
