@@ -458,6 +458,37 @@ def test_shared_rotations_are_astropys(exposure):
     np.testing.assert_allclose(frame.itrs_to_altaz, np.stack(altaz_basis(RUBIN)), atol=1e-12)
 
 
+def test_frames_built_together_are_each_exposures_own_bit_for_bit():
+    """:meth:`FieldFrame.build_many` against :meth:`FieldFrame.build` one exposure at a time:
+    every array equal bit for bit (ERFA and numpy compute each time apart), for pointings
+    across the sky (the pole, RA 0/360), 2 to 6 times each over a night, one exposure in UTC
+    among TAI ones; the boresight's place is astropy's own AltAz of each."""
+    from inject.orbits.passes import FieldFrame
+
+    rng = np.random.default_rng(5)
+    starts = Time(61206.95 + np.sort(rng.uniform(0.0, 0.4, 12)), format="mjd", scale="tai")
+    pointings = [Pointing(float(ra), float(dec), float(rot)) for ra, dec, rot in zip(
+        rng.uniform(0.0, 360.0, 12), rng.uniform(-89.0, 30.0, 12), rng.uniform(0, 360.0, 12))]
+    pointings[3], pointings[7] = Pointing(0.0, -90.0, 10.0), Pointing(359.9999, -10.0)
+    times = [start + np.linspace(0.0, 30.0, 2 + k % 5) * u.s for k, start in enumerate(starts)]
+    times[4] = times[4].utc
+    together = FieldFrame.build_many(times, pointings, RUBIN)
+    names = ("centre", "east", "north", "alt_deg", "az_deg", "teme_to_itrs", "itrs_to_altaz",
+             "sun_itrs", "to_icrs")
+    for t, pointing, frame in zip(times, pointings, together):
+        alone = FieldFrame.build(t, pointing, RUBIN)
+        assert frame.pointing == pointing and frame.times.scale == t.scale
+        assert np.array_equal(frame.jd_utc, alone.jd_utc)
+        for name in names:
+            assert np.array_equal(getattr(frame, name), getattr(alone, name)), name
+        seen = pointing.icrs.transform_to(AltAz(obstime=t, location=RUBIN.location))
+        np.testing.assert_allclose(frame.alt_deg, seen.alt.deg, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(frame.az_deg, seen.az.deg, rtol=0, atol=1e-9)
+    assert FieldFrame.build_many([], [], RUBIN) == []
+    with pytest.raises(InputError, match="pointings"):
+        FieldFrame.build_many(times, pointings[:-1], RUBIN)
+
+
 def test_tle_file_with_a_name_line(sat, tmp_path):
     path = tmp_path / "example.tle"
     path.write_text("EXAMPLE 550/53 (example data)\n" + "\n".join(sat.tle_lines()) + "\n")

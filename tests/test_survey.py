@@ -737,6 +737,53 @@ def test_the_visit_frame_from_nodes_is_astropys_at_every_sample():
         assert np.all(fast.t_from(visit.start.utc) == pytest.approx(ts, abs=1e-6))
 
 
+def test_visits_planned_in_batches_are_each_visits_own_plan(prefilter_night, monkeypatch):
+    """:func:`plan_visits` builds the frames of the visits with candidates together
+    (:data:`FRAME_BATCH_VISITS` at a time, :meth:`FieldFrame.build_many`); in batches of
+    three (of the four visits with candidates: one full, one short) every visit's row and
+    streak rows are those of :func:`plan_visit` on its own, to the last digit, and one visit's
+    frame from a batch is the one :func:`visit_frame` builds alone, bit for bit."""
+    from dataclasses import replace
+
+    from inject.errors import InputError
+    from inject.orbits.passes import RUBIN
+    from inject.survey import plan
+    from inject.survey.constellation import parse_constellation
+    from inject.survey.prefilter import NightPrefilter
+
+    orbits, visits = prefilter_night
+    raw = {"shape": {"type": "box", "length": 7.25, "width": 2.65}, "mag": 5.0,
+           "epoch": "2026-06-15T22:00:00", "shells": [dict(LOW)]}
+    constellation = replace(parse_constellation(raw), orbits=tuple(orbits))
+    batches = []
+    frames_at_nodes = plan._frames_at_nodes
+
+    def counted(framed, site):
+        batches.append(len(framed))
+        return frames_at_nodes(framed, site)
+
+    monkeypatch.setattr(plan, "FRAME_BATCH_VISITS", 3)
+    monkeypatch.setattr(plan, "_frames_at_nodes", counted)
+    together = plan.plan_visits(visits, constellation)
+    prefilter = NightPrefilter(orbits, visits)
+    alone = [plan.plan_visit(v, constellation, prefilter=prefilter) for v in visits]
+    framed = [v for v, p in zip(visits, alone) if p.n_candidates]
+    assert len(framed) == 4 and sum(len(p.streaks) for p in alone) >= 2
+    assert batches == [3, 1]
+    for a, b in zip(together, alone, strict=True):
+        assert repr(a.visit_row()) == repr(b.visit_row())
+        assert repr(a.streak_rows()) == repr(b.streak_rows())
+    pointing, ts, exposure = plan._visit_setup(framed[-1])
+    at_nodes = frames_at_nodes(framed[-3:], RUBIN)
+    batch = plan.visit_frame(exposure.start, ts, pointing, at_nodes=at_nodes[-1])
+    single = plan.visit_frame(exposure.start, ts, pointing)
+    for name in ("centre", "east", "north", "alt_deg", "az_deg", "teme_to_itrs", "sun_itrs",
+                 "to_icrs"):
+        assert np.array_equal(getattr(batch, name), getattr(single, name)), name
+    with pytest.raises(InputError, match="at_nodes"):  # another visit's
+        plan.visit_frame(exposure.start, ts, pointing, at_nodes=at_nodes[0])
+
+
 def test_the_constellation_may_ask_for_the_traced_pupil():
     from inject.errors import SceneError
     from inject.survey.constellation import parse_constellation

@@ -599,7 +599,8 @@ class FieldFrame:
     """Everything one exposure's satellites share, from astropy, at each sample time.
 
     Built once per (times, pointing, site) by :meth:`build` with one astropy call per frame
-    chain; each satellite then needs SGP4 and matrix products only.
+    chain (many exposures' in the same calls by :meth:`build_many`); each satellite then needs
+    SGP4 and matrix products only.
 
     Attributes
     ----------
@@ -651,21 +652,68 @@ class FieldFrame:
         """Compute the frames at ``times`` (warns once if they lie beyond the IERS table)."""
         times = Time(times)
         with earth_orientation(times):
-            return cls._build(times, pointing, site)
+            return cls._build_many([times], [pointing], site)[0]
 
     @classmethod
-    def _build(cls, times, pointing, site):
-        n = times.size
+    def build_many(cls, times, pointings, site=RUBIN):
+        """The frames of several exposures, each at its own times and pointing, in one astropy
+        call per frame chain for them all.
+
+        The same numbers, bit for bit, as ``[FieldFrame.build(t, p, site) for t, p in
+        zip(times, pointings)]`` (ERFA and numpy compute each time apart), at a fraction of
+        the cost: astropy's is mostly per call, not per time.
+
+        Parameters
+        ----------
+        times : sequence of astropy.time.Time
+            Each exposure's sample times (1-D); those of one time scale are computed together.
+        pointings : sequence of inject.camera.wcs.Pointing
+            One per exposure.
+        site : Site
+
+        Returns
+        -------
+        list of FieldFrame
+            In the order of ``times`` (warns once per time scale if some lie beyond the IERS
+            table).
+        """
+        times = [Time(t) for t in times]
+        if len(times) != len(pointings):
+            raise InputError("pointings", len(pointings), f"need one per exposure ({len(times)})")
+        by_scale = {}
+        for k, t in enumerate(times):
+            by_scale.setdefault(t.scale, []).append(k)
+        frames = [None] * len(times)
+        for ks in by_scale.values():
+            # Concatenated in their own scale: a conversion would change the last bits.
+            together = np.concatenate([times[k] for k in ks])
+            with earth_orientation(together):
+                built = cls._build_many([times[k] for k in ks], [pointings[k] for k in ks],
+                                        site, together)
+            for k, frame in zip(ks, built):
+                frames[k] = frame
+        return frames
+
+    @classmethod
+    def _build_many(cls, times, pointings, site, together=None):
+        """:meth:`build_many` for times of one scale (``together``: them concatenated)."""
+        sizes = [t.size for t in times]
+        if together is None:
+            together = times[0] if len(times) == 1 else np.concatenate(times)
+        n = together.size
         loc = site.location
-        frame = AltAz(obstime=times, location=loc)
-        centre = pointing.icrs
+        frame = AltAz(obstime=together, location=loc)
+        centre = SkyCoord([p.ra_deg for p in pointings] * u.deg,
+                          [p.dec_deg for p in pointings] * u.deg, frame="icrs")
         # Offsets of 1 arcmin: the tangent directions of North and East at the boresight; the
-        # aberration's change over 1' (1e-4 x 60" = 6 mas) is negligible. One (3, n) transform.
+        # aberration's change over 1' (1e-4 x 60" = 6 mas) is negligible. One (3, n) transform,
+        # each exposure's points repeated at each of its times.
         pts = [centre, centre.directional_offset_by(0 * u.deg, 1 * u.arcmin),
                centre.directional_offset_by(90 * u.deg, 1 * u.arcmin)]
-        radec = SkyCoord([p.ra.deg for p in pts] * u.deg, [p.dec.deg for p in pts] * u.deg,
-                         frame="icrs")
-        aa = radec[:, None].transform_to(frame)
+        owner = np.repeat(np.arange(len(pointings)), sizes)
+        radec = SkyCoord(np.stack([p.ra.deg[owner] for p in pts]) * u.deg,
+                         np.stack([p.dec.deg[owner] for p in pts]) * u.deg, frame="icrs")
+        aa = radec.transform_to(frame)
         vec = np.moveaxis(aa.cartesian.xyz.value, 0, -1)  # (3 points, n, 3)
         c, nn, e = (_unit(v) for v in vec)
         n_off, e_off = nn, e  # the offset points' apparent directions
@@ -676,24 +724,34 @@ class FieldFrame:
         # TEME -> ITRS: rotate the three axes (1e4 km long, for round-off) in one call.
         axes = np.broadcast_to(np.eye(3)[:, None, :] * 1e4, (3, n, 3))
         rep = CartesianRepresentation(np.moveaxis(axes, -1, 0), unit=u.km)
-        rot = SkyCoord(rep, frame=TEME(obstime=times)).transform_to(ITRS(obstime=times))
+        rot = SkyCoord(rep, frame=TEME(obstime=together)).transform_to(ITRS(obstime=together))
         cols = np.moveaxis(rot.cartesian.xyz.to_value(u.km), 0, -1) / 1e4  # (axis, n, 3)
         m_teme = np.stack([cols[0], cols[1], cols[2]], axis=-1)  # M @ r_teme = r_itrs
-        # Topocentric ITRS -> AltAz: a rotation, the same at every time.
-        t0 = times[:1] if times.shape else times
+        # Topocentric ITRS -> AltAz: a rotation set by the site alone, the same at every time.
+        t0 = together[:1] if together.shape else together
         topo = SkyCoord(CartesianRepresentation(np.eye(3) * 1e4, unit=u.km),
                         frame=ITRS(obstime=t0, location=loc))
         m_aa = topo.transform_to(AltAz(obstime=t0, location=loc)).cartesian.xyz.to_value(
             u.km) / 1e4  # columns: images of the ITRS axes
-        sun = get_sun(times).transform_to(ITRS(obstime=times)).cartesian.xyz.to_value(u.km).T
+        sun = get_sun(together).transform_to(ITRS(obstime=together)).cartesian.xyz.to_value(
+            u.km).T
         # The offset points are at ICRS gnomonic (0, tan 1') and (tan 1', 0); their apparent
         # gnomonic offsets give the linear map ICRS -> apparent, inverted here.
         t1 = math.tan(math.radians(1 / 60))
         cols = [np.stack([_dot(v, e) / _dot(v, c), _dot(v, nn) / _dot(v, c)], axis=-1) / t1
                 for v in (e_off, n_off)]
         to_icrs = np.linalg.inv(np.stack(cols, axis=-1))  # (n, 2, 2)
-        return cls(times, site, pointing, c, e, nn, aa[0].alt.to_value(u.deg),
-                   aa[0].az.to_value(u.deg), m_teme, m_aa, sun, to_icrs)
+        alt, az = aa[0].alt.to_value(u.deg), aa[0].az.to_value(u.deg)
+        if len(times) == 1:  # whole, whatever the times' shape
+            return [cls(times[0], site, pointings[0], c, e, nn, alt, az, m_teme, m_aa, sun,
+                        to_icrs)]
+        frames = []
+        for t, pointing, lo, hi in zip(times, pointings, np.cumsum([0] + sizes[:-1]),
+                                       np.cumsum(sizes)):
+            s = slice(lo, hi)
+            frames.append(cls(t, site, pointing, c[s], e[s], nn[s], alt[s], az[s], m_teme[s],
+                              m_aa, sun[s], to_icrs[s]))
+        return frames
 
     def to_altaz(self, r_itrs_km):
         """Topocentric unit vectors (AltAz axes), range (km), alt and az (deg) of ITRS points."""
