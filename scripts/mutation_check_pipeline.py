@@ -343,6 +343,10 @@ _RENDER = "inject/survey/render.py"
 _COMPARE = "inject/survey/compare.py"
 _CLI = "inject/cli/survey.py"
 _OPTICS = "inject/optics.py"
+_NIGHTS = "inject/survey/nights.py"
+_STREAM = "inject/survey/stream.py"
+_RULE = "inject/survey/rubin_rule.py"
+_FIXED = "inject/survey/fixed_mask.py"
 
 SURVEY_MUTATIONS = [
     # --- what the earlier audit found missed --------------------------------------------------
@@ -438,6 +442,44 @@ SURVEY_MUTATIONS = [
     _survey("a night's parts on the workers drop each part's last visit", "survey", _CLI,
             "pieces = [visits[k:k + size] for k in",
             "pieces = [visits[k:k + size - 1] for k in"),
+    # --- the survey night by night, the rubin_sim rule and the fixed mask ---------------------
+    _survey("night boundary at local midnight, not noon", "survey", _NIGHTS,
+            "return math.floor(mjd + lon_deg / 360.0 - 0.5)",
+            "return math.floor(mjd + lon_deg / 360.0)"),
+    _survey("night's local date with the longitude's sign flipped", "survey", _NIGHTS,
+            "return math.floor(mjd + lon_deg / 360.0 - 0.5)",
+            "return math.floor(mjd - lon_deg / 360.0 - 0.5)"),
+    _survey("Sun-altitude bins: the -18 deg edge at -12", "survey", _NIGHTS,
+            "+ (alt < SUN_ALT_BINS[2][2])", "+ (alt < SUN_ALT_BINS[1][2])"),
+    _survey("a resumed night trusted with its streaks file changed (first file checked only)",
+            "survey", _STREAM, 'for f in entry["files"].values())',
+            'for f in list(entry["files"].values())[:1])'),
+    _survey("summary read from the last night's files only", "survey", _STREAM,
+            "for n in nights]\n    return pa.concat_tables",
+            "for n in nights[-1:]]\n    return pa.concat_tables"),
+    _survey("by_year keyed on the UTC year of the visit's start, not its night's", "survey",
+            _STREAM, 'years = np.asarray(visits["year"], int)',
+            'years = np.array([int(t[:4]) for t in __import__("astropy.time").time.Time('
+            'visits["mjd"], format="mjd", scale="tai").utc.isot], int)'),
+    _survey("sky map's HEALPix pixels in NESTED order, drawn as RING", "survey", _STREAM,
+            "lonlat=True)\n    npix", "lonlat=True, nest=True)\n    npix"),
+    _survey("fixed mask's median over every visit, not the streaked", "survey", _STREAM,
+            "float(np.median(band[streaked]) / TOTAL_PIXELS)",
+            "float(np.median(band) / TOTAL_PIXELS)"),
+    _survey("a visit's streak length the longest streak's, not their sum", "survey", _PLAN,
+            "return float(sum(s.length_deg for s in self.streaks))",
+            "return float(max((s.length_deg for s in self.streaks), default=0.0))"),
+    _survey("--mask-width in arcsec at DECam's 0.263 arcsec a pixel", "survey", _FIXED,
+            'width = value if unit == "px" else value / LSST.pixel_scale_arcsec',
+            'width = value if unit == "px" else value / 0.263'),
+    _survey("rubin_sim rule: the altitude limit at the start only", "survey", _RULE,
+            "(alt[k, [0, -1]] > ALT_LIMIT_DEG).any()", "(alt[k, 0] > ALT_LIMIT_DEG)"),
+    _survey("rubin_sim rule: sunlit at the start only", "survey", _RULE,
+            "and lit[k].any()):", "and lit[k, 0]):"),
+    _survey("rubin_sim rule's prefilter on half the circle (the radius taken as a diameter)",
+            "survey", _RULE, "field_radius_deg=RADIUS_DEG)", "field_radius_deg=RADIUS_DEG / 2)"),
+    _survey("rubin_sim rule's prefilter reads observationStartMJD as TAI, not UT1", "survey",
+            _RULE, 'format="mjd", scale="ut1").tai.mjd', 'format="mjd", scale="tai").tai.mjd'),
     # --- the optics: the traced kernel, its grid and its cache ---------------------------------
     _survey("traced kernel turned the wrong way across the track", "optics", _OPTICS,
             "parts = [self.profile(gsparams).rotate(-float(track_angle_deg) * galsim.degrees)]",
