@@ -179,16 +179,53 @@ def line_spread(profile, pixel_scale_arcsec=None, step_arcsec=None, pixel_angle_
     -------
     CrossSection
     """
-    maxk, stepk = profile.maxk, profile.stepk
-    step = np.pi / maxk / 2 if step_arcsec is None else step_arcsec
+    step = _lsf_step(profile, pixel_scale_arcsec, step_arcsec)
+    slice_k, ky, dk = _k_slice(profile, step, period_factor)
+    return _cross_section(slice_k, ky, dk, step, pixel_scale_arcsec, pixel_angle_deg)
+
+
+def line_spreads(profile, pixel_scale_arcsec, step_arcsec=None, period_factor=1.0):
+    """The line-spread functions without and with pixel response from one drawn transform.
+
+    The same as :func:`line_spread` of ``profile`` without pixels and with pixels of
+    ``pixel_scale_arcsec`` aligned with the track, both sampled at the step the pixelated one
+    takes (``step_arcsec`` capped at ``pixel_scale_arcsec / 16``): the profile's transform,
+    the expensive part, is drawn once for both.
+
+    Returns
+    -------
+    bare, pixelated : CrossSection
+    """
+    step = _lsf_step(profile, pixel_scale_arcsec, step_arcsec)
+    slice_k, ky, dk = _k_slice(profile, step, period_factor)
+    return (_cross_section(slice_k, ky, dk, step),
+            _cross_section(slice_k, ky, dk, step, pixel_scale_arcsec))
+
+
+def _lsf_step(profile, pixel_scale_arcsec, step_arcsec):
+    """The sampling of :func:`line_spread`, arcsec."""
+    step = np.pi / profile.maxk / 2 if step_arcsec is None else step_arcsec
     if pixel_scale_arcsec is not None:
         step = min(step, pixel_scale_arcsec / 16)
-    period = period_factor * 2 * np.pi / stepk
+    return step
+
+
+def _k_slice(profile, step, period_factor):
+    """The profile's transform on the ky axis (kx = 0) for samples ``step`` apart over the
+    period ``period_factor`` times ``2 pi / stepk``: the values, their ky and spacing dk."""
+    period = period_factor * 2 * np.pi / profile.stepk
     n = int(2 ** np.ceil(np.log2(max(period / step, 64))))
     dk = 2 * np.pi / (n * step)
     kimage = profile.drawKImage(nx=2, ny=n, scale=dk)
     slice_k = kimage.array[:, 1]  # kx = 0 column; rows run ky = -n/2 .. n/2-1
     ky = (np.arange(n) - n // 2) * dk
+    return slice_k, ky, dk
+
+
+def _cross_section(slice_k, ky, dk, step, pixel_scale_arcsec=None, pixel_angle_deg=0.0):
+    """The :class:`CrossSection` of a transform on the ky axis (:func:`_k_slice`), times the
+    pixel response if ``pixel_scale_arcsec`` is given."""
+    n = len(slice_k)
     if pixel_scale_arcsec is not None:
         a = np.radians(pixel_angle_deg)
         for width in (pixel_scale_arcsec * abs(np.cos(a)), pixel_scale_arcsec * abs(np.sin(a))):
