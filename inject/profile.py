@@ -216,10 +216,56 @@ def _k_slice(profile, step, period_factor):
     period = period_factor * 2 * np.pi / profile.stepk
     n = int(2 ** np.ceil(np.log2(max(period / step, 64))))
     dk = 2 * np.pi / (n * step)
-    kimage = profile.drawKImage(nx=2, ny=n, scale=dk)
-    slice_k = kimage.array[:, 1]  # kx = 0 column; rows run ky = -n/2 .. n/2-1
+    slice_k = _k_column(profile, n, dk)  # rows run ky = -n/2 .. n/2-1
     ky = (np.arange(n) - n // 2) * dk
     return slice_k, ky, dk
+
+
+#: GalSim profiles that fill a centred k-image from ky = 0 outward by symmetry when drawn
+#: without a Jacobian, so that the kx = 0 column drawn alone holds the values it has in a wider
+#: image (tests/test_profile.py checks each, bit for bit).
+_COLUMN_ALONE = (galsim.Kolmogorov, galsim.VonKarman, galsim.TopHat, galsim.Gaussian)
+
+
+def _k_column(profile, n, dk):
+    """The kx = 0 column of ``profile.drawKImage(nx=2, ny=n, scale=dk)``, bit for bit.
+
+    The column of the two-column image is the one of the profile drawn alone where that gives
+    the same values (:func:`_draws_column_alone`); a sum or convolution of parts is the sum or
+    product, in GalSim's order, of its parts' columns (GalSim combines their images element by
+    element); anything else is drawn in two columns as the plain call would. An axisymmetric
+    part drawn alone costs a sixth of its two columns (the kx = -dk column has no symmetry).
+    """
+    if _draws_column_alone(profile):
+        image = galsim.ImageCD(galsim.BoundsI(0, 0, -(n // 2), n // 2 - 1), scale=dk)
+        return profile.drawKImage(image=image).array[:, 0]
+    if type(profile) in (galsim.Convolution, galsim.Sum):
+        columns = [_k_column(part, n, dk) for part in profile.obj_list]
+        combined = np.ascontiguousarray(columns[0])
+        for column in columns[1:]:
+            if type(profile) is galsim.Convolution:
+                combined *= column
+            else:
+                combined += column
+        return combined
+    return profile.drawKImage(nx=2, ny=n, scale=dk).array[:, 1]
+
+
+def _draws_column_alone(profile):
+    """Whether ``profile`` drawn in the kx = 0 column alone gives that column's values in any
+    wider centred image: an axisymmetric profile of :data:`_COLUMN_ALONE`, a flux scaling of
+    one without Jacobian or offset (GalSim's ``_jac`` is None then: with a Jacobian, even the
+    identity, GalSim steps through k from the image's corner), or sums and convolutions of
+    these."""
+    if type(profile) in _COLUMN_ALONE:
+        return True
+    if type(profile) is galsim.Transformation:
+        unshifted = profile.offset.x == 0 and profile.offset.y == 0
+        return (getattr(profile, "_jac", False) is None and unshifted
+                and _draws_column_alone(profile.original))
+    if type(profile) in (galsim.Convolution, galsim.Sum):
+        return all(_draws_column_alone(part) for part in profile.obj_list)
+    return False
 
 
 def _cross_section(slice_k, ky, dk, step, pixel_scale_arcsec=None, pixel_angle_deg=0.0):
@@ -229,7 +275,8 @@ def _cross_section(slice_k, ky, dk, step, pixel_scale_arcsec=None, pixel_angle_d
     if pixel_scale_arcsec is not None:
         a = np.radians(pixel_angle_deg)
         for width in (pixel_scale_arcsec * abs(np.cos(a)), pixel_scale_arcsec * abs(np.sin(a))):
-            slice_k = slice_k * np.sinc(ky * width / (2 * np.pi))
+            # No width (a track along a pixel axis) is sinc(0) at every ky: one number.
+            slice_k = slice_k * (np.sinc(ky * width / (2 * np.pi)) if width else np.sinc(0.0))
     lsf = np.fft.fftshift(np.fft.ifft(np.fft.ifftshift(slice_k))).real * n * dk / (2 * np.pi)
     offsets = (np.arange(n) - n // 2) * step
     return CrossSection(offsets, lsf)
