@@ -234,7 +234,8 @@ def _k_column(profile, n, dk):
     the same values (:func:`_draws_column_alone`); a sum or convolution of parts is the sum or
     product, in GalSim's order, of its parts' columns (GalSim combines their images element by
     element); anything else is drawn in two columns as the plain call would. An axisymmetric
-    part drawn alone costs a sixth of its two columns (the kx = -dk column has no symmetry).
+    part drawn alone costs a fifth to a seventh of its two columns (the kx = -dk column
+    has no symmetry to fill it from).
     """
     if _draws_column_alone(profile):
         image = galsim.ImageCD(galsim.BoundsI(0, 0, -(n // 2), n // 2 - 1), scale=dk)
@@ -253,10 +254,10 @@ def _k_column(profile, n, dk):
 
 def _draws_column_alone(profile):
     """Whether ``profile`` drawn in the kx = 0 column alone gives that column's values in any
-    wider centred image: an axisymmetric profile of :data:`_COLUMN_ALONE`, a flux scaling of
-    one without Jacobian or offset (GalSim's ``_jac`` is None then: with a Jacobian, even the
-    identity, GalSim steps through k from the image's corner), or sums and convolutions of
-    these."""
+    wider centred image: an axisymmetric profile of :data:`_COLUMN_ALONE`, one scaled in flux
+    alone (a transformation whose GalSim ``_jac`` is None and with no offset: with a Jacobian,
+    even the identity, GalSim steps through k from the image's corner, so the column's values
+    depend on where the image starts), or sums and convolutions of these."""
     if type(profile) in _COLUMN_ALONE:
         return True
     if type(profile) is galsim.Transformation:
