@@ -15,7 +15,7 @@ from inject.errors import InputError
 from inject.geometry import Geometry
 from inject.instrument import LSST, Telescope
 from inject.photometry import apparent_magnitude, band, electron_rate
-from inject.profile import Seeing, line_spread, stationary_profile
+from inject.profile import Seeing, line_spread, line_spreads, stationary_profile
 from inject.satellite import Box, Shape
 from inject.validate import finite, positive
 
@@ -363,6 +363,5 @@ def _shared_profile(ref):
 @lru_cache(maxsize=256)  # two arrays of a few thousand samples each
 def _shared_line_spreads(ref):
     model = ref.model
-    step = model._fine_step
-    return (line_spread(model.profile, step_arcsec=step),
-            line_spread(model.profile, model.pixel_scale, step_arcsec=step))
+    # The fine step is below the pixel's cap of line_spreads: both at the same step.
+    return line_spreads(model.profile, model.pixel_scale, step_arcsec=model._fine_step)

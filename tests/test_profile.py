@@ -6,7 +6,7 @@ from scipy import integrate, optimize
 
 from inject import LSST, Disk, Seeing, StreakModel, Telescope
 from inject.instrument import ARCSEC_PER_RAD
-from inject.profile import defocus_kernel, line_spread
+from inject.profile import defocus_kernel, line_spread, line_spreads
 
 
 def test_defocus_kernel_has_unit_flux_and_radii():
@@ -129,3 +129,52 @@ def test_other_telescope():
     # semicircle (half max of sqrt(a^2 - x^2) at x = a sqrt(3)/2), slightly widened by the disk.
     a = 0.5 / 550e3 * ARCSEC_PER_RAD
     assert model.fwhm_arcsec == pytest.approx(np.sqrt(3) * a, rel=0.1)
+
+
+def _plain_line_spread(profile, pixel_scale, step, pixel_angle_deg=0.0):
+    """The line-spread function as GalSim's plain two-column drawing gives it: the kx = 0
+    column of ``drawKImage(nx=2)``, the pixel's boxes as sincs, one inverse FFT."""
+    n = int(2 ** np.ceil(np.log2(max(2 * np.pi / profile.stepk / step, 64))))
+    dk = 2 * np.pi / (n * step)
+    slice_k = profile.drawKImage(nx=2, ny=n, scale=dk).array[:, 1]
+    ky = (np.arange(n) - n // 2) * dk
+    if pixel_scale is not None:
+        a = np.radians(pixel_angle_deg)
+        for width in (pixel_scale * abs(np.cos(a)), pixel_scale * abs(np.sin(a))):
+            slice_k = slice_k * np.sinc(ky * width / (2 * np.pi))
+    return np.fft.fftshift(np.fft.ifft(np.fft.ifftshift(slice_k))).real * n * dk / (2 * np.pi)
+
+
+_MODELS = [dict(height_km=550, zenith_deg=70), dict(height_km=350, shape=Disk(1.0)),
+           dict(height_km=2000, zenith_deg=30, phi_deg=20,
+                seeing=Seeing(1.2, model="vonkarman")),
+           dict(height_km=550, zenith_deg=30, seeing=Seeing(0.0)),
+           dict(height_km=36000, zenith_deg=10, shape=Disk(3.0), seeing=Seeing(0.5)),
+           dict(height_km=700, pupil="rubin", field_angle_deg=1.2, field_position_angle_deg=30)]
+#: Profiles by the name of a function that builds one (at the test, not at collection).
+_PROFILES = {**{f"model{i}": (lambda kw=kw: StreakModel(**kw).profile)
+                for i, kw in enumerate(_MODELS)},
+             "kolmogorov": lambda: Seeing(0.7).profile(),
+             "gaussian": lambda: galsim.Gaussian(sigma=0.4),
+             "annulus": lambda: defocus_kernel(550.0),
+             # An offset and a Jacobian (even the identity) make GalSim draw two columns.
+             "shifted": lambda: galsim.Gaussian(sigma=0.4).shift(0.05, 0.0),
+             "identity_jacobian": lambda: defocus_kernel(550.0).rotate(0 * galsim.degrees),
+             "rotated_box": lambda: galsim.Convolve(
+                 Seeing(0.7).profile(), galsim.Box(1.0, 0.3).rotate(30 * galsim.degrees))}
+
+
+@pytest.mark.parametrize("name", _PROFILES)
+def test_line_spreads_equal_galsim_two_column_drawing_bit_for_bit(name):
+    """However the transform's kx = 0 column is drawn (alone where GalSim's symmetry allows,
+    once for both functions), every value equals the plain recipe's to the last bit."""
+    profile = _PROFILES[name]()
+    p = 0.2
+    step = min(np.pi / profile.maxk / 2, p / 40)
+    bare, pixelated = line_spreads(profile, p, step_arcsec=step)
+    assert bare.lsf.tobytes() == _plain_line_spread(profile, None, step).tobytes()
+    assert pixelated.lsf.tobytes() == _plain_line_spread(profile, p, step).tobytes()
+    for angle in (0.0, 30.0, 90.0):
+        cs = line_spread(profile, p, pixel_angle_deg=angle)
+        default_step = min(np.pi / profile.maxk / 2, p / 16)
+        assert cs.lsf.tobytes() == _plain_line_spread(profile, p, default_step, angle).tobytes()
