@@ -365,18 +365,11 @@ def crossed_ccds(xs_mm, ys_mm):
     steps = list(map(math.hypot, np.diff(xs).tolist(), np.diff(ys).tolist()))
     mm = [(b - a) * steps[j] for j, a, b in zip(k.tolist(), t0.tolist(), t1.tolist())]
     out = {}
-    for i, first, last in _runs_of(box):
-        # Summed in order along the path, one piece after the other.
-        out[fp.CCDS[near[i]]] = float(sum(mm[first:last]))
+    ends = (np.flatnonzero(np.diff(box)) + 1).tolist()  # where the next CCD's parts begin
+    for first, last in zip([0, *ends], [*ends, len(box)]):
+        if last > first:  # summed in order along the path, one piece after the other
+            out[fp.CCDS[near[box[first]]]] = float(sum(mm[first:last]))
     return out
-
-
-def _runs_of(labels):
-    """``(label, first, last)`` of each run of equal values in a sorted integer array."""
-    starts = np.flatnonzero(np.diff(labels)) + 1
-    firsts = [0, *starts.tolist()]
-    lasts = [*starts.tolist(), len(labels)]
-    return [(int(labels[a]), a, b) for a, b in zip(firsts, lasts)] if len(labels) else []
 
 
 def reached_ccds(xs_mm, ys_mm, margin_px):
