@@ -216,6 +216,11 @@ class Track:
     vertices: tuple | None = None
 
 
+#: A piece whose step along an axis is below this fraction of its length runs parallel to that
+#: axis (the box's edges across it are never crossed).
+PARALLEL_FRACTION = 1e-15
+
+
 def clip_path(xs, ys, box):
     """The parts of a polyline (focal-plane mm) inside a box ``(xmin, xmax, ymin, ymax)``.
 
@@ -223,23 +228,55 @@ def clip_path(xs, ys, box):
     -------
     list of tuple
         ``(piece, t0, t1)``: the index of the polyline piece and the fractions ``0 <= t0 <
-        t1 <= 1`` along it that lie inside, in order along the path.
+        t1 <= 1`` along it that lie inside, in order along the path (:func:`clip_path_boxes`
+        for one box).
     """
-    xmin, xmax, ymin, ymax = box
-    out = []
-    for k in range(len(xs) - 1):
-        dx, dy = xs[k + 1] - xs[k], ys[k + 1] - ys[k]
-        length = float(np.hypot(dx, dy))
-        if length == 0:
-            continue
-        angle = float(np.degrees(np.arctan2(dy, dx)))
-        chord = clip_line(xs[k], ys[k], angle, (xmin, xmax), (ymin, ymax))
-        if chord is None:
-            continue
-        t0, t1 = max(chord[0] / length, 0.0), min(chord[1] / length, 1.0)
-        if t1 > t0:
-            out.append((k, t0, t1))
-    return out
+    _, piece, t0, t1 = clip_path_boxes(xs, ys, [box])
+    return list(zip(piece.tolist(), t0.tolist(), t1.tolist()))
+
+
+def clip_path_boxes(xs, ys, boxes):
+    """The parts of a polyline inside each of several boxes, every piece against every box at
+    once (Liang-Barsky).
+
+    A point of piece ``k`` is ``(xs[k], ys[k]) + t (xs[k + 1] - xs[k], ys[k + 1] - ys[k])``
+    with ``0 <= t <= 1``; the boxes are closed. Pieces of zero length are never inside, nor
+    are pieces with a non-finite vertex. A piece whose step along an axis is below
+    :data:`PARALLEL_FRACTION` of its length is inside along that axis where its first vertex
+    is.
+
+    Parameters
+    ----------
+    xs, ys : array_like
+        The polyline's vertices.
+    boxes : array_like
+        ``(n, 4)``: each box's ``(xmin, xmax, ymin, ymax)``.
+
+    Returns
+    -------
+    box, piece : ndarray of int
+        For each part inside a box: the box's row in ``boxes`` and the polyline piece.
+    t0, t1 : ndarray of float
+        The fractions ``0 <= t0 < t1 <= 1`` along the piece that lie inside the box. Parts
+        are sorted by box, then along the path.
+    """
+    xs, ys = np.asarray(xs, float), np.asarray(ys, float)
+    boxes = np.asarray(boxes, float).reshape(-1, 4)
+    dx, dy = np.diff(xs), np.diff(ys)
+    length = np.hypot(dx, dy)
+    lo = np.zeros((len(boxes), len(dx)))
+    hi = np.ones((len(boxes), len(dx)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for start, step, vmin, vmax in ((xs[:-1], dx, boxes[:, :1], boxes[:, 1:2]),
+                                        (ys[:-1], dy, boxes[:, 2:3], boxes[:, 3:4])):
+            ta, tb = (vmin - start) / step, (vmax - start) / step
+            along = np.abs(step) >= PARALLEL_FRACTION * length
+            # Parallel to this axis: all of the piece or none of it, by where it starts.
+            level = np.where((vmin <= start) & (start <= vmax), np.inf, -np.inf)
+            lo = np.maximum(lo, np.where(along, np.minimum(ta, tb), -level))
+            hi = np.minimum(hi, np.where(along, np.maximum(ta, tb), level))
+    box, piece = np.nonzero((hi > lo) & (length > 0))
+    return box, piece, lo[box, piece], hi[box, piece]
 
 
 @dataclass(frozen=True)

@@ -415,8 +415,8 @@ SURVEY_MUTATIONS = [
             "merged = {name: sum(union_pixels([s]) for s in spans) "
             "for name, spans in spans_by_ccd.items()}"),
     _survey("CCD gaps (65 px each side) counted as sensitive", "survey", _PLAN,
-            "pieces = clip_path(xs, ys, ccd.bounds_mm())",
-            "pieces = clip_path(xs, ys, ccd.bounds_mm(65.0))"),
+            "box, k, t0, t1 = clip_path_boxes(xs, ys, _BOUNDS[near])",
+            "box, k, t0, t1 = clip_path_boxes(xs, ys, fp.boxes_mm(fp.CCDS, 65.0)[near])"),
     # --- the prefilter ---------------------------------------------------------------------------
     _survey("umbra test with the Sun's side flipped", "survey", _PRE,
             "behind = -(r @ s)", "behind = r @ s"),

@@ -34,7 +34,7 @@ import numpy as np
 from inject.camera.detector import E2V, ITL
 from inject.errors import InputError
 from inject.instrument import ARCSEC_PER_RAD
-from inject.trajectory import clip_path
+from inject.trajectory import clip_path_boxes
 
 #: Pixel pitch, mm.
 PIXEL_MM = 0.010
@@ -255,6 +255,34 @@ def extent_mm():
             float(boxes[:, 2].min()), float(boxes[:, 3].max()))
 
 
+def boxes_mm(ccds=CCDS, margin_px=0.0, shape=None):
+    """:meth:`CCD.bounds_mm` of several CCDs as an ``(n, 4)`` array, the same numbers.
+
+    Parameters
+    ----------
+    ccds : sequence of CCD
+    margin_px : float
+        Pixels added on every side.
+    shape : tuple of int, optional
+        ``(ny, nx)`` of a cut-out from pixel (0, 0) (each CCD's own shape if None).
+    """
+    centre = np.array([c.centre_mm for c in ccds], float).reshape(-1, 2)
+    refpos = np.array([c.refpos for c in ccds], float).reshape(-1, 2)
+    size = np.array([c.shape if shape is None else shape for c in ccds], float).reshape(-1, 2)
+    low = -0.5 - margin_px
+    # Term by term as pixel_to_focal, so that each box is bounds_mm's to the last bit.
+    x0 = centre[:, 0] + (low - refpos[:, 0]) * PIXEL_MM
+    y0 = centre[:, 1] + (low - refpos[:, 1]) * PIXEL_MM
+    x1 = centre[:, 0] + (size[:, 1] - 0.5 + margin_px - refpos[:, 0]) * PIXEL_MM
+    y1 = centre[:, 1] + (size[:, 0] - 0.5 + margin_px - refpos[:, 1]) * PIXEL_MM
+    return np.stack([x0, x1, y0, y1], axis=1)
+
+
 def ccds_reached(xs, ys, margin_px=0.0, ccds=CCDS, shape=None):
-    """CCDs whose pixel area grown by ``margin_px`` a polyline (mm) reaches, in id order."""
-    return tuple(c for c in ccds if clip_path(xs, ys, c.bounds_mm(margin_px, shape)))
+    """CCDs whose pixel area grown by ``margin_px`` a polyline (mm) reaches, in the order of
+    ``ccds`` (id order by default)."""
+    ccds = tuple(ccds)
+    if not ccds:
+        return ()
+    box, _, _, _ = clip_path_boxes(xs, ys, boxes_mm(ccds, margin_px, shape))
+    return tuple(ccds[i] for i in np.unique(box))

@@ -58,7 +58,7 @@ from inject.profile import Seeing
 from inject.streak import StreakModel
 from inject.survey.prefilter import NightPrefilter
 from inject.survey.visits import ROTATOR_SOURCES
-from inject.trajectory import clip_path
+from inject.trajectory import clip_path_boxes
 
 #: Pixels of the 189 science CCDs.
 TOTAL_PIXELS = int(sum(c.shape[0] * c.shape[1] for c in fp.CCDS))
@@ -329,10 +329,10 @@ def run_spans(xs_mm, ys_mm, width_px, ccd):
     n = len(px)
     # Only the segments that come within reach of the CCD (its pixel area grown by the
     # width: the rectangle reaches half of it, the cap another half).
-    pieces = clip_path(px, py, (-0.5 - width_px, ccd.shape[1] - 0.5 + width_px,
-                                -0.5 - width_px, ccd.shape[0] - 0.5 + width_px))
+    _, pieces, _, _ = clip_path_boxes(px, py, [(-0.5 - width_px, ccd.shape[1] - 0.5 + width_px,
+                                                -0.5 - width_px, ccd.shape[0] - 0.5 + width_px)])
     out = []
-    for k in sorted({piece[0] for piece in pieces}):
+    for k in np.unique(pieces).tolist():
         x0, y0, x1, y1 = px[k], py[k], px[k + 1], py[k + 1]
         length = math.hypot(x1 - x0, y1 - y0)
         ux, uy = (x1 - x0) / length, (y1 - y0) / length
@@ -362,13 +362,14 @@ def crossed_ccds(xs_mm, ys_mm):
     xs, ys = np.asarray(xs_mm, float), np.asarray(ys_mm, float)
     near = np.flatnonzero((_BOUNDS[:, 0] <= xs.max()) & (_BOUNDS[:, 1] >= xs.min())
                           & (_BOUNDS[:, 2] <= ys.max()) & (_BOUNDS[:, 3] >= ys.min()))
+    box, k, t0, t1 = clip_path_boxes(xs, ys, _BOUNDS[near])
+    steps = list(map(math.hypot, np.diff(xs).tolist(), np.diff(ys).tolist()))
+    mm = [(b - a) * steps[j] for j, a, b in zip(k.tolist(), t0.tolist(), t1.tolist())]
     out = {}
-    for i in near:
-        ccd = fp.CCDS[i]
-        pieces = clip_path(xs, ys, ccd.bounds_mm())
-        if pieces:
-            out[ccd] = float(sum((t1 - t0) * math.hypot(xs[k + 1] - xs[k], ys[k + 1] - ys[k])
-                                 for k, t0, t1 in pieces))
+    ends = (np.flatnonzero(np.diff(box)) + 1).tolist()  # where the next CCD's parts begin
+    for first, last in zip([0, *ends], [*ends, len(box)]):
+        if last > first:  # summed in order along the path, one piece after the other
+            out[fp.CCDS[near[box[first]]]] = float(sum(mm[first:last]))
     return out
 
 
@@ -386,13 +387,16 @@ def reached_ccds(xs_mm, ys_mm, margin_px):
 def _angular_length_deg(xs_mm, ys_mm, pieces_by_ccd):
     """Sky length (deg) of a polyline's parts on CCDs: the clipped pieces' ends through the
     distortion to field angles."""
+    xs, ys = np.asarray(xs_mm, float), np.asarray(ys_mm, float)
+    _, k, t0, t1 = clip_path_boxes(xs, ys, _BOUNDS[[c.id for c in pieces_by_ccd]])
+    ends = np.stack([t0, t1], axis=1)  # (part, 2)
+    xa = xs[k, None] + ends * (xs[k + 1] - xs[k])[:, None]
+    ya = ys[k, None] + ends * (ys[k + 1] - ys[k])[:, None]
+    ax, ay = fp.field_angle(xa, ya)
+    # Summed in order (by CCD, then along the path), each from 0.
     total = 0.0
-    for ccd in pieces_by_ccd:
-        for k, t0, t1 in clip_path(xs_mm, ys_mm, ccd.bounds_mm()):
-            xa = xs_mm[k] + np.array([t0, t1]) * (xs_mm[k + 1] - xs_mm[k])
-            ya = ys_mm[k] + np.array([t0, t1]) * (ys_mm[k + 1] - ys_mm[k])
-            ax, ay = fp.field_angle(xa, ya)
-            total += math.hypot(ax[1] - ax[0], ay[1] - ay[0])
+    for dx, dy in zip((ax[:, 1] - ax[:, 0]).tolist(), (ay[:, 1] - ay[:, 0]).tolist()):
+        total += math.hypot(dx, dy)
     return math.degrees(total)
 
 
@@ -632,9 +636,8 @@ def _streak(name, p, crossings, spec, visit, seeing, sigmas, pupil="annulus",
         total_deg += _angular_length_deg(xs, ys, hit)
         for ccd, mm in hit.items():
             lengths[ccd] = lengths.get(ccd, 0.0) + mm
-        for n, (x, y) in enumerate(zip(xs, ys)):
-            if any(_inside(ccd, x, y) for ccd in hit):
-                inside.append((piece, values, n))
+        for n in np.flatnonzero(_inside(hit, xs, ys)).tolist():
+            inside.append((piece, values, n))
     if not inside:  # crosses only between vertices: take the vertex before the first crossing
         piece, values, _ = crossings[0]
         inside = [(piece, values, 0)]
@@ -665,9 +668,11 @@ def _streak(name, p, crossings, spec, visit, seeing, sigmas, pupil="annulus",
     return streak, widths
 
 
-def _inside(ccd, x, y):
-    xmin, xmax, ymin, ymax = ccd.bounds_mm()
-    return xmin <= x <= xmax and ymin <= y <= ymax
+def _inside(ccds, xs, ys):
+    """Whether each point (mm) lies on one of the CCDs' pixel areas (edges included)."""
+    b = _BOUNDS[[c.id for c in ccds]][:, :, None]
+    return np.any((b[:, 0] <= xs) & (xs <= b[:, 1]) & (b[:, 2] <= ys) & (ys <= b[:, 3]),
+                  axis=0)
 
 
 # --- many visits ----------------------------------------------------------------------------
