@@ -50,10 +50,11 @@ coarse nodes (the lower perigee ``r_p`` less :data:`PERIGEE_DROP_KM`, the larger
 eccentricity ``e`` plus :data:`ECCENTRICITY_RISE`, for their change between the nodes): a
 Kepler orbit's ``max|r''''|`` is ``(1 + e) w^4 r_p`` within 1% up to e = 0.01 and 12% at
 e = 0.3 (measured), 1.05 for the Earth's flattening as above, and twice that. ``E_c`` is
-42 km at 350 km with 900 s coarse steps; the same formula with the node step bounds the
-nodes' interpolation, ``E_f`` = 0.5 km. The satellite's speed is at most ``v_max = 1.01
-sqrt(mu (1 + e) / r_p)`` (vis-viva at perigee, 1% for the flattening) and the nodes'
-interpolated velocity is within ``sqrt(3) / 216 h^3 max|r''''|`` (0.005 km/s) of SGP4's.
+680 km at 350 km with 1800 s coarse steps (it grows as ``h_c^4``: 42 km at 900 s); the same
+formula with the node step bounds the nodes' interpolation, ``E_f`` = 0.5 km. The
+satellite's speed is at most ``v_max = 1.01 sqrt(mu (1 + e) / r_p)`` (vis-viva at perigee,
+1% for the flattening) and the nodes' interpolated velocity is within ``sqrt(3) / 216 h^3
+max|r''''|`` (0.005 km/s) of SGP4's.
 
 Test 1 keeps a satellite when ``g(r) = d - z tan(a) <= (reach + 0.1) / cos(a)``, ``d`` and
 ``z`` the distances of its interpolated position ``r`` from the line of sight and along it,
@@ -114,7 +115,7 @@ UMBRA_SLACK_KM = 5.0
 #: Nodes kept in memory (a visit needs two; the next visits usually the same).
 CACHED_NODES = 4
 #: Nodes per step of the coarse grid, where every satellite is propagated (module notes).
-COARSE_NODES = 3
+COARSE_NODES = 6
 #: The factor on the Kepler orbit's bound of the coarse interpolation (module notes).
 COARSE_SLACK = 2.0
 #: Changes of the osculating perigee (km) and eccentricity between two coarse nodes that the
@@ -198,7 +199,8 @@ class NightPrefilter:
 
         self.orbits = tuple(orbits)
         self.node_step_s = float(node_step_s)
-        self._array = SatrecArray([o.satrec for o in self.orbits])
+        self._satrecs = [o.satrec for o in self.orbits]
+        self._array = SatrecArray(self._satrecs)
         perigee = min(o.satrec.altp for o in self.orbits) * R_EQ_KM  # earth radii -> km
         self.margin_deg = (prefilter_margin_deg(max(perigee, 100.0), node_step_s, step_s)
                            if margin_deg is None else float(margin_deg))
@@ -206,6 +208,7 @@ class NightPrefilter:
         self._tan = math.tan(math.radians(self.radius))
         self._cos = math.cos(math.radians(self.radius))
         self._coarse_n = int(coarse_nodes)
+        self._all = np.arange(len(self.orbits))
         self._nodes, self._coarse_nodes, self._intervals, self._middles = {}, {}, {}, {}
         self._index = {v.observation_id: k for k, v in enumerate(visits)}
         starts = Time([v.mjd_tai for v in visits], format="mjd", scale="tai").utc
@@ -257,7 +260,7 @@ class NightPrefilter:
 
         jd2 = np.array([self._jd2 + k * self.node_step_s / 86400.0])
         array = (self._array if which is None
-                 else SatrecArray([self.orbits[i].satrec for i in which]))
+                 else SatrecArray([self._satrecs[i] for i in which.tolist()]))
         err, r, v = array.sgp4(np.array([self._jd1]), jd2)
         if np.any(err):
             j = int(np.argwhere(err)[0][0])
@@ -271,15 +274,15 @@ class NightPrefilter:
         node ``k``: SGP4 for those not yet propagated there."""
         if k not in self._nodes:
             _evict(self._nodes, k, CACHED_NODES)
+            n = len(self.orbits)
             if k in self._coarse_nodes:  # the same SGP4 call on every satellite
-                r, v = self._coarse_nodes[k]
-                self._nodes[k] = (r, v, np.ones(len(self.orbits), bool))
+                r, v = self._coarse_nodes[k][:2]
+                self._nodes[k] = (r, v, np.ones(n, bool))
             else:
-                n = len(self.orbits)
                 self._nodes[k] = (np.full((n, 3), np.nan), np.full((n, 3), np.nan),
                                   np.zeros(n, bool))
         r, v, done = self._nodes[k]
-        rows = np.arange(len(self.orbits))[which]
+        rows = self._all[which]
         missing = rows[~done[rows]]
         if len(missing):
             r[missing], v[missing] = self._propagate(k, missing)
@@ -287,42 +290,43 @@ class NightPrefilter:
         return r[rows], v[rows]
 
     def _coarse_node(self, k):
-        """Every orbit's SGP4 state at node ``k`` of the coarse grid."""
+        """Every orbit's SGP4 state at node ``k`` of the coarse grid, with its osculating
+        orbit's eccentricity and perigee radius (km)."""
         if k not in self._coarse_nodes:
             _evict(self._coarse_nodes, k, CACHED_NODES)
-            self._coarse_nodes[k] = self._propagate(k)
+            r, v = self._propagate(k)
+            self._coarse_nodes[k] = (r, v, *_eccentricity_perigee(r, v))
         return self._coarse_nodes[k]
 
     def _coarse(self, kt):
         """The coarse interval holding node interval ``kt``: its nodes ``k0``, ``k1``, their
-        states, and per satellite the bounds of the module notes (``reach_speed``, km/s, the
-        speed test 1's reach may use; ``speed`` the largest; ``slack``, km,
-        ``E_c + E_f`` and the rounding)."""
+        states, and the bounds of the module notes over the satellites that have one
+        (``speed``, km/s, the largest; ``reach_speed`` the largest speed test 1's reach
+        uses; ``slack``, km, ``E_c + E_f`` and the rounding), ``always`` the others."""
         n = self._coarse_n
         k0 = max(self._k_first, n * (kt // n))
         k1 = min(self._k_last, n * (kt // n + 1))
         if (k0, k1) not in self._intervals:
             _evict(self._intervals, (k0, k1), 2, position=lambda pair: pair[0])
-            r0, v0 = self._coarse_node(k0)
-            r1, v1 = self._coarse_node(k1)
-            e0, p0 = _eccentricity_perigee(r0, v0)
-            e1, p1 = _eccentricity_perigee(r1, v1)
+            r0, v0, e0, p0 = self._coarse_node(k0)
+            r1, v1, e1, p1 = self._coarse_node(k1)
             e = np.maximum(e0, e1) + ECCENTRICITY_RISE
             perigee = np.minimum(p0, p1) - PERIGEE_DROP_KM
-            bounded = np.isfinite(e) & np.isfinite(perigee) & (e < 1.0) & (perigee > 0.0)
-            e, perigee = np.where(bounded, e, 0.0), np.where(bounded, perigee, R_EQ_KM)
+            # An orbit SGP4 gives no ellipse for has no bound: on every shortlist.
+            bounded = (e < 1.0) & (perigee > 0.0)  # False for NaN
+            e, perigee = e[bounded], perigee[bounded]
             rate = np.sqrt(MU_KM3_S2 * (1.0 + e) / perigee ** 3)
-            fourth = COARSE_SLACK * INTERP_SLACK * (1.0 + e) * rate ** 4 * perigee
+            fourth = np.max(COARSE_SLACK * INTERP_SLACK * (1.0 + e) * rate ** 4 * perigee,
+                            initial=0.0)
+            speed = np.max(1.01 * rate * perigee, initial=0.0)  # vis-viva at perigee
             h, h_c = self.node_step_s, (k1 - k0) * self.node_step_s
-            speed = 1.01 * rate * perigee  # vis-viva at perigee, sqrt(mu (1 + e) / r_p)
-            slack = (h_c ** 4 + h ** 4) / 384.0 * fourth + ROUNDING_KM
-            reach_speed = 1.02 * (speed + math.sqrt(3.0) / 216.0 * h ** 3 * fourth)
-            # No bound (an orbit SGP4 gives no ellipse for): always on the shortlists.
-            far = np.where(bounded, 0.0, UNBOUNDED_KM)
             self._intervals[(k0, k1)] = {
                 "k0": k0, "k1": k1, "r0": r0, "v0": v0, "r1": r1, "v1": v1,
-                "speed": speed, "reach_speed": reach_speed + SITE_SPEED_KM_S,
-                "slack": slack + far}
+                "speed": speed,
+                "reach_speed": (1.02 * (speed + math.sqrt(3.0) / 216.0 * h ** 3 * fourth)
+                                + SITE_SPEED_KM_S),
+                "slack": (h_c ** 4 + h ** 4) / 384.0 * fourth + ROUNDING_KM,
+                "always": np.flatnonzero(~bounded)}
         return self._intervals[(k0, k1)]
 
     def _coarse_positions(self, coarse, t_s, which=slice(None)):
@@ -352,20 +356,23 @@ class NightPrefilter:
         kt = min(max(int(math.floor(mid / h)), self._k_first), self._k_last - 1)
         coarse = self._coarse(kt)
         r, norm2 = self._interval_middle(kt)
-        base = coarse["slack"] + coarse["reach_speed"] * half + 0.1
-        # a: the interval's middle, on every satellite.
-        far = base + coarse["speed"] * abs(mid - (kt + 0.5) * h)
-        z = r @ b - apex @ b
-        d2 = norm2 - 2.0 * (r @ apex) + apex @ apex - z * z
-        bound = z * self._tan + far / self._cos
+        reach = coarse["slack"] + coarse["reach_speed"] * half + 0.1
+        # a: the interval's middle, on every satellite (|r - apex|^2 = d^2 + z^2).
+        far = (reach + coarse["speed"] * abs(mid - (kt + 0.5) * h)) / self._cos
+        zw = r @ np.stack([b, apex], axis=1)
+        z = zw[:, 0] - apex @ b
+        bound = z * self._tan + far
+        d2 = (norm2 - 2.0 * zw[:, 1] + apex @ apex) - z * z
         which = np.flatnonzero((bound >= 0.0) & (d2 <= bound * bound))
+        if len(coarse["always"]):
+            which = np.union1d(which, coarse["always"])
         if not len(which):
             return which
         # b: the visit's middle, on those.
         los = self._coarse_positions(coarse, mid, which) - apex
         z = los @ b
         d = np.linalg.norm(los - z[:, None] * b, axis=1)
-        return which[d <= z * self._tan + base[which] / self._cos]
+        return which[d <= z * self._tan + reach / self._cos]
 
     def positions(self, t_s, which=slice(None)):
         """TEME positions (km, (n, len(t_s), 3)) of the orbits ``which`` at ``t_s`` (s from
@@ -374,7 +381,7 @@ class NightPrefilter:
         h = self.node_step_s
         k = np.floor(t_s / h).astype(int)
         u = t_s / h - k
-        n = len(np.arange(len(self.orbits))[which])
+        n = len(self._all[which])
         r_out, v_out = np.empty((n, t_s.size, 3)), np.empty((n, t_s.size, 3))
         for kk in np.unique(k):
             cols = np.flatnonzero(k == kk)
