@@ -364,15 +364,13 @@ class NightPrefilter:
         bound = z * self._tan + far
         d2 = (norm2 - 2.0 * zw[:, 1] + apex @ apex) - z * z
         which = np.flatnonzero((bound >= 0.0) & (d2 <= bound * bound))
-        if len(coarse["always"]):
-            which = np.union1d(which, coarse["always"])
-        if not len(which):
-            return which
-        # b: the visit's middle, on those.
-        los = self._coarse_positions(coarse, mid, which) - apex
-        z = los @ b
-        d = np.linalg.norm(los - z[:, None] * b, axis=1)
-        return which[d <= z * self._tan + reach / self._cos]
+        if len(which):
+            # b: the visit's middle, on those.
+            los = self._coarse_positions(coarse, mid, which) - apex
+            z = los @ b
+            d = np.linalg.norm(los - z[:, None] * b, axis=1)
+            which = which[d <= z * self._tan + reach / self._cos]
+        return np.union1d(which, coarse["always"]) if len(coarse["always"]) else which
 
     def positions(self, t_s, which=slice(None)):
         """TEME positions (km, (n, len(t_s), 3)) of the orbits ``which`` at ``t_s`` (s from
