@@ -709,6 +709,172 @@ def test_the_night_grid_interpolates_sgp4_within_its_bound(prefilter_night):
     assert np.abs(v - v_ref).max() < 0.01  # km/s
 
 
+#: Satellites of the varied night: Walker shells (height km, inclination deg, planes x per
+#: plane) at the constellation's lowest perigee and highest orbit, polar and retrograde.
+VARIED_SHELLS = ((340.0, 53.0, 8, 12), (1200.0, 88.0, 8, 12), (600.0, 140.0, 6, 12))
+#: Visits of the varied night, each aimed at a satellite put at (alt, az) deg (height km,
+#: inclination deg) at its middle, minutes after 22:40 UTC, moved off its track by offset
+#: deg: low (20 deg) and at the zenith, in the evening's twilight.
+VARIED_VISITS = ((20.0, 200.0, 340.0, 53.0, 0.0, 0), (89.0, 30.0, 340.0, 97.6, 2.1, 6),
+                 (20.0, 100.0, 1200.0, 88.0, 2.15, 13), (89.5, 300.0, 1200.0, 140.0, 0.5, 21),
+                 (45.0, 0.0, 550.0, 70.0, 1.9, 34), (25.0, 270.0, 340.0, 140.0, 2.05, 47),
+                 (85.0, 150.0, 600.0, 53.0, 2.3, 58), (30.0, 60.0, 340.0, 53.0, 2.0, 71))
+
+
+def _tle_with_drag(satnum, epoch, days_old, perigee_km, e, inclination, raan, argp, ma,
+                   bstar):
+    """An SGP4 element set with drag (``bstar``, 1/earth radii), eccentricity ``e``, its
+    epoch ``days_old`` days before ``epoch``."""
+    from sgp4.api import WGS72, Satrec
+
+    from inject.orbits.passes import Orbit
+
+    a_er = (6378.135 + perigee_km) / (1.0 - e) / 6378.135
+    no_kozai = 60.0 / math.sqrt(6378.135 ** 3 / 398600.8) / a_er ** 1.5  # rad/min
+    sat = Satrec()
+    sat.sgp4init(WGS72, "i", satnum, epoch.utc.jd - 2433281.5 - days_old, bstar, 0.0, 0.0, e,
+                 math.radians(argp), math.radians(inclination), math.radians(ma), no_kozai,
+                 math.radians(raan))
+    return Orbit(sat, name=f"old-{satnum}")
+
+
+@pytest.fixture(scope="module")
+def varied_night():
+    """360 satellites (the shells of :data:`VARIED_SHELLS`, 96 element sets with drag up to
+    60 days old, e up to 0.02, polar and retrograde, perigees 340-700 km) and the 8 aimed
+    ones of :data:`VARIED_VISITS`, with those visits (one of two snaps)."""
+    from astropy import units as u
+    from astropy.coordinates import AltAz, SkyCoord
+    from astropy.time import Time
+
+    from inject.camera.wcs import Pointing
+    from inject.orbits.passes import RUBIN, FieldFrame, Orbit, aimed_orbit, walker_shell
+    from inject.survey.visits import Visit
+
+    epoch = Time("2026-06-15T22:40:00", scale="utc")
+    orbits = [o for k, (height, inc, planes, per) in enumerate(VARIED_SHELLS)
+              for o in walker_shell(planes * per, planes, 1, height, inc, epoch - 2 * u.day,
+                                    raan0_deg=40.0 * k, name=f"v{k}")]
+    rng = np.random.default_rng(7)
+    for n in range(96):
+        orbits.append(_tle_with_drag(
+            70000 + n, epoch, rng.uniform(0.0, 60.0), rng.uniform(340.0, 700.0),
+            rng.uniform(0.0, 0.02), rng.choice([53.0, 70.0, 90.0, 97.6, 120.0]),
+            rng.uniform(0, 360), rng.uniform(0, 360), rng.uniform(0, 360),
+            rng.uniform(1e-5, 3e-4)))
+    visits = []
+    for k, (alt, az, height, inc, offset, minutes) in enumerate(VARIED_VISITS):
+        mid = epoch + (minutes * 60 + 15) * u.s
+        tle = aimed_orbit(mid, alt, az, height_km=height, inclination_deg=inc,
+                          ascending=k % 2 == 0, name=f"aim-{k}", satnum=80000 + k)
+        orbits.append(Orbit.from_tle(*tle.tle_lines(), name=f"aim-{k}"))
+        times = Time([mid, mid + 1 * u.s])
+        frame = FieldFrame.build(times, Pointing(0.0, 0.0), RUBIN)
+        from inject.orbits.passes import propagate_teme
+
+        r, _ = propagate_teme([orbits[-1]], times)
+        _, _, alt_now, az_now = frame.to_altaz(np.einsum("tij,stj->sti", frame.teme_to_itrs, r))
+        sky = SkyCoord(az=az_now[0] * u.deg, alt=alt_now[0] * u.deg,
+                       frame=AltAz(obstime=times, location=RUBIN.location)).icrs
+        aim = sky[0].directional_offset_by(sky[0].position_angle(sky[1]) + 90 * u.deg,
+                                           offset * u.deg)
+        visits.append(Visit(k, (mid - 15 * u.s).tai.mjd, aim.ra.deg, aim.dec.deg, 30.0 * k,
+                            "r", 30.0, n_exposures=2 if k == 3 else 1))
+    return orbits, visits
+
+
+def _every_satellite_candidates(night, visit, sunlit):
+    """The candidates of ``visit`` by tests 1 and 2 of :mod:`inject.survey.prefilter`'s notes
+    on every satellite, propagated at every node (no shortlist), and test 1's survivors."""
+    k = night._index[visit.observation_id]
+    ts, site, b = night._samples[k], night._site[k], night._b[k]
+    r, v = night.positions([0.5 * (ts[0] + ts[-1])])
+    los = r[:, 0] - site.mean(axis=0)
+    z = los @ b
+    d = np.linalg.norm(los - z[:, None] * b, axis=1)
+    reach = (1.02 * np.linalg.norm(v[:, 0], axis=1) + 0.47) * 0.5 * (ts[-1] - ts[0])
+    radius = math.radians(night.radius)
+    near = np.flatnonzero(d <= z * math.tan(radius) + (reach + 0.1) / math.cos(radius))
+    keep = night.closest_deg(visit, near) <= night.radius
+    if sunlit:
+        keep &= ~night._dark(k, night.positions(ts, near)[0])
+    return near[keep], near
+
+
+def test_the_shortlists_keep_every_candidate_on_a_varied_night(varied_night):
+    """On 368 satellites (340 to 1200 km, polar and retrograde, eccentric element sets with
+    drag up to 60 days old) and 8 visits at 20 to 89.5 deg in twilight: the candidates (with
+    the satellites propagated at the nodes only when a visit's shortlist keeps them) are
+    those of every satellite propagated at every node, and hold every satellite whose exact
+    pass enters the field (sunlit or not); the shortlist holds every satellite test 1 keeps;
+    and fewer satellites than all are propagated at the nodes."""
+    from astropy import units as u
+
+    from inject.camera.wcs import Pointing
+    from inject.orbits.passes import Exposure, FieldFrame, compute_pass
+    from inject.survey.plan import visit_times
+    from inject.survey.prefilter import NightPrefilter
+
+    orbits, visits = varied_night
+    night, every = NightPrefilter(orbits, visits), NightPrefilter(orbits, visits)
+    entered_all = edge = 0
+    for visit in visits:
+        for sunlit in (False, True):
+            mine = night.candidates(visit, sunlit=sunlit)
+            theirs, near = _every_satellite_candidates(every, visit, sunlit)
+            assert np.array_equal(mine, theirs), (visit.observation_id, sunlit)
+        k = night._index[visit.observation_id]
+        ts = night._samples[k]
+        short = night._shortlist(0.5 * (ts[0] + ts[-1]), 0.5 * (ts[-1] - ts[0]),
+                                 night._site[k].mean(axis=0), night._b[k])
+        assert set(near.tolist()) <= set(short.tolist()), visit.observation_id
+        end = float(visit_times(visit)[-1])
+        t_s = np.linspace(0.0, end, int(end) + 1)
+        pointing = Pointing(visit.ra_deg, visit.dec_deg, visit.rotation_deg)
+        frame = FieldFrame.build(visit.start + t_s * u.s, pointing)
+        exact = np.array([_exact_closest(compute_pass(
+            o, Exposure(visit.start, end), pointing, t_s=t_s, frame=frame, check_epoch=False))
+            for o in orbits])
+        entered = set(np.flatnonzero(exact <= 2.1).tolist())
+        assert entered <= set(night.candidates(visit).tolist()), visit.observation_id
+        entered_all += len(entered)
+        edge += int(np.sum(np.abs(exact - 2.1) < 0.2))
+    fine = [node for k, node in night._nodes.items() if k not in night._coarse_nodes]
+    done = sum(int(node[2].sum()) for node in fine)
+    print(f"in field {entered_all}, within 0.2 deg of the edge {edge}, propagated at the "
+          f"{len(fine)} nodes off the coarse grid {done} of {len(fine) * len(orbits)}")
+    assert entered_all >= 5 and edge >= 5  # the edge is exercised (5, 5)
+    assert len(fine) and done < 0.5 * len(fine) * len(orbits)
+
+
+def test_the_coarse_grid_interpolates_sgp4_within_its_bound(varied_night):
+    """The coarse interpolation of the varied night's satellites (1800 s steps) against SGP4
+    at odd times: within ``E_c`` (measured about a third of it: the bound is twice the
+    Kepler orbit's), and SGP4's speed within the bound on it."""
+    from astropy.time import Time
+
+    from inject.orbits.passes import propagate_teme
+    from inject.survey.prefilter import NightPrefilter
+
+    orbits, visits = varied_night
+    night = NightPrefilter(orbits, visits)
+    worst = 0.0
+    for kt in range(night._k_first, night._k_last):
+        coarse = night._coarse(kt)
+        t_s = (kt + np.array([0.13, 0.5, 0.91])) * night.node_step_s
+        times = Time(np.full(t_s.size, night._jd1), night._jd2 + t_s / 86400.0, format="jd",
+                     scale="utc")
+        r_ref, v_ref = propagate_teme(orbits, times)
+        for j, t in enumerate(t_s):
+            err = np.linalg.norm(night._coarse_positions(coarse, t) - r_ref[:, j], axis=1)
+            bound = coarse["slack"] - 0.5  # E_c + E_f
+            assert err.max() < bound
+            worst = max(worst, err.max() / bound)
+        assert np.linalg.norm(v_ref, axis=-1).max() < coarse["speed"]
+    print(f"worst error / bound {worst:.3f}")
+    assert worst > 0.1  # not loose by more than 10x
+
+
 def test_the_visit_frame_from_nodes_is_astropys_at_every_sample():
     """:func:`visit_frame` (astropy every 15 s, a polynomial between) against astropy at all
     301 samples of a 30 s visit and 321 of two snaps: directions within 1e-4" (measured

@@ -2,10 +2,11 @@
 
 :func:`inject.orbits.passes.crossing_candidates` propagates every satellite at seven times of
 each exposure and builds an astropy frame for it. Over a night of visits most of that work is
-shared: :class:`NightPrefilter` propagates the constellation once per *node* of a coarse time
-grid (:data:`NODE_STEP_S` apart, SGP4 positions and velocities, kept while visits need them),
-and computes the site's and every boresight's direction in TEME for all the visits in two
-astropy calls. A visit then costs a cubic Hermite interpolation and dot products:
+shared: :class:`NightPrefilter` interpolates the constellation between *nodes* of a time grid
+(:data:`NODE_STEP_S` apart, SGP4 positions and velocities, cubic Hermite between, kept while
+visits need them; only the satellites that may come near a visit are propagated there: see
+below), and computes the site's and every boresight's direction in TEME for all the visits
+in two astropy calls. A visit then costs an interpolation and dot products:
 
 1. At the visit's middle, a satellite is kept only if it lies within the distance it can
    travel during half the visit (its speed plus the site's) of the cone of half-angle
@@ -37,6 +38,45 @@ a satellite that stays, at every coarse sample, inside the umbra of the sphere o
 Earth's polar radius (inside the ellipsoid's umbra: no part of the Sun is seen past it),
 shrunk by :data:`UMBRA_SLACK_KM`, stays in the umbra between them too (the umbra is a convex
 cone and the track leaves its chord by 0.03 km), so no sunlit part of its track is lost.
+
+**Which satellites are propagated at the nodes.** Test 2 works on test 1's survivors, and
+test 1 on a shortlist that provably holds every satellite test 1 keeps, so the candidates are
+those of all satellites at every node. Every satellite is propagated only on a *coarse* grid,
+every :data:`COARSE_NODES` nodes (and at the first and last node the visits need); the cubic
+Hermite between two coarse nodes ``h_c`` apart is within ``E_c = h_c^4 / 384 max|r''''|`` of
+SGP4. Per satellite, ``max|r''''|`` is taken as ``2 * 1.05 (1 + e) w^4 r_p``, with ``w =
+sqrt(mu (1 + e) / r_p^3)`` the angular rate at perigee of the osculating orbits at the two
+coarse nodes (the lower perigee ``r_p`` less :data:`PERIGEE_DROP_KM`, the larger
+eccentricity ``e`` plus :data:`ECCENTRICITY_RISE`, for their change between the nodes): a
+Kepler orbit's ``max|r''''|`` is at most ``(1 + e) w^4 r_p`` (measured, over ``w^4 r_p``:
+1.0097 at e = 0.01, 1.074 at 0.1, 1.125 at 0.3, 1.07 at 0.7), 1.05 for the Earth's
+flattening as above, and twice that. ``E_c`` is 680 km at 350 km with 1800 s coarse steps
+(it grows as ``h_c^4``: 42 km at 900 s); the same formula with the node step bounds the
+nodes' interpolation, ``E_f`` = 0.5 km. The satellite's speed is at most ``v_max = 1.01
+sqrt(mu (1 + e) / r_p)`` (vis-viva at perigee, 1% for the flattening) and the nodes'
+interpolated velocity is within ``sqrt(3) / 216 h^3 max|r''''|`` (0.005 km/s) of SGP4's.
+The shortlists take the largest of these bounds over the satellites; one without them (no
+ellipse for its osculating orbit) is on every shortlist.
+
+Test 1 keeps a satellite when ``g(r) = d - z tan(a) <= (reach + 0.1) / cos(a)``, ``d`` and
+``z`` the distances of its interpolated position ``r`` from the line of sight and along it,
+``a`` the cone's half-angle. ``g``'s gradient is a unit vector square to the line of sight
+less ``tan(a)`` times one along it, so ``g`` changes by at most ``|dr| / cos(a)`` when ``r``
+moves by ``|dr|``: at any point within ``D`` of ``r``, a satellite test 1 keeps has ``g <=
+(reach + 0.1 + D) / cos(a)``, and its reach is at most ``(1.02 (v_max + 0.005) + 0.47)
+T / 2`` for a visit ``T`` long. The shortlist is two tests with that bound:
+
+a. Once per node interval, every satellite's coarse interpolation at the interval's middle
+   ``t_c``, and per visit (middle ``t``) the cone test on these positions (two products
+   with vectors), ``D = E_c + E_f + v_max |t - t_c|``: SGP4 at ``t_c`` is within ``E_c`` of
+   the coarse interpolation and within ``v_max |t - t_c|`` of SGP4 at ``t``, which is within
+   ``E_f`` of test 1's position.
+b. For those, the coarse interpolation at ``t``, ``D = E_c + E_f``.
+
+Both add :data:`ROUNDING_KM`. A satellite is propagated at a node when a visit that needs the
+node shortlists it (about 220 a visit of Starlink's 29,988 on a June night), once a night. An
+SGP4 error at a coarse node stops the prefilter, as one at a node did when every satellite
+was propagated at every node.
 """
 import math
 
@@ -76,6 +116,18 @@ UMBRA_TAPER = 0.0047
 UMBRA_SLACK_KM = 5.0
 #: Nodes kept in memory (a visit needs two; the next visits usually the same).
 CACHED_NODES = 4
+#: Nodes per step of the coarse grid, where every satellite is propagated (module notes).
+COARSE_NODES = 6
+#: The factor on the Kepler orbit's bound of the coarse interpolation (module notes).
+COARSE_SLACK = 2.0
+#: Changes of the osculating perigee (km) and eccentricity between two coarse nodes that the
+#: bounds allow for (the Earth's flattening's short-period terms: about 7 km and 0.001).
+PERIGEE_DROP_KM = 20.0
+ECCENTRICITY_RISE = 0.002
+#: Added to the distance bounds of the shortlists, km (the arithmetic's rounding).
+ROUNDING_KM = 0.5
+#: The bound of an orbit without one (no ellipse): on every shortlist, km.
+UNBOUNDED_KM = 1e9
 
 
 def prefilter_margin_deg(perigee_height_km, node_step_s=NODE_STEP_S, step_s=COARSE_STEP_S):
@@ -101,6 +153,25 @@ def _basis(b):
     return e1, np.cross(b, e1)
 
 
+def _eccentricity_perigee(r, v):
+    """Osculating eccentricity and perigee radius (km) of TEME states (km, km/s; (n, 3))."""
+    radius = np.linalg.norm(r, axis=1)
+    v2 = np.einsum("ij,ij->i", v, v)
+    rv = np.einsum("ij,ij->i", r, v)
+    e_vec = ((v2 - MU_KM3_S2 / radius)[:, None] * r - rv[:, None] * v) / MU_KM3_S2
+    e = np.linalg.norm(e_vec, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = 1.0 / (2.0 / radius - v2 / MU_KM3_S2)
+    return e, np.where(a > 0.0, a * (1.0 - e), np.nan)
+
+
+def _evict(cache, key, size, position=lambda k: k):
+    """Make room in ``cache`` for ``key``: drop the entries farthest from it (by
+    ``position`` of the keys)."""
+    while len(cache) >= size:
+        del cache[max(cache, key=lambda j: abs(position(j) - position(key)))]
+
+
 class NightPrefilter:
     """Crossing candidates of a night's visits (module notes).
 
@@ -116,10 +187,13 @@ class NightPrefilter:
         Added to the radius; :func:`prefilter_margin_deg` of the lowest perigee by default.
     node_step_s, step_s : float
         :data:`NODE_STEP_S`, :data:`COARSE_STEP_S`.
+    coarse_nodes : int
+        :data:`COARSE_NODES`.
     """
 
     def __init__(self, orbits, visits, site=RUBIN, field_radius_deg=FIELD_RADIUS_DEG,
-                 margin_deg=None, node_step_s=NODE_STEP_S, step_s=COARSE_STEP_S):
+                 margin_deg=None, node_step_s=NODE_STEP_S, step_s=COARSE_STEP_S,
+                 coarse_nodes=COARSE_NODES):
         from astropy import units as u
         from astropy.coordinates import ITRS, TEME, CartesianRepresentation, SkyCoord
         from astropy.time import Time
@@ -127,14 +201,17 @@ class NightPrefilter:
 
         self.orbits = tuple(orbits)
         self.node_step_s = float(node_step_s)
-        self._array = SatrecArray([o.satrec for o in self.orbits])
+        self._satrecs = [o.satrec for o in self.orbits]
+        self._array = SatrecArray(self._satrecs)
         perigee = min(o.satrec.altp for o in self.orbits) * R_EQ_KM  # earth radii -> km
         self.margin_deg = (prefilter_margin_deg(max(perigee, 100.0), node_step_s, step_s)
                            if margin_deg is None else float(margin_deg))
         self.radius = field_radius_deg + self.margin_deg
         self._tan = math.tan(math.radians(self.radius))
         self._cos = math.cos(math.radians(self.radius))
-        self._nodes = {}
+        self._coarse_n = int(coarse_nodes)
+        self._all = np.arange(len(self.orbits))
+        self._nodes, self._coarse_nodes, self._intervals, self._middles = {}, {}, {}, {}
         self._index = {v.observation_id: k for k, v in enumerate(visits)}
         starts = Time([v.mjd_tai for v in visits], format="mjd", scale="tai").utc
         self._jd1 = float(starts.jd1[0]) if len(visits) else 0.0
@@ -148,6 +225,10 @@ class NightPrefilter:
             n = max(2, int(math.ceil(end / step_s)) + 1)
             self._samples.append(t0 + np.linspace(0.0, end, n))
         middles_s = np.array([0.5 * (s[0] + s[-1]) for s in self._samples])
+        # The nodes the visits' samples need: the coarse grid's first and last.
+        ends = [f(s) for s in self._samples for f in (np.min, np.max)] or [0.0]
+        self._k_first = int(math.floor(min(ends) / self.node_step_s))
+        self._k_last = int(math.floor(max(ends) / self.node_step_s)) + 1
         middles = Time(np.full(len(visits), self._jd1), self._jd2 + middles_s / 86400.0,
                        format="jd", scale="utc")
         # The site in TEME at each visit's middle and each boresight's direction (with the
@@ -174,21 +255,124 @@ class NightPrefilter:
         self._b = b / np.linalg.norm(b, axis=1, keepdims=True)
         self._e1, self._e2 = _basis(self._b)
 
-    def _node(self, k):
-        """TEME positions and velocities (km, km/s; (n_orbits, 3) each) at node ``k``."""
-        if k not in self._nodes:
-            if len(self._nodes) >= CACHED_NODES:
-                del self._nodes[max(self._nodes, key=lambda j: abs(j - k))]
-            jd2 = np.array([self._jd2 + k * self.node_step_s / 86400.0])
-            from sgp4.api import SGP4_ERRORS
+    def _propagate(self, k, which=None):
+        """SGP4 TEME positions and velocities (km, km/s) of the orbits ``which`` (indices;
+        all by default) at node ``k``."""
+        from sgp4.api import SGP4_ERRORS, SatrecArray
 
-            err, r, v = self._array.sgp4(np.array([self._jd1]), jd2)
-            if np.any(err):
-                i = int(np.argwhere(err)[0][0])
-                raise OrbitError(f"orbit {self.orbits[i].name!r}: SGP4 error {err[i, 0]} "
-                                 f"({SGP4_ERRORS.get(int(err[i, 0]), 'unknown')})")
-            self._nodes[k] = (r[:, 0], v[:, 0])
-        return self._nodes[k]
+        jd2 = np.array([self._jd2 + k * self.node_step_s / 86400.0])
+        array = (self._array if which is None
+                 else SatrecArray([self._satrecs[i] for i in which.tolist()]))
+        err, r, v = array.sgp4(np.array([self._jd1]), jd2)
+        if np.any(err):
+            j = int(np.argwhere(err)[0][0])
+            i = j if which is None else int(which[j])
+            raise OrbitError(f"orbit {self.orbits[i].name!r}: SGP4 error {err[j, 0]} "
+                             f"({SGP4_ERRORS.get(int(err[j, 0]), 'unknown')})")
+        return r[:, 0], v[:, 0]
+
+    def _node(self, k, which=slice(None)):
+        """TEME positions and velocities (km, km/s; (n, 3) each) of the orbits ``which`` at
+        node ``k``: SGP4 for those not yet propagated there."""
+        if k not in self._nodes:
+            _evict(self._nodes, k, CACHED_NODES)
+            n = len(self.orbits)
+            if k in self._coarse_nodes:  # the same SGP4 call on every satellite
+                r, v = self._coarse_nodes[k][:2]
+                self._nodes[k] = (r, v, np.ones(n, bool))
+            else:
+                self._nodes[k] = (np.full((n, 3), np.nan), np.full((n, 3), np.nan),
+                                  np.zeros(n, bool))
+        r, v, done = self._nodes[k]
+        rows = self._all[which]
+        missing = rows[~done[rows]]
+        if len(missing):
+            r[missing], v[missing] = self._propagate(k, missing)
+            done[missing] = True
+        return r[rows], v[rows]
+
+    def _coarse_node(self, k):
+        """Every orbit's SGP4 state at node ``k`` of the coarse grid, with its osculating
+        orbit's eccentricity and perigee radius (km)."""
+        if k not in self._coarse_nodes:
+            _evict(self._coarse_nodes, k, CACHED_NODES)
+            r, v = self._propagate(k)
+            self._coarse_nodes[k] = (r, v, *_eccentricity_perigee(r, v))
+        return self._coarse_nodes[k]
+
+    def _coarse(self, kt):
+        """The coarse interval holding node interval ``kt``: its nodes ``k0``, ``k1``, their
+        states, and the bounds of the module notes over the satellites that have one
+        (``speed``, km/s, the largest; ``reach_speed`` the largest speed test 1's reach
+        uses; ``slack``, km, ``E_c + E_f`` and the rounding), ``always`` the others."""
+        n = self._coarse_n
+        k0 = max(self._k_first, n * (kt // n))
+        k1 = min(self._k_last, n * (kt // n + 1))
+        if (k0, k1) not in self._intervals:
+            _evict(self._intervals, (k0, k1), 2, position=lambda pair: pair[0])
+            r0, v0, e0, p0 = self._coarse_node(k0)
+            r1, v1, e1, p1 = self._coarse_node(k1)
+            e = np.maximum(e0, e1) + ECCENTRICITY_RISE
+            perigee = np.minimum(p0, p1) - PERIGEE_DROP_KM
+            # An orbit SGP4 gives no ellipse for has no bound: on every shortlist.
+            bounded = (e < 1.0) & (perigee > 0.0)  # False for NaN
+            e, perigee = e[bounded], perigee[bounded]
+            rate = np.sqrt(MU_KM3_S2 * (1.0 + e) / perigee ** 3)
+            fourth = np.max(COARSE_SLACK * INTERP_SLACK * (1.0 + e) * rate ** 4 * perigee,
+                            initial=0.0)
+            speed = np.max(1.01 * rate * perigee, initial=0.0)  # vis-viva at perigee
+            h, h_c = self.node_step_s, (k1 - k0) * self.node_step_s
+            self._intervals[(k0, k1)] = {
+                "k0": k0, "k1": k1, "r0": r0, "v0": v0, "r1": r1, "v1": v1,
+                "speed": speed,
+                "reach_speed": (1.02 * (speed + math.sqrt(3.0) / 216.0 * h ** 3 * fourth)
+                                + SITE_SPEED_KM_S),
+                "slack": (h_c ** 4 + h ** 4) / 384.0 * fourth + ROUNDING_KM,
+                "always": np.flatnonzero(~bounded)}
+        return self._intervals[(k0, k1)]
+
+    def _coarse_positions(self, coarse, t_s, which=slice(None)):
+        """The coarse interpolation (km, (n, 3)) of the orbits ``which`` at ``t_s``."""
+        h = (coarse["k1"] - coarse["k0"]) * self.node_step_s
+        s = (t_s - coarse["k0"] * self.node_step_s) / h
+        s2, s3 = s * s, s * s * s
+        return ((2 * s3 - 3 * s2 + 1) * coarse["r0"][which]
+                + (h * (s3 - 2 * s2 + s)) * coarse["v0"][which]
+                + (-2 * s3 + 3 * s2) * coarse["r1"][which]
+                + (h * (s3 - s2)) * coarse["v1"][which])
+
+    def _interval_middle(self, kt):
+        """All orbits' coarse interpolation at the middle of node interval ``kt``, with
+        their squared norms."""
+        if kt not in self._middles:
+            _evict(self._middles, kt, 2)
+            r = self._coarse_positions(self._coarse(kt), (kt + 0.5) * self.node_step_s)
+            self._middles[kt] = (r, np.einsum("ij,ij->i", r, r))
+        return self._middles[kt]
+
+    def _shortlist(self, mid, half, apex, b):
+        """Indices (ascending) of the satellites that may pass test 1 at a visit's middle
+        ``mid`` (s; the visit ``2 half`` s long, the line of sight from ``apex`` along
+        ``b``): tests a and b of the module notes."""
+        h = self.node_step_s
+        kt = min(max(int(math.floor(mid / h)), self._k_first), self._k_last - 1)
+        coarse = self._coarse(kt)
+        r, norm2 = self._interval_middle(kt)
+        reach = coarse["slack"] + coarse["reach_speed"] * half + 0.1
+        # a: the interval's middle, on every satellite (|r - apex|^2 = d^2 + z^2).
+        far = (reach + coarse["speed"] * abs(mid - (kt + 0.5) * h)) / self._cos
+        zw = r @ np.stack([b, apex], axis=1)
+        z = zw[:, 0] - apex @ b
+        bound = z * self._tan + far
+        d2 = (norm2 - 2.0 * zw[:, 1] + apex @ apex) - z * z
+        which = np.flatnonzero((bound >= 0.0) & (d2 <= bound * bound))
+        if len(which):
+            # b: the visit's middle, on those.
+            los = self._coarse_positions(coarse, mid, which) - apex
+            z = los @ b
+            d = np.linalg.norm(los - z[:, None] * b, axis=1)
+            which = which[d <= z * self._tan + reach / self._cos]
+        return np.union1d(which, coarse["always"]) if len(coarse["always"]) else which
 
     def positions(self, t_s, which=slice(None)):
         """TEME positions (km, (n, len(t_s), 3)) of the orbits ``which`` at ``t_s`` (s from
@@ -197,12 +381,12 @@ class NightPrefilter:
         h = self.node_step_s
         k = np.floor(t_s / h).astype(int)
         u = t_s / h - k
-        n = len(np.arange(len(self.orbits))[which])
+        n = len(self._all[which])
         r_out, v_out = np.empty((n, t_s.size, 3)), np.empty((n, t_s.size, 3))
         for kk in np.unique(k):
             cols = np.flatnonzero(k == kk)
-            r0, v0 = (a[which] for a in self._node(kk))
-            r1, v1 = (a[which] for a in self._node(kk + 1))
+            r0, v0 = self._node(kk, which)
+            r1, v1 = self._node(kk + 1, which)
             s = u[cols][None, :, None]
             s2, s3 = s * s, s * s * s
             h00, h10, h01, h11 = 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
@@ -219,14 +403,18 @@ class NightPrefilter:
         k = self._index[visit.observation_id]
         ts, site, b = self._samples[k], self._site[k], self._b[k]
         mid = 0.5 * (ts[0] + ts[-1])
-        r, v = self.positions([mid])
-        los = r[:, 0] - np.mean(site, axis=0)  # the site's mean: within 0.01 km of its middle
+        apex = np.mean(site, axis=0)  # the site's mean: within 0.01 km of its middle
+        which = self._shortlist(mid, 0.5 * (ts[-1] - ts[0]), apex, b)
+        if not len(which):
+            return which
+        r, v = self.positions([mid], which)
+        los = r[:, 0] - apex
         z = los @ b
         d = np.linalg.norm(los - z[:, None] * b, axis=1)
         # 2% on the speed for its change along an eccentric orbit within the visit.
         speed = 1.02 * np.linalg.norm(v[:, 0], axis=1) + SITE_SPEED_KM_S
         reach = speed * 0.5 * (ts[-1] - ts[0])
-        near = np.flatnonzero(d <= z * self._tan + (reach + 0.1) / self._cos)
+        near = which[d <= z * self._tan + (reach + 0.1) / self._cos]
         if not len(near):
             return near
         r, _ = self.positions(ts, near)
