@@ -321,10 +321,11 @@ class Orbit:
         # sgp4init takes the Kozai mean motion and derives the Brouwer one (and Satrec.a) from
         # it: solve for the Kozai value that gives the wanted Brouwer semi-major axis.
         no_kozai = _mean_motion_rad_min(a_er)
+        epoch_days = epoch.utc.jd - 2433281.5  # days since 1949 December 31 00:00 UT
         for _ in range(6):
-            sat = _sgp4init(satnum, epoch, inc, raan, ma, no_kozai)
+            sat = _sgp4init(satnum, epoch_days, inc, raan, ma, no_kozai)
             no_kozai *= (sat.a / a_er) ** 1.5
-        sat = _sgp4init(satnum, epoch, inc, raan, ma, no_kozai)
+        sat = _sgp4init(satnum, epoch_days, inc, raan, ma, no_kozai)
         orbit = cls(sat, name, "circular")
         orbit._check_elements()
         return orbit
@@ -380,9 +381,8 @@ def _mean_motion_rad_min(a_er):
     return wgs72.xke / a_er ** 1.5
 
 
-def _sgp4init(satnum, epoch, inc, raan, ma, no_kozai):
+def _sgp4init(satnum, epoch_days, inc, raan, ma, no_kozai):
     sat = Satrec()
-    epoch_days = epoch.utc.jd - 2433281.5  # days since 1949 December 31 00:00 UT
     sat.sgp4init(WGS72, "i", satnum, epoch_days, 0.0, 0.0, 0.0, 0.0, np.radians(0.0),
                  np.radians(inc), np.radians(ma), no_kozai, np.radians(raan))
     return sat
@@ -400,6 +400,7 @@ def walker_shell(total, planes, phasing, height_km, inclination_deg, epoch, raan
         raise InputError("walker total/planes", f"{total}/{planes}",
                          "total must be a positive multiple of planes")
     per_plane = total // planes
+    epoch = parse_time(epoch, "epoch")  # once for the shell, not once per satellite
     orbits = []
     for j in range(planes):
         for k in range(per_plane):
