@@ -58,8 +58,11 @@ lint: $(STAMP)
 	$(BIN)/lint-imports
 	$(BIN)/mypy
 
+# The tests marked slow, then the property tests at their full count of examples (the default
+# suite draws fewer of those that build a short track's tables at each angle).
 slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
+	INJECT_TEST_EXAMPLES=12 $(BIN)/python -m pytest -q tests/test_properties.py
 
 demo: $(STAMP)
 	@mkdir -p out

@@ -111,6 +111,7 @@ def _stop(proc):
             proc.wait()
 
 
+@pytest.mark.slow  # the default suite's check: test_dask_cluster.py, a scheduler and 2 workers
 def test_dask_scheduler_and_worker_processes_same_bytes(fscene, reference, tmp_path):
     pytest.importorskip("dask.distributed")
     info = tmp_path / "scheduler.json"

@@ -49,6 +49,10 @@ TOL = Budget().tolerance
 FAST = settings(max_examples=12, deadline=None,
                 suppress_health_check=[HealthCheck.too_slow])
 
+#: Examples of the properties whose short tracks build tight tables at each new angle (up to
+#: seconds an example): 6 in the default suite, 12 in ``make slow`` (INJECT_TEST_EXAMPLES=12).
+TABLES = settings(FAST, max_examples=int(os.environ.get("INJECT_TEST_EXAMPLES", "6")))
+
 angles = st.floats(0.0, 360.0, allow_nan=False, exclude_max=True)
 fractions = st.floats(0.0, 1.0, allow_nan=False, exclude_max=True)
 
@@ -106,7 +110,7 @@ def test_translation_by_whole_pixels(angle, fx, fy, length, dx, dy):
 
 # --- Rotation by 90 degrees about a pixel centre -------------------------------------------
 
-@FAST
+@TABLES
 @given(angle=angles, fx=st.floats(-20, 20), fy=st.floats(-20, 20),
        length=st.floats(0.5, 60.0))
 def test_rotation_by_90_degrees(angle, fx, fy, length):
@@ -123,7 +127,7 @@ def test_rotation_by_90_degrees(angle, fx, fy, length):
 
 # --- Reversal of symmetric shapes ----------------------------------------------------------
 
-@FAST
+@TABLES
 @given(angle=angles, fx=fractions, fy=fractions, length=st.floats(0.5, 80.0),
        model=st.sampled_from([PAPER, DISK]))
 def test_reversed_track_of_symmetric_shape(angle, fx, fy, length, model):
@@ -140,7 +144,7 @@ def test_reversed_track_of_symmetric_shape(angle, fx, fy, length, model):
 
 # --- Additivity ----------------------------------------------------------------------------
 
-@FAST
+@TABLES
 @given(a1=angles, a2=angles, x1=st.floats(40, 160), y1=st.floats(40, 160),
        x2=st.floats(40, 160), y2=st.floats(40, 160), l1=st.floats(0.1, 100),
        l2=st.floats(0.1, 100))
