@@ -310,3 +310,58 @@ def test_workers_of_another_inject_are_refused_before_any_work():
                                                 r"ModuleNotFoundError: No module named 'inj"):
         runner._check_workers(_Client(ModuleNotFoundError("No module named 'inject'")),
                               "tcp://s:8786")
+
+
+@pytest.mark.slow  # a cluster of its own and four nights planned: ~30 s on 2 busy cores
+def test_a_worker_killed_mid_survey_has_its_night_planned_on_the_other(tmp_path):
+    """SIGKILL to worker w1 while it plans a night (its first: the imports and the orbits
+    make it seconds long). The command goes on, w2 plans what w1 had, and every table (the
+    nights' Parquet files, visits.csv, streaks.csv) is the uninterrupted in-process run's,
+    byte for byte, with each night once in the manifest."""
+    from test_survey_stream import _files, _rows
+    from test_survey_trust import EPOCH, MODEL, SHELL, write_csv
+
+    visits = write_csv(tmp_path / "nights.csv", _rows())
+    const = tmp_path / "const.yaml"
+    const.write_text(MODEL + f"epoch: {EPOCH}\nshells:\n  - {SHELL}\n")
+    whole = tmp_path / "whole"
+    assert main(["survey", str(visits), "-o", str(whole), "--constellation", str(const),
+                 "--no-plots"]) == 0
+    made = Cluster(tmp_path / "cluster")
+    proc = None
+    out = tmp_path / "dask"
+    try:
+        w1 = made.worker_address("w1")
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "inject", "survey", str(visits), "-o", str(out),
+             "--constellation", str(const), "--no-plots", "--scheduler", made.address],
+            env=made.env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+            start_new_session=True)
+
+        def executing():
+            if proc.poll() is not None:
+                return True
+            busy = made.client.run(lambda dask_worker: len(dask_worker.state.executing),
+                                   workers=[w1])
+            return busy.get(w1, 0) > 0
+
+        _wait_for(executing, "worker w1 to plan a night")
+        assert proc.poll() is None, "the command ended before w1 planned anything"
+        os.killpg(made.procs["w1"].pid, signal.SIGKILL)
+        made.procs["w1"].wait(60)
+        err = proc.communicate(timeout=TIMEOUT)[1].decode()
+        assert proc.returncode == 0, err
+        assert list(made.workers().values()) == ["w2"]
+    finally:
+        if proc is not None:
+            _end(proc, signal.SIGKILL)
+        made.close()
+    tables = {name: data for name, data in _files(out).items()
+              if name.endswith((".parquet", ".csv"))}
+    assert tables == {name: data for name, data in _files(whole).items()
+                      if name.endswith((".parquet", ".csv"))}
+    assert len([n for n in tables if n.startswith("nights/visits-")]) == 4
+    entries = [sorted(json.loads((run / "nights" / "manifest.json").read_text())["nights"],
+                      key=json.dumps) for run in (out, whole)]
+    assert entries[0] == entries[1] and len(entries[0]) == 4
+    assert _temporaries(out) == _temporaries(out / "nights") == []
