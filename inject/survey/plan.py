@@ -515,7 +515,6 @@ def plan_visit(visit, constellation, site=RUBIN, prefilter=None, fixed_width_px=
     VisitPlan
     """
     plan = VisitPlan(visit, fixed_width_px=fixed_width_px)
-    pointing, ts, exposure = _visit_setup(visit)
     orbits = constellation.orbits
     if candidates is None:
         if prefilter is None:
@@ -525,6 +524,7 @@ def plan_visit(visit, constellation, site=RUBIN, prefilter=None, fixed_width_px=
     plan.n_candidates = int(len(idx))
     if not len(idx):
         return plan
+    pointing, ts, exposure = _visit_setup(visit)
     frame = visit_frame(exposure.start, ts, pointing, site, at_nodes=at_nodes)
     i_mid = int(np.argmin(np.abs(ts - 0.5 * ts[-1])))
     plan.alt_deg = float(frame.alt_deg[i_mid])
