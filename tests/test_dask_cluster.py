@@ -231,6 +231,15 @@ def _temporaries(folder):
     return [n for n in os.listdir(folder) if n.startswith(".inject-")]
 
 
+def _executing(made, worker, proc):
+    """True once ``worker`` runs a task (or the command ``proc`` has ended)."""
+    if proc.poll() is not None:
+        return True
+    busy = made.client.run(lambda dask_worker: len(dask_worker.state.executing),
+                           workers=[worker])
+    return busy.get(worker, 0) > 0
+
+
 def test_a_worker_killed_mid_run_has_its_ccds_redone_on_the_other(pool_run, tmp_path):
     """SIGKILL to worker w1 while it renders its first CCD (a fresh worker's first CCD takes
     seconds: its imports and caches). The command, in a process of its own, goes on: every
@@ -248,14 +257,7 @@ def test_a_worker_killed_mid_run_has_its_ccds_redone_on_the_other(pool_run, tmp_
              "--scheduler", made.address, *CCDS], cwd=client, env=made.env,
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
 
-        def executing():
-            if proc.poll() is not None:
-                return True
-            busy = made.client.run(lambda dask_worker: len(dask_worker.state.executing),
-                                   workers=[w1])
-            return busy.get(w1, 0) > 0
-
-        _wait_for(executing, "worker w1 to render a CCD")
+        _wait_for(lambda: _executing(made, w1, proc), "worker w1 to render a CCD")
         assert proc.poll() is None, "the command ended before w1 rendered anything"
         done_before = [r for r in runner.read_manifest(str(client / "out")).values()
                        if r["status"] == "done"]
@@ -338,14 +340,7 @@ def test_a_worker_killed_mid_survey_has_its_night_planned_on_the_other(tmp_path)
             env=made.env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
             start_new_session=True)
 
-        def executing():
-            if proc.poll() is not None:
-                return True
-            busy = made.client.run(lambda dask_worker: len(dask_worker.state.executing),
-                                   workers=[w1])
-            return busy.get(w1, 0) > 0
-
-        _wait_for(executing, "worker w1 to plan a night")
+        _wait_for(lambda: _executing(made, w1, proc), "worker w1 to plan a night")
         assert proc.poll() is None, "the command ended before w1 planned anything"
         os.killpg(made.procs["w1"].pid, signal.SIGKILL)
         made.procs["w1"].wait(60)
