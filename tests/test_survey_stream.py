@@ -86,7 +86,10 @@ def _files(folder):
 
 def _stopped(visits, out, const, after, *extra):
     """Run in a subprocess sent SIGINT once its manifest holds ``after`` nights."""
+    # SIGINT as a terminal's Ctrl-C delivers it: a shell starts background jobs (a CI
+    # runner's, `cmd &`) with SIGINT ignored, and inject keeps an ignored signal ignored.
     code = ("import os, signal, sys\n"
+            "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
             "from inject.survey import stream\n"
             "from inject.cli.main import main\n"
             "add = stream.NightManifest.add\n"
