@@ -335,7 +335,6 @@ def _survey(name, area, path, old, new, audit=False):
 
 
 _PLAN = "inject/survey/plan.py"
-_OUT = "inject/survey/outputs.py"
 _VISITS = "inject/survey/visits.py"
 _PRE = "inject/survey/prefilter.py"
 _CONST = "inject/survey/constellation.py"
@@ -350,9 +349,9 @@ _FIXED = "inject/survey/fixed_mask.py"
 
 SURVEY_MUTATIONS = [
     # --- what the earlier audit found missed --------------------------------------------------
-    _survey("summary's total pixel fraction over one visit's pixels", "survey", _OUT,
-            '"pixel_fraction_lost_total": float(lost.sum() / (n * TOTAL_PIXELS)) if n else None,',
-            '"pixel_fraction_lost_total": float(lost.sum() / TOTAL_PIXELS) if n else None,',
+    _survey("summary's total pixel fraction over one visit's pixels", "survey", _STREAM,
+            '"pixel_fraction_lost_total": float(lost.sum() / (n * total_pixels)) if n else None,',
+            '"pixel_fraction_lost_total": float(lost.sum() / total_pixels) if n else None,',
             audit=True),
     _survey("sky dimmed instead of brightened with airmass", "survey", _PLAN,
             "sky /= math.sin(math.radians(max(alt_deg, 1.0)))",
@@ -363,9 +362,9 @@ SURVEY_MUTATIONS = [
     _survey("rendered CCDs' time from TAI read as UTC (37 s late)", "survey", _RENDER,
             '"noise": True, "time": visit.start.utc.isot,',
             '"noise": True, "time": visit.start.tai.isot,', audit=True),
-    _survey("plots' local-hour axis with the longitude's sign flipped", "survey", _STREAM,
-            "local = (np.asarray(mjd, float) + site_lon_deg / 360.0) % 1.0 * 24.0",
-            "local = (np.asarray(mjd, float) - site_lon_deg / 360.0) % 1.0 * 24.0",
+    _survey("plots' local-hour axis with the longitude's sign flipped", "survey", _CLI,
+            'plot_data = {"hours": local_hours(visits["mjd"], RUBIN.lon_deg),',
+            'plot_data = {"hours": local_hours(visits["mjd"], -RUBIN.lon_deg),',
             audit=True),
     _survey("cut-out box's row clipping off by one", "survey", _COMPARE,
             "keep = (rows >= y0) & (rows < y0 + ny)",

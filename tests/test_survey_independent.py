@@ -247,19 +247,16 @@ def _local_hours():
     return out
 
 
-def test_the_plots_hour_axis_is_local_mean_solar_time(monkeypatch, tmp_path):
-    from astropy.time import Time
-
+def test_the_plots_hour_axis_is_local_mean_solar_time(crossing, nine, monkeypatch, tmp_path):
+    """The per-visit plots ``inject survey`` draws put each visit at its local mean solar
+    time (the nine visits of NIGHT_UTC, by hand)."""
     from inject.survey import outputs
-    from inject.survey.plan import VisitPlan
-    from inject.survey.visits import Visit
 
     figures = {}
     monkeypatch.setattr(outputs, "_save", lambda fig, path, overwrite: figures.__setitem__(
         os.path.basename(path), fig))
-    plans = [VisitPlan(Visit(k, Time(t, scale="utc").tai.mjd, 0.0, 0.0, 0.0, "r", 30.0))
-             for k, t in enumerate(NIGHT_UTC)]
-    outputs.write_plots(outputs.output_paths(str(tmp_path)), plans, LON_DEG)
+    assert main(["survey", nine, "-o", str(tmp_path / "out"), "--constellation",
+                 crossing["const"], "--workers", "1"]) == 0
     for name in ("streaks_per_visit.png", "pixel_fraction.png"):
         (ax,) = figures[name].axes
         xs = np.concatenate([line.get_xdata() for line in ax.get_lines()])

@@ -212,11 +212,10 @@ def test_the_local_hour_is_utc_plus_the_longitude(night):
     04:00 UTC is 23:17:00.1 (23.28337 h), 06:00 UTC 01:17 (25.28337 h, after midnight)."""
     from astropy.time import Time
 
-    from inject.survey.visits import Visit, night_hours
+    from inject.survey.visits import local_hours
 
-    hours = night_hours([Visit(k, Time(t, scale="utc").tai.mjd, 0.0, 0.0, 0.0, "r", 30.0)
-                         for k, t in enumerate(("2026-06-16T04:00:00", "2026-06-16T06:00:00",
-                                                "2026-06-15T23:12:00"))], LON_DEG)
+    hours = local_hours([Time(t, scale="utc").tai.mjd for t in (
+        "2026-06-16T04:00:00", "2026-06-16T06:00:00", "2026-06-15T23:12:00")], LON_DEG)
     by_hand = [4.0 + LON_DEG / 15.0 + 24.0, 6.0 + LON_DEG / 15.0 + 24.0, 23.2 + LON_DEG / 15.0]
     assert hours == pytest.approx(by_hand, abs=1e-7)  # 0.4 ms
     # The night's visits at 23:00-23:27 UTC are at 18:17-18:44 local: one hour, "18".
@@ -511,15 +510,19 @@ def test_the_plots_keep_their_legend_and_labels_off_the_data(night, monkeypatch,
     """The legend of the per-visit plots lies outside their axes; the sky map's RA and Dec
     labels too (the axes' box holds the visits)."""
     from inject.survey import outputs
-    from inject.survey.plan import Streak, VisitPlan
-    from inject.survey.visits import read_visits
+    from inject.survey.visits import local_hours, read_visits
 
     figures = {}
     monkeypatch.setattr(outputs, "_save", lambda fig, path, overwrite: figures.__setitem__(
         os.path.basename(path), fig))
-    plans = [VisitPlan(v) for v in read_visits(night["visits"])]
-    plans[1].streaks.append(Streak("s", ("R22_S11",), 0.3, 7.0, 2.5, 1e3, 30.0))
-    outputs.write_plots(outputs.output_paths(str(tmp_path)), plans, LON_DEG)
+    visits = read_visits(night["visits"])
+    n_streaks = np.zeros(len(visits), int)
+    n_streaks[1] = 1
+    outputs.write_visit_plots(outputs.output_paths(str(tmp_path)), {
+        "hours": local_hours([v.mjd_tai for v in visits], LON_DEG), "n_streaks": n_streaks,
+        "fraction": n_streaks * 1e-5, "band": [v.band for v in visits],
+        "ra": np.array([v.ra_deg for v in visits]),
+        "dec": np.array([v.dec_deg for v in visits])})
     for name in ("streaks_per_visit.png", "pixel_fraction.png"):
         fig = figures[name]
         fig.canvas.draw()

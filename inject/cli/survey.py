@@ -516,10 +516,10 @@ def _write(args, paths, source, nights, manifest, constellation, timings, inputs
         add_fallbacks,
         check_nights,
         columns_of,
-        local_hours,
         read_nights,
         summary_from_tables,
     )
+    from inject.survey.visits import local_hours
 
     check_nights(args.output, manifest, nights)
     about = {"inject_version": __version__,

@@ -11,8 +11,6 @@ import math
 import re
 from dataclasses import dataclass
 
-import numpy as np
-
 from inject.errors import InputError
 from inject.instrument import LSST
 
@@ -61,36 +59,3 @@ def parse_mask_width(text, option="--mask-width"):
         raise InputError(option, text, f"{width:g} px is wider than a CCD ({MAX_WIDTH_PX:g} "
                                        f"px, {MAX_WIDTH_PX * LSST.pixel_scale_arcsec:g} arcsec)")
     return FixedMask(str(text).strip(), width)
-
-
-def totals(plans, total_pixels):
-    """``summary.json``'s ``fixed_mask`` block of plans made with a fixed width.
-
-    Parameters
-    ----------
-    plans : list of inject.survey.plan.VisitPlan
-        Each with its ``fixed_width_px`` and ``pixels_fixed_mask``.
-    total_pixels : int
-        Pixels of a visit's science CCDs.
-
-    Returns
-    -------
-    dict
-        The width (px and arcsec), the pixels the band takes over all visits (overlaps once
-        per visit), their fraction of the visits' pixels, its median over the streaked
-        visits, the plan's own mask's pixels and the ratio of the two.
-    """
-    fixed = np.array([p.pixels_fixed_mask for p in plans], float)
-    physical = np.array([p.pixels_lost for p in plans], float)
-    streaked = np.array([len(p.streaks) > 0 for p in plans], bool)
-    width = plans[0].fixed_width_px
-    return {
-        "width_px": width,
-        "width_arcsec": width * LSST.pixel_scale_arcsec,
-        "pixels_lost": int(fixed.sum()),
-        "pixel_fraction_lost_total": float(fixed.sum() / (len(plans) * total_pixels)),
-        "pixel_fraction_lost_median_streaked": (float(np.median(fixed[streaked]) / total_pixels)
-                                                if streaked.any() else None),
-        "pixels_lost_physical": int(physical.sum()),
-        "ratio_to_physical": float(fixed.sum() / physical.sum()) if physical.sum() else None,
-    }

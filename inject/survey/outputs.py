@@ -34,15 +34,6 @@ import numpy as np
 
 from inject.errors import OutputError
 from inject.io.atomic import atomic_path, output_group
-from inject.survey.plan import (
-    FIXED_STREAK_FIELDS,
-    FIXED_VISIT_FIELDS,
-    STREAK_FIELDS,
-    TOTAL_PIXELS,
-    VISIT_FIELDS,
-    fallbacks,
-)
-from inject.survey.visits import night_hours
 
 #: Files of a run, by kind (the plots last).
 NAMES = {"streaks": "streaks.csv", "visits": "visits.csv", "summary": "summary.json",
@@ -83,101 +74,6 @@ def csv_text(rows, fields):
     return text.getvalue()
 
 
-def _distribution(values):
-    values = np.asarray([v for v in values if math.isfinite(v)], float)
-    if not values.size:
-        return None
-    q = np.percentile(values, [0, 10, 50, 90, 100])
-    return {"min": float(q[0]), "p10": float(q[1]), "median": float(q[2]),
-            "p90": float(q[3]), "max": float(q[4]), "mean": float(values.mean())}
-
-
-def _totals(plans):
-    """Counts, pixel fractions and distributions of a set of visit plans."""
-    n = len(plans)
-    streaks = [s for p in plans for s in p.streaks]
-    lost = np.array([p.pixels_lost for p in plans], float)
-    fraction = lost / TOTAL_PIXELS
-    counts = np.array([len(p.streaks) for p in plans], float)
-    return {
-        "visits": n,
-        "streaked_visits": int(np.count_nonzero(counts)),
-        "streaked_fraction": float(np.count_nonzero(counts) / n) if n else None,
-        "streaks": len(streaks),
-        "streaks_per_visit": float(counts.mean()) if n else None,
-        "pixels_lost": int(lost.sum()),
-        "pixel_fraction_lost_total": float(lost.sum() / (n * TOTAL_PIXELS)) if n else None,
-        "pixel_fraction_lost_median": float(np.median(fraction)) if n else None,
-        "pixel_fraction_lost_max": float(fraction.max()) if n else None,
-        "pixel_fraction_lost_median_streaked": (float(np.median(fraction[counts > 0]))
-                                                if counts.any() else None),
-        "fwhm_arcsec": _distribution([s.fwhm_arcsec for s in streaks]),
-        "mask_width_px": _distribution([s.mask_width_px for s in streaks]),
-        "peak_e_per_px": _distribution([s.peak_e_per_px for s in streaks]),
-        "mag": _distribution([s.mag for s in streaks]),
-        "length_deg": _distribution([s.length_deg for s in streaks]),
-    }
-
-
-def summary(plans, about, site_lon_deg):
-    """The ``summary.json`` mapping: ``about`` (inputs, for the record), the night's totals,
-    the visits whose seeing or sky came from a default (:func:`inject.survey.plan.fallbacks`),
-    and the same per band and per hour of the night (local mean solar time, 24 and above
-    after midnight); with a fixed-width band (``--mask-width``), its ``fixed_mask`` block
-    (:func:`inject.survey.fixed_mask.totals`, after ``about``'s ``fixed_mask``)."""
-    out = {**about, "total_pixels_per_visit": TOTAL_PIXELS, **_totals(plans),
-           "fallbacks": fallbacks([p.visit for p in plans])}
-    if plans and plans[0].fixed_width_px is not None:
-        from inject.survey.fixed_mask import totals
-
-        out["fixed_mask"] = {**about.get("fixed_mask", {}), **totals(plans, TOTAL_PIXELS)}
-    out["by_band"] = {b: _totals([p for p in plans if p.visit.band == b])
-                      for b in sorted({p.visit.band for p in plans}, key="ugrizy".index)}
-    hours = night_hours([p.visit for p in plans], site_lon_deg)
-    by_hour = {}
-    for hour in sorted({int(h) for h in hours}):
-        chosen = [p for p, h in zip(plans, hours) if int(h) == hour]
-        by_hour[f"{hour % 24:02d}"] = _totals(chosen)
-    out["by_hour"] = by_hour
-    return out
-
-
-def write_outputs(paths, plans, summary_map, overwrite=False, plots=True, measured=None):
-    """Write every file of :func:`output_paths` together (or none: an output group).
-
-    ``measured`` (``--render``): ``{(observationId, satellite): {column: value}}`` of the
-    columns :data:`inject.survey.render.MEASURED_FIELDS`, added after the planned ones. Plans
-    made with a fixed width (``--mask-width``) add :data:`~inject.survey.plan.FIXED_STREAK_FIELDS`
-    and :data:`~inject.survey.plan.FIXED_VISIT_FIELDS` after the planned columns.
-
-    Raises
-    ------
-    OutputError
-        A file exists without ``overwrite``, or cannot be written.
-    """
-    rows = [row for p in plans for row in p.streak_rows()]
-    fixed = bool(plans) and plans[0].fixed_width_px is not None
-    fields = STREAK_FIELDS + (FIXED_STREAK_FIELDS if fixed else ())
-    visit_fields = VISIT_FIELDS + (FIXED_VISIT_FIELDS if fixed else ())
-    if measured is not None:
-        from inject.survey.compare import MEASURED_FIELDS as extra
-
-        fields = fields + extra
-        rows = [{**row, **dict.fromkeys(extra),
-                 **measured.get((row["observationId"], row["satellite"]), {})}
-                for row in rows]
-    visits = [p.visit_row() for p in plans]
-    kinds = ("streaks", "visits", "summary") + (("night", "fraction", "sky") if plots else ())
-    wanted = {k: paths[k] for k in kinds}
-    with output_group(list(wanted.values()), overwrite):
-        _write_text(paths["streaks"], csv_text(rows, fields), overwrite)
-        _write_text(paths["visits"], csv_text(visits, visit_fields), overwrite)
-        _write_text(paths["summary"], json.dumps(summary_map, indent=1) + "\n", overwrite)
-        if plots:
-            write_plots(paths, plans, summary_map.get("site_lon_deg", -70.7494), overwrite)
-    return wanted
-
-
 def write_run_outputs(paths, summary_map, tables=None, plot_data=None, overwrite=False,
                       measured=None, extra_fields=()):
     """Write a night-by-night run's files together (or none: an output group): its
@@ -185,9 +81,9 @@ def write_run_outputs(paths, summary_map, tables=None, plot_data=None, overwrite
     streaks.csv; with ``plot_data`` (:func:`write_visit_plots`'s), the plots, the per-year and
     per-Sun-altitude ones from ``summary_map``.
 
-    ``measured`` and ``extra_fields`` (``--render``): the measured columns added to the
-    streaks' rows, as :func:`write_outputs` adds them. Returns ``{kind: path}`` of the files
-    written.
+    ``measured`` (``--render``): ``{(observationId, satellite): {column: value}}`` of the
+    measured columns ``extra_fields``, added to the streaks' rows after the planned ones.
+    Returns ``{kind: path}`` of the files written.
     """
     from inject.survey.stream import plot_bins
 
@@ -224,17 +120,6 @@ def _write_text(path, text, overwrite):
             stream.write(text)
 
 
-def write_plots(paths, plans, site_lon_deg, overwrite=False):
-    """The night's three per-visit plots (PNG) of ``plans``: :func:`write_visit_plots`."""
-    fraction = np.array([p.pixels_lost for p in plans], float) / TOTAL_PIXELS
-    write_visit_plots(paths, {
-        "hours": night_hours([p.visit for p in plans], site_lon_deg),
-        "n_streaks": np.array([len(p.streaks) for p in plans]), "fraction": fraction,
-        "band": [p.visit.band for p in plans],
-        "ra": np.array([p.visit.ra_deg for p in plans], float),
-        "dec": np.array([p.visit.dec_deg for p in plans], float)}, overwrite)
-
-
 def write_visit_plots(paths, data, overwrite=False):
     """Streaks per visit against the hour of the night, the pixel fraction lost per visit,
     and the sky map of the pixel fraction lost (a HEALPix map,
@@ -246,7 +131,7 @@ def write_visit_plots(paths, data, overwrite=False):
     paths : dict
         :func:`output_paths`.
     data : dict
-        Per visit: ``hours`` (:func:`inject.survey.visits.night_hours`), ``n_streaks``,
+        Per visit: ``hours`` (:func:`inject.survey.visits.local_hours`), ``n_streaks``,
         ``fraction`` (of the pixels lost), ``band``, ``ra`` and ``dec`` (deg).
     overwrite : bool
     """

@@ -26,6 +26,7 @@ import numpy as np
 from inject.errors import OutputError
 from inject.io.atomic import atomic_path
 from inject.survey.nights import SUN_ALT_BINS, night_label, sun_altitudes
+from inject.survey.visits import local_hours
 
 log = logging.getLogger(__name__)
 
@@ -247,8 +248,8 @@ def _distribution(values):
 
 
 def _totals(visits, streaks, total_pixels):
-    """:func:`inject.survey.outputs._totals` of the visits' and streaks' columns (dicts of
-    arrays, the rows chosen)."""
+    """Counts, pixel fractions and the streaks' distributions of the visits' and streaks'
+    columns (dicts of arrays, the rows chosen)."""
     counts = np.asarray(visits["n_streaks"], float)
     lost = np.asarray(visits["pixels_lost"], float)
     n = counts.size
@@ -268,24 +269,6 @@ def _totals(visits, streaks, total_pixels):
         **{key: _distribution(streaks[key]) for key in
            ("fwhm_arcsec", "mask_width_px", "peak_e_per_px", "mag", "length_deg")},
     }
-
-
-def local_hours(mjd_tai, site_lon_deg):
-    """:func:`inject.survey.visits.night_hours` of start MJDs (TAI)."""
-    import warnings
-
-    from astropy.time import Time
-    from erfa import ErfaWarning
-
-    mjd_tai = np.asarray(mjd_tai, float)
-    if not mjd_tai.size:
-        return np.array([])
-    with warnings.catch_warnings():
-        # A year past the leap-second table's: UTC is taken as TAI - 37 s.
-        warnings.simplefilter("ignore", ErfaWarning)
-        mjd = Time(mjd_tai, format="mjd", scale="tai").utc.mjd
-    local = (np.asarray(mjd, float) + site_lon_deg / 360.0) % 1.0 * 24.0
-    return np.where(local < 12.0, local + 24.0, local)
 
 
 #: The visits' and streaks' columns the summary and the plots read.
@@ -316,10 +299,12 @@ def columns_of(table):
 
 def summary_from_tables(visits, streaks, about, fallbacks, site_lon_deg, fixed_width_px=None):
     """The ``summary.json`` mapping of a run's tables (``{column: ndarray}``, visits in
-    start order): as :func:`inject.survey.outputs.summary` gives it for the same visits, with
-    ``by_year`` (the calendar year of the visit's night's evening) and ``by_sun_alt`` (the
-    Sun's altitude at the visit's start: :data:`~inject.survey.nights.SUN_ALT_BINS`) beside
-    ``by_band`` and ``by_hour``.
+    start order): ``about`` (the inputs, for the record), the totals and distributions of
+    :func:`_totals`, the visits whose seeing or sky came from a default (``fallbacks``), with
+    a fixed width its ``fixed_mask`` block, and the same totals ``by_band``, ``by_hour``
+    (local mean solar time, :func:`inject.survey.visits.local_hours`), ``by_year`` (the
+    calendar year of the visit's night's evening) and ``by_sun_alt`` (the Sun's altitude at
+    the visit's start: :data:`~inject.survey.nights.SUN_ALT_BINS`).
 
     Parameters
     ----------

@@ -437,15 +437,22 @@ def select_visits(visits, job=None, njobs=None):
     return tuple(visits[job::njobs])
 
 
-def night_hours(visits, site_lon_deg):
-    """Hours of local mean solar time at each visit's start (0-24, wrapping past midnight
-    into 24-36 for a night that starts in the evening): UTC plus the site's east longitude
-    over 15 deg an hour."""
-    from astropy.time import Time
+def local_hours(mjd_tai, site_lon_deg):
+    """Hours of local mean solar time at start MJDs (TAI) (0-24, wrapping past midnight into
+    24-36 for a night that starts in the evening): UTC plus the site's east longitude over 15
+    deg an hour."""
+    import warnings
 
-    if not len(visits):
+    from astropy.time import Time
+    from erfa import ErfaWarning
+
+    mjd_tai = np.asarray(mjd_tai, float)
+    if not mjd_tai.size:
         return np.array([])
-    mjd = Time([v.mjd_tai for v in visits], format="mjd", scale="tai").utc.mjd
+    with warnings.catch_warnings():
+        # A year past the leap-second table's: UTC is taken as TAI - 37 s.
+        warnings.simplefilter("ignore", ErfaWarning)
+        mjd = Time(mjd_tai, format="mjd", scale="tai").utc.mjd
     local = (np.asarray(mjd, float) + site_lon_deg / 360.0) % 1.0 * 24.0
     # Evening hours stay as they are; the morning after midnight continues past 24.
     return np.where(local < 12.0, local + 24.0, local)
