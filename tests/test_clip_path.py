@@ -147,10 +147,19 @@ def test_many_boxes_at_once_as_one_at_a_time():
     assert len(clip_path_boxes(xs, ys, np.empty((0, 4)))[0]) == 0
 
 
-def test_layout_boxes_are_each_ccds_bounds():
+def test_layout_boxes_are_each_ccds_pixel_area():
+    """Each box's corners are pixel_to_focal of the pixel area's corners (-0.5 and n - 0.5
+    px, grown by the margin), to the last bit; bounds_mm is the CCD's own row."""
     for margin, shape in ((0.0, None), (65.0, None), (3.7, (200, 300))):
-        want = np.array([c.bounds_mm(margin, shape) for c in fp.CCDS])
-        assert np.array_equal(fp.boxes_mm(fp.CCDS, margin, shape), want)
+        want = []
+        for c in fp.CCDS:
+            ny, nx = c.shape if shape is None else shape
+            x0, y0 = c.pixel_to_focal(-0.5 - margin, -0.5 - margin)
+            x1, y1 = c.pixel_to_focal(nx - 0.5 + margin, ny - 0.5 + margin)
+            want.append((x0, x1, y0, y1))
+        boxes = fp.boxes_mm(fp.CCDS, margin, shape)
+        assert np.array_equal(boxes, np.array(want, float))
+        assert [c.bounds_mm(margin, shape) for c in fp.CCDS] == [tuple(b) for b in boxes]
 
 
 def focal_polylines(seed, count=30, n=300):

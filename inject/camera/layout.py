@@ -113,11 +113,9 @@ class CCD:
 
     def bounds_mm(self, margin_px=0.0, shape=None):
         """``(xmin, xmax, ymin, ymax)`` mm of the pixel area (edges at -0.5 and n - 0.5 px)
-        grown by ``margin_px``; ``shape`` (ny, nx) for a cut-out from pixel (0, 0)."""
-        ny, nx = self.shape if shape is None else shape
-        x0, y0 = self.pixel_to_focal(-0.5 - margin_px, -0.5 - margin_px)
-        x1, y1 = self.pixel_to_focal(nx - 0.5 + margin_px, ny - 0.5 + margin_px)
-        return float(x0), float(x1), float(y0), float(y1)
+        grown by ``margin_px``; ``shape`` (ny, nx) for a cut-out from pixel (0, 0)
+        (:func:`boxes_mm` of this CCD)."""
+        return tuple(float(v) for v in boxes_mm((self,), margin_px, shape)[0])
 
     @property
     def boresight_pixel(self):
@@ -256,7 +254,8 @@ def extent_mm():
 
 
 def boxes_mm(ccds=CCDS, margin_px=0.0, shape=None):
-    """:meth:`CCD.bounds_mm` of several CCDs as an ``(n, 4)`` array, the same numbers.
+    """``(xmin, xmax, ymin, ymax)`` mm of several CCDs' pixel areas (edges at -0.5 and
+    n - 0.5 px, :meth:`CCD.pixel_to_focal`'s arithmetic term by term) as an ``(n, 4)`` array.
 
     Parameters
     ----------
@@ -270,7 +269,6 @@ def boxes_mm(ccds=CCDS, margin_px=0.0, shape=None):
     refpos = np.array([c.refpos for c in ccds], float).reshape(-1, 2)
     size = np.array([c.shape if shape is None else shape for c in ccds], float).reshape(-1, 2)
     low = -0.5 - margin_px
-    # Term by term as pixel_to_focal, so that each box is bounds_mm's to the last bit.
     x0 = centre[:, 0] + (low - refpos[:, 0]) * PIXEL_MM
     y0 = centre[:, 1] + (low - refpos[:, 1]) * PIXEL_MM
     x1 = centre[:, 0] + (size[:, 1] - 0.5 + margin_px - refpos[:, 0]) * PIXEL_MM

@@ -344,11 +344,7 @@ def run_spans(xs_mm, ys_mm, width_px, ccd):
     return out
 
 
-def _bounds_array():
-    return np.array([c.bounds_mm() for c in fp.CCDS])
-
-
-_BOUNDS = _bounds_array()
+_BOUNDS = fp.boxes_mm()
 
 
 def crossed_ccds(xs_mm, ys_mm):
