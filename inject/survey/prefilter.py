@@ -126,8 +126,6 @@ PERIGEE_DROP_KM = 20.0
 ECCENTRICITY_RISE = 0.002
 #: Added to the distance bounds of the shortlists, km (the arithmetic's rounding).
 ROUNDING_KM = 0.5
-#: The bound of an orbit without one (no ellipse): on every shortlist, km.
-UNBOUNDED_KM = 1e9
 
 
 def prefilter_margin_deg(perigee_height_km, node_step_s=NODE_STEP_S, step_s=COARSE_STEP_S):
