@@ -31,7 +31,7 @@ from dataclasses import dataclass, field, replace
 
 import galsim
 import numpy as np
-from scipy import fft, integrate, interpolate, ndimage
+from scipy import ndimage
 
 from inject.errors import InputError
 from inject.profile import line_spread
@@ -169,6 +169,61 @@ class _UniformInterp:
         return q
 
 
+class UniformSpline:
+    """The cubic B-spline interpolating ``values`` sampled ``step`` apart from ``start``
+    (ndimage's, mirrored about the end samples: flat there, as a cumulative whose tails have
+    run out is), and its exact antiderivative from the first sample.
+
+    The antiderivative of ``sum_j c_j B3(u - j)`` is ``sum_j C_j B4(u - j - 1/2)`` with
+    ``C_j`` the running sum of the ``c_j`` (``B4' (x) = B3(x + 1/2) - B3(x - 1/2)``): a
+    quartic B-spline, which ndimage evaluates as it does the cubic.
+    """
+
+    PAD = 3  # coefficients beyond each end that the quartic's support reaches
+
+    def __init__(self, start, step, values):
+        self.start, self.step = float(start), float(step)
+        self.coeffs = ndimage.spline_filter1d(np.asarray(values, float), order=3, mode="mirror")
+        c, pad = self.coeffs, self.PAD
+        mirrored = np.concatenate((c[pad:0:-1], c, c[-2:-2 - pad:-1]))
+        self._running = np.cumsum(mirrored)
+        self._origin = self._quartic(np.zeros(1))[0]
+
+    def _grid(self, x):
+        return (np.atleast_1d(np.asarray(x, float)) - self.start) / self.step
+
+    def _quartic(self, u):
+        return ndimage.map_coordinates(self._running, [u + self.PAD - 0.5], order=4,
+                                       prefilter=False, mode="nearest")
+
+    def __call__(self, x):
+        u = self._grid(x)
+        values = ndimage.map_coordinates(self.coeffs, [u], order=3, prefilter=False,
+                                         mode="mirror")
+        return values if np.ndim(x) else values[0]
+
+    def antiderivative(self, x):
+        """The integral of the spline from ``start`` to ``x``."""
+        values = self.step * (self._quartic(self._grid(x)) - self._origin)
+        return values if np.ndim(x) else values[0]
+
+
+def next_fast_length(n):
+    """The smallest length ``>= n`` whose only prime factors are 2, 3, 5, 7 and 11: the
+    lengths pocketfft transforms fastest (what ``scipy.fft.next_fast_len`` gives)."""
+    n = max(int(n), 1)
+    best = 1 << (n - 1).bit_length()  # a power of two always qualifies
+    odd = [1]  # the products of 3, 5, 7 and 11 below best
+    for prime in (3, 5, 7, 11):
+        odd = [m * prime ** e for m in odd for e in range(best.bit_length())
+               if m * prime ** e < best]
+    for m in odd:
+        while m < n:
+            m *= 2
+        best = min(best, m)
+    return best
+
+
 def _extent(cross_section, threshold, flux_fraction):
     """Half-width outside which a cross-section is below ``threshold`` times its peak and
     holds less than ``flux_fraction`` of its integral."""
@@ -267,11 +322,12 @@ class SweptProfile:
         """
         t, f = along.offset_arcsec, along.lsf
         inside = np.abs(t) <= self._cap
-        cdf = integrate.cumulative_trapezoid(f[inside], t[inside], initial=0.0)
+        t, f = t[inside], f[inside]
+        cdf = np.concatenate(([0.0], np.cumsum(np.diff(t) * (f[1:] + f[:-1]) / 2.0)))
         # A cubic spline, not linear interpolation: the tables hold C - LSF(d) Phi(t), and
         # Phi's kinks would show through their splines at ~step^2 Phi'' (2e-5 of the peak).
-        self._phi = interpolate.CubicSpline(t[inside], cdf / cdf[-1])
-        self._psi = self._phi.antiderivative()  # 0 at -cap
+        self._phi = UniformSpline(t[0], t[1] - t[0], cdf / cdf[-1])
+        self._psi = self._phi.antiderivative  # 0 at the first sample
         # K(cap) = cap - m1 per unit LSF: the first moment that keeps K continuous at +cap.
         self._along_moment = float(self._cap - self._psi(self._cap))
 
@@ -300,8 +356,8 @@ class SweptProfile:
         step = min(p / 4, max(np.pi / self.profile.maxk, p / 16), self.lsf.fwhm() / 24)
         # Periods three times the table's extents, so the table stays clear of the tails
         # wrapped around from the other end.
-        n_t = fft.next_fast_len(int(3 * self._cap / step) + 16)
-        n_d = fft.next_fast_len(int(3 * self._table_d / step) + 16)
+        n_t = next_fast_length(int(3 * self._cap / step) + 16)
+        n_d = next_fast_length(int(3 * self._table_d / step) + 16)
         dk_t, dk_d = 2 * np.pi / (n_t * step), 2 * np.pi / (n_d * step)
         # GalSim draws k-images on square grids: the profile stretched along t by
         # dk_t / dk_d, sampled every dk_d, is the profile sampled every dk_t along t.
@@ -315,7 +371,7 @@ class SweptProfile:
         spectrum = stretched.drawKImage(image=kimage, scale=dk_d, recenter=False).array
         spectrum *= self.profile.flux / stretched.flux
         # Back to real space across the track: coeffs[d, m] are the transforms along t.
-        coeffs = fft.fftshift(fft.ifft(fft.ifftshift(spectrum, axes=0), axis=0), axes=0)
+        coeffs = np.fft.fftshift(np.fft.ifft(np.fft.ifftshift(spectrum, axes=0), axis=0), axes=0)
         coeffs *= n_d * dk_d / (2 * np.pi)
         t = (np.arange(n_t) - n_t // 2) * step
         d = (np.arange(n_d) - n_d // 2) * step
@@ -385,7 +441,7 @@ class SweptProfile:
             c[:, 1:] = coeffs[:, 1:] / (1j * km) ** p
             if n_t % 2 == 0:
                 c[:, -1] = 0.0  # the Nyquist term has no antiderivative on the grid
-            series.append(fft.fftshift(fft.irfft(c, n=n_t, axis=1), axes=1) * scale)
+            series.append(np.fft.fftshift(np.fft.irfft(c, n=n_t, axis=1), axes=1) * scale)
         lsf = coeffs[:, :1].real  # the kt = 0 term is the integral along t
         tau = t - t[0]  # from the first sample (-period / 2 only when n_t is even)
         g1 = series[0]
@@ -515,7 +571,7 @@ def orientation_slope(profile, pixel_scale, samples=ORIENTATION_SAMPLES):
     p = float(pixel_scale)
     lsf = line_spread(profile, p)
     step = min(p / 4, max(np.pi / profile.maxk, p / 16), lsf.fwhm() / 24)  # as the tables
-    n = fft.next_fast_len(int(2 * (4 * lsf.fwhm() + 2 * p) / step) + 16)
+    n = next_fast_length(int(2 * (4 * lsf.fwhm() + 2 * p) / step) + 16)
     dk = 2 * np.pi / (n * step)
     bounds = galsim.BoundsI(0, n // 2, -(n // 2), n - n // 2 - 1)  # kt >= 0: h is real
     spectrum = profile.drawKImage(image=galsim.ImageCD(bounds), scale=dk, recenter=False).array
@@ -526,7 +582,8 @@ def orientation_slope(profile, pixel_scale, samples=ORIENTATION_SAMPLES):
         # The unit square pixel in the track frame, as in SweptProfile._build_cap_table.
         square = pixel.rotate(-angle * galsim.degrees).drawKImage(
             image=galsim.ImageCD(bounds), scale=dk, recenter=False).array
-        coeffs = fft.fftshift(fft.ifft(fft.ifftshift(spectrum * square, axes=0), axis=0), axes=0)
+        coeffs = np.fft.fftshift(
+            np.fft.ifft(np.fft.ifftshift(spectrum * square, axes=0), axis=0), axes=0)
         coeffs *= n * dk / (2 * np.pi)
         tables.append(SweptProfile._antiderivative(coeffs, 1, t))
     peak = lsf.lsf.max()  # the renderer's reference (the grid's own is folded, higher)

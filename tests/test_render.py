@@ -227,3 +227,39 @@ def test_wide_profile_at_a_tight_budget_meets_it():
     # odd transform size used to leave them 1.6e-4 of the peak off).
     swept = SweptProfile(StreakModel(160, 0).profile, 0.2, 33.0, Budget(2e-5))
     assert swept.plan.predicted_error["cap_table"] <= 2e-5 / 2
+
+
+def test_next_fast_length_is_scipys():
+    from scipy import fft
+
+    from inject.render import next_fast_length
+    lengths = list(range(1, 5000)) + [65537, 99991, 1_000_001]
+    assert [next_fast_length(n) for n in lengths] == [fft.next_fast_len(n) for n in lengths]
+
+
+def test_uniform_spline_interpolates_a_cumulative_and_integrates_it_exactly():
+    # A cumulative flat at both ends (the end caps' Phi): an error function sampled every
+    # 0.05 sigma. Against the function itself (a cubic spline's h^4 error), and the integral
+    # against Simpson's rule on each piece of the spline, exact for cubics (independent of
+    # the quartic's running sums).
+    from scipy import special
+
+    from inject.render import UniformSpline
+    t = np.linspace(-6.0, 6.0, 241)
+    phi = 0.5 * (1.0 + special.erf(t / np.sqrt(2.0)))
+    spline = UniformSpline(t[0], t[1] - t[0], phi)
+    assert np.abs(spline(t) - phi).max() < 1e-13  # the filter's rounding
+    x = np.linspace(-6.0, 6.0, 4801)
+    exact = 0.5 * (1.0 + special.erf(x / np.sqrt(2.0)))
+    assert np.abs(spline(x) - exact).max() < 2e-8  # h^4 / 384 max|phi (4)| ~ 1e-8
+    assert np.isscalar(spline(0.3)) and np.isscalar(spline.antiderivative(0.3))
+    below = t[np.clip(np.searchsorted(t, x, side="right") - 1, 0, len(t) - 2)]
+    pieces = (t[1:] - t[:-1]) / 6 * (spline(t[:-1]) + 4 * spline((t[:-1] + t[1:]) / 2)
+                                     + spline(t[1:]))
+    at_knots = np.concatenate(([0.0], np.cumsum(pieces)))
+    rest = (x - below) / 6 * (spline(below) + 4 * spline((below + x) / 2) + spline(x))
+    simpson = at_knots[np.searchsorted(t, below)] + rest
+    assert np.abs(spline.antiderivative(x) - simpson).max() < 1e-13
+    # And the integral of the Gaussian's cumulative, x Phi(x) + pdf(x), from -6.
+    f = x * exact + np.exp(-x * x / 2) / np.sqrt(2 * np.pi)
+    assert np.abs(spline.antiderivative(x) - (f - f[0])).max() < 1e-8
