@@ -41,8 +41,13 @@ $(LUMOS_STAMP): $(STAMP)
 
 install-lumos: $(LUMOS_STAMP)
 
+# The tests run on up to 4 processes (pytest-xdist), one per CPU this job may use: with one
+# CPU, in this process.
+TEST_WORKERS ?= $(shell n=$$(nproc 2>/dev/null || echo 1); [ $$n -gt 4 ] && n=4; \
+	[ $$n -lt 2 ] && n=0; echo $$n)
+
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS)
 
 # pip check: every installed package's requirements met. Once lumos-sat is installed its own
 # pins cannot be, so its lines are left out and any other line still fails.
