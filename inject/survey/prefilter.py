@@ -368,8 +368,7 @@ class NightPrefilter:
                 r, v = self._coarse_nodes[k][:2]
                 self._nodes[k] = (r, v, np.ones(n, bool))
             else:
-                self._nodes[k] = (np.full((n, 3), np.nan), np.full((n, 3), np.nan),
-                                  np.zeros(n, bool))
+                self._nodes[k] = (np.empty((n, 3)), np.empty((n, 3)), np.zeros(n, bool))
         r, v, done = self._nodes[k]
         rows = self._all[which]
         missing = rows[~done[rows]]
@@ -424,8 +423,9 @@ class NightPrefilter:
         h = (coarse["k1"] - coarse["k0"]) * self.node_step_s
         s = (t_s - coarse["k0"] * self.node_step_s) / h
         s2, s3 = s * s, s * s * s
-        weights = (2 * s3 - 3 * s2 + 1, h * (s3 - 2 * s2 + s), -2 * s3 + 3 * s2, h * (s3 - s2))
-        return np.concatenate([w * np.eye(3) for w in weights])
+        weights = np.array([2 * s3 - 3 * s2 + 1, h * (s3 - 2 * s2 + s), -2 * s3 + 3 * s2,
+                            h * (s3 - s2)])
+        return (weights[:, None, None] * np.eye(3)).reshape(12, 3)
 
     def _coarse_positions(self, coarse, t_s, which=slice(None)):
         """The coarse interpolation (km, (n, 3)) of the orbits ``which`` at ``t_s``."""
@@ -434,12 +434,15 @@ class NightPrefilter:
     def _interval(self, kt):
         """The satellites that may pass test a for a visit of node interval ``kt`` (indices,
         ascending: those above the half-space of test 0, module notes), their coarse
-        interpolation at the interval's middle and its squared norms."""
+        interpolation at test a's time ``t_c``, its squared norms, and ``t_c``."""
         if kt not in self._middles:
             _evict(self._middles, kt, 2)
             coarse = self._coarse(kt)
-            t_c = (kt + 0.5) * self.node_step_s
             group = self._groups.get(kt, [])
+            # Halfway between the interval's first and last visit middles (all in the
+            # interval: the coarse interpolation holds there).
+            t_c = (0.5 * (self._mid[group].min() + self._mid[group].max()) if group
+                   else (kt + 0.5) * self.node_step_s)
             backs = (coarse["slack"] + coarse["reach_speed"] * self._half[group] + 0.1
                      + coarse["speed"] * np.abs(self._mid[group] - t_c))
             plane = _half_space(self._apex[group], self._b[group], backs, backs / self._cos,
@@ -452,7 +455,7 @@ class NightPrefilter:
                 which = np.flatnonzero(coarse["states"] @ (weights @ n)
                                        >= level - ROUNDING_KM)
             r = coarse["states"][which] @ weights
-            self._middles[kt] = (which, r, np.einsum("ij,ij->i", r, r))
+            self._middles[kt] = (which, r, np.einsum("ij,ij->i", r, r), t_c)
         return self._middles[kt]
 
     def _shortlist(self, k):
@@ -461,10 +464,10 @@ class NightPrefilter:
         mid, half, apex, b = self._mid[k], self._half[k], self._apex[k], self._b[k]
         kt = self._kt[k]
         coarse = self._coarse(kt)
-        which, r, norm2 = self._interval(kt)
+        which, r, norm2, t_c = self._interval(kt)
         reach = coarse["slack"] + coarse["reach_speed"] * half + 0.1
         # a: the interval's middle (|r - apex|^2 = d^2 + z^2).
-        far = (reach + coarse["speed"] * abs(mid - (kt + 0.5) * self.node_step_s)) / self._cos
+        far = (reach + coarse["speed"] * abs(mid - t_c)) / self._cos
         zw = r @ np.stack([b, apex], axis=1)
         z = zw[:, 0] - apex @ b
         bound = z * self._tan + far
@@ -478,19 +481,40 @@ class NightPrefilter:
             which = which[d <= z * self._tan + reach / self._cos]
         return np.union1d(which, coarse["always"]) if len(coarse["always"]) else which
 
-    def _group_shortlist(self, k):
-        """Visit ``k``'s shortlist; the shortlists of its node interval's visits are made
-        together and the satellites on them propagated at the nodes about their middles in
-        one SGP4 call per node."""
+    def _near(self, k):
+        """Test 1's survivors at visit ``k`` (indices, ascending) and their interpolated
+        positions at its samples ((n, len(samples), 3) km). The visits of a node interval are
+        done together: their shortlists (the satellites on them propagated at the nodes
+        about their middles in one SGP4 call a node), interpolated at all their middles at
+        once, and test 1's survivors at all their samples at once."""
         kt = self._kt[k]
-        if self._group_lists[0] != kt or k not in self._group_lists[1]:
-            lists = {j: self._shortlist(j) for j in self._groups[kt]}
-            self._group_lists = (kt, lists)
-            union = np.unique(np.concatenate(list(lists.values())))
-            nodes = np.floor(self._mid[self._groups[kt]] / self.node_step_s).astype(int)
-            for node in np.unique(np.concatenate([nodes, nodes + 1])).tolist():
-                self._node(node, union)
+        if self._group_lists[0] != kt:
+            group = self._groups[kt]
+            lists = [self._shortlist(j) for j in group]
+            union = np.unique(np.concatenate(lists))
+            r, v = self.positions(self._mid[group], union)
+            nears = [which[self._test_1(j, r[np.searchsorted(union, which), col],
+                                        v[np.searchsorted(union, which), col])]
+                     for col, (j, which) in enumerate(zip(group, lists))]
+            union = np.unique(np.concatenate(nears))
+            r, _ = self.positions(np.concatenate([self._samples[j] for j in group]), union)
+            ends = np.cumsum([0] + [len(self._samples[j]) for j in group])
+            self._group_lists = (kt, {j: (near, r[np.searchsorted(union, near),
+                                                   ends[col]:ends[col + 1]])
+                                      for col, (j, near) in enumerate(zip(group, nears))})
         return self._group_lists[1][k]
+
+    def _test_1(self, k, r, v):
+        """Test 1 at visit ``k`` on interpolated positions and velocities at its middle ((n,
+        3) each): a mask."""
+        ts, b, apex = self._samples[k], self._b[k], self._apex[k]
+        los = r - apex
+        z = los @ b
+        d = np.linalg.norm(los - z[:, None] * b, axis=1)
+        # 2% on the speed for its change along an eccentric orbit within the visit.
+        speed = 1.02 * np.linalg.norm(v, axis=1) + SITE_SPEED_KM_S
+        reach = speed * 0.5 * (ts[-1] - ts[0]) + 0.1
+        return (d <= z * self._tan + reach / self._cos) & (z >= -reach)
 
     def positions(self, t_s, which=slice(None)):
         """TEME positions (km, (n, len(t_s), 3)) of the orbits ``which`` at ``t_s`` (s from
@@ -521,21 +545,9 @@ class NightPrefilter:
         """Indices (into ``orbits``) of the satellites that may cross ``visit``'s field (and,
         with ``sunlit``, leave the Earth's umbra during it: module notes)."""
         k = self._index[visit.observation_id]
-        ts, b, apex = self._samples[k], self._b[k], self._apex[k]
-        which = self._group_shortlist(k)
-        if not len(which):
-            return which
-        r, v = self.positions([self._mid[k]], which)
-        los = r[:, 0] - apex
-        z = los @ b
-        d = np.linalg.norm(los - z[:, None] * b, axis=1)
-        # 2% on the speed for its change along an eccentric orbit within the visit.
-        speed = 1.02 * np.linalg.norm(v[:, 0], axis=1) + SITE_SPEED_KM_S
-        reach = speed * 0.5 * (ts[-1] - ts[0]) + 0.1
-        near = which[(d <= z * self._tan + reach / self._cos) & (z >= -reach)]
+        near, r = self._near(k)
         if not len(near):
             return near
-        r, _ = self.positions(ts, near)
         keep = self._closest(k, r) <= self.radius
         if sunlit:
             keep &= ~self._dark(k, r)
