@@ -13,7 +13,8 @@ interpolation and dot products:
    travel during half the visit (its speed plus the site's) of the cone of half-angle
    ``field_radius_deg + margin`` about the boresight (a test on the line of sight only), and
    no farther than that behind the observer along the line of sight (a candidate has a
-   sample in front of it).
+   sample in front of the observer, and the satellite and the site move by less than that
+   reach between it and the middle).
 2. The survivors at :data:`COARSE_STEP_S` steps through the visit: their gnomonic offsets
    from the boresight, and a candidate is one whose chord between two samples (both in front
    of the observer) comes within ``field_radius_deg + margin`` of it, as
@@ -85,18 +86,20 @@ T / 2`` for a visit ``T`` long. Test 1 also keeps only ``z >= -(reach + 0.1)``, 
    tan(a)) - far s``; ``level`` is the least of these over the visits, for the best of three
    normals (the mean aim, the zenith, their bisector; none if none fits: every satellite).
    One product of every satellite's coarse states with a vector; it keeps about a fifth of
-   Starlink on a June night (14% to 23% an interval).
-a. For those, every satellite's coarse interpolation at the interval's middle ``t_c``, and
-   per visit the cone test on these positions (two products with vectors), ``D = E_c + E_f
-   + v_max |t - t_c|``: SGP4 at ``t_c`` is within ``E_c`` of the coarse interpolation and
-   within ``v_max |t - t_c|`` of SGP4 at ``t``, which is within ``E_f`` of test 1's position.
+   Starlink on a June night (14% to 21% an interval).
+a. For those, their coarse interpolation at ``t_c``, halfway between the first and last
+   middles of the interval's visits, and per visit the cone test on these positions (two
+   products with vectors), ``D = E_c + E_f + v_max |t - t_c|``: SGP4 at ``t_c`` is within
+   ``E_c`` of the coarse interpolation and within ``v_max |t - t_c|`` of SGP4 at ``t``, which
+   is within ``E_f`` of test 1's position.
 b. For those, the coarse interpolation at ``t``, ``D = E_c + E_f``.
 
 All three add :data:`ROUNDING_KM`. A satellite is propagated at a node when a visit that
 needs the node shortlists it (about 220 a visit of Starlink's 29,988 on a June night), once a
-night; the shortlists of a node interval's visits are made together and propagated at the
-nodes about their middles in one SGP4 call a node. An SGP4 error at a coarse node stops the
-prefilter, as one at a node did when every satellite was propagated at every node.
+night; the visits of a node interval are done together: their shortlists propagated at the
+nodes about their middles in one SGP4 call a node, tests 1 and 2 interpolated in one call
+each. An SGP4 error at a coarse node stops the prefilter, as one at a node did when every
+satellite was propagated at every node.
 """
 import math
 
@@ -466,7 +469,7 @@ class NightPrefilter:
         coarse = self._coarse(kt)
         which, r, norm2, t_c = self._interval(kt)
         reach = coarse["slack"] + coarse["reach_speed"] * half + 0.1
-        # a: the interval's middle (|r - apex|^2 = d^2 + z^2).
+        # a: at t_c (|r - apex|^2 = d^2 + z^2).
         far = (reach + coarse["speed"] * abs(mid - t_c)) / self._cos
         zw = r @ np.stack([b, apex], axis=1)
         z = zw[:, 0] - apex @ b
