@@ -352,7 +352,7 @@ class NightPrefilter:
 
         jd2 = np.array([self._jd2 + k * self.node_step_s / 86400.0])
         array = (self._array if which is None
-                 else SatrecArray([self._satrecs[i] for i in which.tolist()]))
+                 else SatrecArray(list(map(self._satrecs.__getitem__, which.tolist()))))
         err, r, v = array.sgp4(np.array([self._jd1]), jd2)
         if np.any(err):
             j = int(np.argwhere(err)[0][0])
@@ -378,7 +378,7 @@ class NightPrefilter:
         if len(missing):
             r[missing], v[missing] = self._propagate(k, missing)
             done[missing] = True
-        return r[rows], v[rows]
+        return np.take(r, rows, axis=0), np.take(v, rows, axis=0)
 
     def _coarse_node(self, k):
         """Every orbit's SGP4 state at node ``k`` of the coarse grid, with its osculating
@@ -406,10 +406,13 @@ class NightPrefilter:
             # An orbit SGP4 gives no ellipse for has no bound: on every shortlist.
             bounded = (e < 1.0) & (perigee > 0.0)  # False for NaN
             e, perigee = e[bounded], perigee[bounded]
-            rate = np.sqrt(MU_KM3_S2 * (1.0 + e) / perigee ** 3)
-            fourth = np.max(COARSE_SLACK * INTERP_SLACK * (1.0 + e) * rate ** 4 * perigee,
-                            initial=0.0)
-            speed = np.max(1.01 * rate * perigee, initial=0.0)  # vis-viva at perigee
+            # w^2 = mu (1 + e) / r_p^3: (1 + e) w^4 r_p = mu^2 (1 + e)^3 / r_p^5 and
+            # w r_p = sqrt(mu (1 + e) / r_p).
+            rise, inverse = 1.0 + e, 1.0 / perigee
+            inverse2 = inverse * inverse
+            fourth = COARSE_SLACK * INTERP_SLACK * MU_KM3_S2 ** 2 * np.max(
+                rise * rise * rise * inverse2 * inverse2 * inverse, initial=0.0)
+            speed = 1.01 * math.sqrt(MU_KM3_S2 * np.max(rise * inverse, initial=0.0))
             h, h_c = self.node_step_s, (k1 - k0) * self.node_step_s
             self._intervals[(k0, k1)] = {
                 "k0": k0, "k1": k1, "states": np.concatenate([r0, v0, r1, v1], axis=1),
@@ -432,7 +435,9 @@ class NightPrefilter:
 
     def _coarse_positions(self, coarse, t_s, which=slice(None)):
         """The coarse interpolation (km, (n, 3)) of the orbits ``which`` at ``t_s``."""
-        return coarse["states"][which] @ self._hermite_weights(coarse, t_s)
+        states = coarse["states"]
+        rows = states[which] if isinstance(which, slice) else np.take(states, which, axis=0)
+        return rows @ self._hermite_weights(coarse, t_s)
 
     def _interval(self, kt):
         """The satellites that may pass test a for a visit of node interval ``kt`` (indices,
@@ -457,7 +462,7 @@ class NightPrefilter:
                 n, level = plane
                 which = np.flatnonzero(coarse["states"] @ (weights @ n)
                                        >= level - ROUNDING_KM)
-            r = coarse["states"][which] @ weights
+            r = np.take(coarse["states"], which, axis=0) @ weights
             self._middles[kt] = (which, r, np.einsum("ij,ij->i", r, r), t_c)
         return self._middles[kt]
 
@@ -496,14 +501,16 @@ class NightPrefilter:
             lists = [self._shortlist(j) for j in group]
             union = np.unique(np.concatenate(lists))
             r, v = self.positions(self._mid[group], union)
-            nears = [which[self._test_1(j, r[np.searchsorted(union, which), col],
-                                        v[np.searchsorted(union, which), col])]
-                     for col, (j, which) in enumerate(zip(group, lists))]
+            nears = []
+            for col, (j, which) in enumerate(zip(group, lists)):
+                rows = np.searchsorted(union, which)
+                nears.append(which[self._test_1(j, np.take(r[:, col], rows, axis=0),
+                                                np.take(v[:, col], rows, axis=0))])
             union = np.unique(np.concatenate(nears))
             r, _ = self.positions(np.concatenate([self._samples[j] for j in group]), union)
             ends = np.cumsum([0] + [len(self._samples[j]) for j in group])
-            self._group_lists = (kt, {j: (near, r[np.searchsorted(union, near),
-                                                   ends[col]:ends[col + 1]])
+            self._group_lists = (kt, {j: (near, np.take(r[:, ends[col]:ends[col + 1]],
+                                                         np.searchsorted(union, near), axis=0))
                                       for col, (j, near) in enumerate(zip(group, nears))})
         return self._group_lists[1][k]
 
