@@ -814,18 +814,33 @@ def test_the_shortlists_keep_every_candidate_on_a_varied_night(varied_night):
     from inject.camera.wcs import Pointing
     from inject.orbits.passes import Exposure, FieldFrame, compute_pass
     from inject.survey.plan import visit_times
-    from inject.survey.prefilter import NightPrefilter
+    from inject.survey.prefilter import NightPrefilter, _half_space
 
     orbits, visits = varied_night
     night, every = NightPrefilter(orbits, visits), NightPrefilter(orbits, visits)
-    entered_all = edge = 0
+    entered_all = edge = n_above = n_close = 0
     for visit in visits:
         for sunlit in (False, True):
             mine = night.candidates(visit, sunlit=sunlit)
             theirs, near = _every_satellite_candidates(every, visit, sunlit)
             assert np.array_equal(mine, theirs), (visit.observation_id, sunlit)
-        short = night._shortlist(night._index[visit.observation_id])
+        k = night._index[visit.observation_id]
+        short = night._shortlist(k)
         assert set(near.tolist()) <= set(short.tolist()), visit.observation_id
+        # Test 0 keeps every satellite above its half-space (the coarse interpolation of all
+        # satellites at test a's time; the regions of the interval's visits from the notes).
+        kt = night._kt[k]
+        coarse, (kept, _, _, t_c) = night._coarse(kt), night._interval(kt)
+        group = night._groups[kt]
+        backs = (coarse["slack"] + coarse["reach_speed"] * night._half[group] + 0.1
+                 + coarse["speed"] * np.abs(night._mid[group] - t_c))
+        cos_a = math.cos(math.radians(night.radius))
+        n, level = _half_space(night._apex[group], night._b[group], backs, backs / cos_a,
+                               math.tan(math.radians(night.radius)))
+        above = np.flatnonzero(night._coarse_positions(coarse, t_c) @ n >= level)
+        assert set(above.tolist()) <= set(kept.tolist())
+        n_above += len(above)
+        n_close += int(np.sum(np.abs(night._coarse_positions(coarse, t_c) @ n - level) < 50.0))
         end = float(visit_times(visit)[-1])
         t_s = np.linspace(0.0, end, int(end) + 1)
         pointing = Pointing(visit.ra_deg, visit.dec_deg, visit.rotation_deg)
@@ -840,7 +855,9 @@ def test_the_shortlists_keep_every_candidate_on_a_varied_night(varied_night):
     fine = [node for k, node in night._nodes.items() if k not in night._coarse_nodes]
     done = sum(int(node[2].sum()) for node in fine)
     print(f"in field {entered_all}, within 0.2 deg of the edge {edge}, propagated at the "
-          f"{len(fine)} nodes off the coarse grid {done} of {len(fine) * len(orbits)}")
+          f"{len(fine)} nodes off the coarse grid {done} of {len(fine) * len(orbits)}, "
+          f"above test 0's planes {n_above}, within 50 km of them {n_close}")
+    assert n_close >= 3  # the planes' edge is exercised
     assert entered_all >= 5 and edge >= 5  # the edge is exercised (5, 5)
     assert len(fine) and done < 0.5 * len(fine) * len(orbits)
 
