@@ -794,7 +794,8 @@ def _every_satellite_candidates(night, visit, sunlit):
     d = np.linalg.norm(los - z[:, None] * b, axis=1)
     reach = (1.02 * np.linalg.norm(v[:, 0], axis=1) + 0.47) * 0.5 * (ts[-1] - ts[0])
     radius = math.radians(night.radius)
-    near = np.flatnonzero(d <= z * math.tan(radius) + (reach + 0.1) / math.cos(radius))
+    near = np.flatnonzero((d <= z * math.tan(radius) + (reach + 0.1) / math.cos(radius))
+                          & (z >= -(reach + 0.1)))
     keep = night.closest_deg(visit, near) <= night.radius
     if sunlit:
         keep &= ~night._dark(k, night.positions(ts, near)[0])
@@ -813,21 +814,33 @@ def test_the_shortlists_keep_every_candidate_on_a_varied_night(varied_night):
     from inject.camera.wcs import Pointing
     from inject.orbits.passes import Exposure, FieldFrame, compute_pass
     from inject.survey.plan import visit_times
-    from inject.survey.prefilter import NightPrefilter
+    from inject.survey.prefilter import NightPrefilter, _half_space
 
     orbits, visits = varied_night
     night, every = NightPrefilter(orbits, visits), NightPrefilter(orbits, visits)
-    entered_all = edge = 0
+    entered_all = edge = n_above = n_close = 0
     for visit in visits:
         for sunlit in (False, True):
             mine = night.candidates(visit, sunlit=sunlit)
             theirs, near = _every_satellite_candidates(every, visit, sunlit)
             assert np.array_equal(mine, theirs), (visit.observation_id, sunlit)
         k = night._index[visit.observation_id]
-        ts = night._samples[k]
-        short = night._shortlist(0.5 * (ts[0] + ts[-1]), 0.5 * (ts[-1] - ts[0]),
-                                 night._site[k].mean(axis=0), night._b[k])
+        short = night._shortlist(k)
         assert set(near.tolist()) <= set(short.tolist()), visit.observation_id
+        # Test 0 keeps every satellite above its half-space (the coarse interpolation of all
+        # satellites at test a's time; the regions of the interval's visits from the notes).
+        kt = night._kt[k]
+        coarse, (kept, _, _, t_c) = night._coarse(kt), night._interval(kt)
+        group = night._groups[kt]
+        backs = (coarse["slack"] + coarse["reach_speed"] * night._half[group] + 0.1
+                 + coarse["speed"] * np.abs(night._mid[group] - t_c))
+        cos_a = math.cos(math.radians(night.radius))
+        n, level = _half_space(night._apex[group], night._b[group], backs, backs / cos_a,
+                               math.tan(math.radians(night.radius)))
+        above = np.flatnonzero(night._coarse_positions(coarse, t_c) @ n >= level)
+        assert set(above.tolist()) <= set(kept.tolist())
+        n_above += len(above)
+        n_close += int(np.sum(np.abs(night._coarse_positions(coarse, t_c) @ n - level) < 50.0))
         end = float(visit_times(visit)[-1])
         t_s = np.linspace(0.0, end, int(end) + 1)
         pointing = Pointing(visit.ra_deg, visit.dec_deg, visit.rotation_deg)
@@ -842,9 +855,95 @@ def test_the_shortlists_keep_every_candidate_on_a_varied_night(varied_night):
     fine = [node for k, node in night._nodes.items() if k not in night._coarse_nodes]
     done = sum(int(node[2].sum()) for node in fine)
     print(f"in field {entered_all}, within 0.2 deg of the edge {edge}, propagated at the "
-          f"{len(fine)} nodes off the coarse grid {done} of {len(fine) * len(orbits)}")
+          f"{len(fine)} nodes off the coarse grid {done} of {len(fine) * len(orbits)}, "
+          f"above test 0's planes {n_above}, within 50 km of them {n_close}")
+    assert n_close >= 3  # the planes' edge is exercised
     assert entered_all >= 5 and edge >= 5  # the edge is exercised (5, 5)
     assert len(fine) and done < 0.5 * len(fine) * len(orbits)
+
+
+def test_the_half_space_of_test_0_holds_every_visits_region_and_no_more():
+    """Test 0's half-space against points of the regions it must hold (``d <= z tan(a) +
+    far``, ``z >= -back`` about each visit's line of sight), sampled on their boundaries
+    (where ``r . n`` is least) for groups of visits 3 to 40 deg apart at 20 to 90 deg: every
+    point is above the plane, and the lowest within 0.01 km of it (a shrunk bound fails)."""
+    from inject.survey.prefilter import _half_space
+
+    rng = np.random.default_rng(3)
+    tan_a = math.tan(math.radians(2.2))
+    lat = math.radians(-30.24)
+    for trial in range(200):
+        lon = rng.uniform(0.0, 2.0 * math.pi)
+        up = np.array([math.cos(lat) * math.cos(lon), math.cos(lat) * math.sin(lon),
+                       math.sin(lat)])
+        east = np.cross([0.0, 0.0, 1.0], up)
+        east /= np.linalg.norm(east)
+        north = np.cross(up, east)
+        m = int(rng.integers(1, 6))
+        spread = math.radians(rng.uniform(3.0, 40.0))
+        alt0, az0 = rng.uniform(math.radians(20.0), math.radians(90.0)), rng.uniform(0, 6.3)
+        alt = np.clip(alt0 + rng.uniform(-spread, spread, m), math.radians(20.0), math.pi / 2)
+        az = az0 + rng.uniform(-spread, spread, m)
+        aims = (np.sin(alt)[:, None] * up + (np.cos(alt) * np.cos(az))[:, None] * north
+                + (np.cos(alt) * np.sin(az))[:, None] * east)
+        # The site turns by up to 140 km in a node interval.
+        apexes = 6372.0 * up + rng.uniform(-70.0, 70.0, (m, 3))
+        backs = rng.uniform(100.0, 2500.0, m)
+        fars = backs / math.cos(math.atan(tan_a))
+        n, level = _half_space(apexes, aims, backs, fars, tan_a)
+        lowest = np.inf
+        for apex, b, back, far in zip(apexes, aims, backs, fars):
+            # The boundary points: z from -back up, |w| = z tan(a) + far, w toward every
+            # direction square to b, and the one toward -n (the least r . n).
+            e1 = np.cross(b, n if abs(b @ n) < 0.999999 else east)
+            e1 /= np.linalg.norm(e1)
+            e2 = np.cross(b, e1)
+            z = np.concatenate([[-back], rng.uniform(-back, 3000.0, 200)])
+            phi = rng.uniform(0.0, 2.0 * math.pi, z.size)
+            w = (z * tan_a + far)[:, None] * (np.cos(phi)[:, None] * e1
+                                              + np.sin(phi)[:, None] * e2)
+            toward = n - (n @ b) * b
+            if np.linalg.norm(toward) > 1e-9:
+                w[0] = -(far - back * tan_a) * toward / np.linalg.norm(toward)
+            points = apex + z[:, None] * b + w
+            lowest = min(lowest, float((points @ n).min()) - level)
+        assert lowest >= -1e-6, trial
+        assert lowest < 0.01, (trial, lowest)
+
+
+def test_the_boresights_and_the_sun_interpolated_through_the_night_are_astropys():
+    """The boresights' and the Sun's directions in TEME, linear between astropy's at times
+    up to 12 h apart, against astropy at each of 40 visits' middles over 11 h (all over the
+    sky): the boresights within :data:`DIRECTION_ERROR_DEG` (0.01"; measured 0.001"), the
+    Sun within 0.05" (measured 0.003"; the lunar wobble of the Earth bends its track by up to
+    0.011" in 12 h, 0.5 m at 10,000 km, inside the umbra test's slack)."""
+    from astropy import units as u
+    from astropy.coordinates import TEME, SkyCoord, get_sun
+    from astropy.time import Time
+
+    from inject.orbits.passes import walker_shell
+    from inject.survey.prefilter import DIRECTION_ERROR_DEG, NightPrefilter
+    from inject.survey.visits import Visit
+
+    epoch = Time("2026-06-15T22:00:00", scale="utc")
+    orbits = walker_shell(4, 2, 1, 550.0, 53.0, epoch)
+    rng = np.random.default_rng(11)
+    visits = [Visit(k, (epoch + m * u.min).tai.mjd, ra, dec, 0.0, "r", 30.0)
+              for k, (m, ra, dec) in enumerate(zip(np.sort(rng.uniform(0, 660, 40)),
+                                                    rng.uniform(0, 360, 40),
+                                                    rng.uniform(-89, 89, 40)))]
+    night = NightPrefilter(orbits, visits)
+    middles = Time(np.full(40, night._jd1), night._jd2 + night._mid / 86400.0, format="jd",
+                   scale="utc")
+    aim = SkyCoord([v.ra_deg for v in visits] * u.deg, [v.dec_deg for v in visits] * u.deg,
+                   frame="icrs").transform_to(TEME(obstime=middles)).cartesian.xyz.value.T
+    sun = get_sun(middles).transform_to(TEME(obstime=middles)).cartesian.xyz.value.T
+    for mine, exact, bound in ((night._b, aim, DIRECTION_ERROR_DEG),
+                               (night._sun, sun, 0.05 / 3600.0)):
+        exact = exact / np.linalg.norm(exact, axis=1, keepdims=True)
+        off = np.degrees(np.linalg.norm(mine - exact, axis=1))
+        print(f"worst {off.max() * 3600:.2e} arcsec")
+        assert off.max() < bound
 
 
 def test_the_coarse_grid_interpolates_sgp4_within_its_bound(varied_night):

@@ -5,12 +5,16 @@ each exposure and builds an astropy frame for it. Over a night of visits most of
 shared: :class:`NightPrefilter` interpolates the constellation between *nodes* of a time grid
 (:data:`NODE_STEP_S` apart, SGP4 positions and velocities, cubic Hermite between, kept while
 visits need them; only the satellites that may come near a visit are propagated there: see
-below), and computes the site's and every boresight's direction in TEME for all the visits
-in two astropy calls. A visit then costs an interpolation and dot products:
+below), and computes the site's direction in TEME for all the visits in one astropy call,
+every boresight's and the Sun's at a few times of the night (below). A visit then costs an
+interpolation and dot products:
 
 1. At the visit's middle, a satellite is kept only if it lies within the distance it can
    travel during half the visit (its speed plus the site's) of the cone of half-angle
-   ``field_radius_deg + margin`` about the boresight (a test on the line of sight only).
+   ``field_radius_deg + margin`` about the boresight (a test on the line of sight only), and
+   no farther than that behind the observer along the line of sight (a candidate has a
+   sample in front of the observer, and the satellite and the site move by less than that
+   reach between it and the middle).
 2. The survivors at :data:`COARSE_STEP_S` steps through the visit: their gnomonic offsets
    from the boresight, and a candidate is one whose chord between two samples (both in front
    of the observer) comes within ``field_radius_deg + margin`` of it, as
@@ -27,7 +31,13 @@ bounded by the lowest perigee of the constellation (the nearest a satellite can 
   the track only leaves the chord by the bending of the relative motion, the satellite's
   gravity, ``g dt^2 / 8`` = 0.03 km for 5 s (0.005 deg);
 * the light time (the track moves by v / c = 5", whatever the range), the stars' aberration
-  (20.5" annual, 0.3" diurnal) and the polar motion (the site is 10 m off): 0.008 deg.
+  (20.5" annual, 0.3" diurnal) and the polar motion (the site is 10 m off): 0.008 deg;
+* the boresights' directions, astropy's at times at most :data:`DIRECTION_STEP_S` (12 h)
+  apart and linear between (normalised): the direction of a fixed star in TEME bends only
+  with the nutation and the annual aberration, ``sum A w^2`` below 0.1"/day^2, so the
+  chord is within ``(0.5 day)^2 / 8 * 0.1"`` = 0.003" of it (measured 0.001"); 0.01"
+  (:data:`DIRECTION_ERROR_DEG`) is added. The Sun's direction is interpolated the same way
+  (within 0.011": the Earth's lunar wobble; 0.5 m at 10,000 km, inside the umbra's slack).
 
 These add to 0.05 deg at 350 km; the margin is twice the sum, floored at 0.05 deg. A test
 checks on hundreds of satellites that no satellite whose exact pass enters the field is left
@@ -64,19 +74,32 @@ Test 1 keeps a satellite when ``g(r) = d - z tan(a) <= (reach + 0.1) / cos(a)``,
 less ``tan(a)`` times one along it, so ``g`` changes by at most ``|dr| / cos(a)`` when ``r``
 moves by ``|dr|``: at any point within ``D`` of ``r``, a satellite test 1 keeps has ``g <=
 (reach + 0.1 + D) / cos(a)``, and its reach is at most ``(1.02 (v_max + 0.005) + 0.47)
-T / 2`` for a visit ``T`` long. The shortlist is two tests with that bound:
+T / 2`` for a visit ``T`` long. Test 1 also keeps only ``z >= -(reach + 0.1)``, so ``z >=
+-(reach + 0.1 + D)`` there. The shortlist is three tests with these bounds:
 
-a. Once per node interval, every satellite's coarse interpolation at the interval's middle
-   ``t_c``, and per visit (middle ``t``) the cone test on these positions (two products
-   with vectors), ``D = E_c + E_f + v_max |t - t_c|``: SGP4 at ``t_c`` is within ``E_c`` of
-   the coarse interpolation and within ``v_max |t - t_c|`` of SGP4 at ``t``, which is within
-   ``E_f`` of test 1's position.
+0. Once per node interval, for all its visits together (visits are assigned to the interval
+   of their middle ``t``), a half-space ``r . n >= level`` holding every point with ``d <=
+   z tan(a) + far`` and ``z >= -back`` about each visit's line of sight, ``back = reach +
+   0.1 + D`` and ``far = back / cos(a)`` with test a's ``D``: such a point is ``apex + z b +
+   w``, ``|w| <= z tan(a) + far``, so with ``c = b . n`` and ``s = sqrt(1 - c^2)`` (``c >=
+   s tan(a)``, the aim within ``90 deg - a`` of ``n``) ``(r - apex) . n >= -back (c - s
+   tan(a)) - far s``; ``level`` is the least of these over the visits, for the best of three
+   normals (the mean aim, the zenith, their bisector; none if none fits: every satellite).
+   One product of every satellite's coarse states with a vector; it keeps about a fifth of
+   Starlink on a June night (14% to 21% an interval).
+a. For those, their coarse interpolation at ``t_c``, halfway between the first and last
+   middles of the interval's visits, and per visit the cone test on these positions (two
+   products with vectors), ``D = E_c + E_f + v_max |t - t_c|``: SGP4 at ``t_c`` is within
+   ``E_c`` of the coarse interpolation and within ``v_max |t - t_c|`` of SGP4 at ``t``, which
+   is within ``E_f`` of test 1's position.
 b. For those, the coarse interpolation at ``t``, ``D = E_c + E_f``.
 
-Both add :data:`ROUNDING_KM`. A satellite is propagated at a node when a visit that needs the
-node shortlists it (about 220 a visit of Starlink's 29,988 on a June night), once a night. An
-SGP4 error at a coarse node stops the prefilter, as one at a node did when every satellite
-was propagated at every node.
+All three add :data:`ROUNDING_KM`. A satellite is propagated at a node when a visit that
+needs the node shortlists it (about 220 a visit of Starlink's 29,988 on a June night), once a
+night; the visits of a node interval are done together: their shortlists propagated at the
+nodes about their middles in one SGP4 call a node, tests 1 and 2 interpolated in one call
+each. An SGP4 error at a coarse node stops the prefilter, as one at a node did when every
+satellite was propagated at every node.
 """
 import math
 
@@ -99,9 +122,14 @@ MU_KM3_S2 = 398600.8
 R_EQ_KM = 6378.135
 #: The largest speed of a site on the Earth's surface in an inertial frame, km/s.
 SITE_SPEED_KM_S = 0.47
+#: Longest step (s) between the times of the night where astropy gives the Sun's and the
+#: boresights' directions in TEME (linear between: module notes).
+DIRECTION_STEP_S = 12 * 3600.0
+#: Bound on that interpolation's error, deg (module notes).
+DIRECTION_ERROR_DEG = 0.01 / 3600.0
 #: Angles the prefilter leaves out (light time 5.3", aberration 20.8", polar motion 0.3" at the
-#: ground seen from the satellite), deg.
-FIXED_ERRORS_DEG = (5.3 + 20.8 + 2.0) / 3600.0
+#: ground seen from the satellite) and the boresights' interpolation, deg.
+FIXED_ERRORS_DEG = (5.3 + 20.8 + 2.0) / 3600.0 + DIRECTION_ERROR_DEG
 #: The circular orbit's bound raised for the Earth's flattening and SGP4's short-period terms
 #: (measured 1.008 at 350 km).
 INTERP_SLACK = 1.05
@@ -152,15 +180,59 @@ def _basis(b):
 
 
 def _eccentricity_perigee(r, v):
-    """Osculating eccentricity and perigee radius (km) of TEME states (km, km/s; (n, 3))."""
-    radius = np.linalg.norm(r, axis=1)
+    """Osculating eccentricity and perigee radius (km) of TEME states (km, km/s; (n, 3)):
+    ``e^2 = 1 - |r x v|^2 / (mu a)``, ``|r x v|^2 = r^2 v^2 - (r . v)^2``."""
+    r2 = np.einsum("ij,ij->i", r, r)
     v2 = np.einsum("ij,ij->i", v, v)
     rv = np.einsum("ij,ij->i", r, v)
-    e_vec = ((v2 - MU_KM3_S2 / radius)[:, None] * r - rv[:, None] * v) / MU_KM3_S2
-    e = np.linalg.norm(e_vec, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        a = 1.0 / (2.0 / radius - v2 / MU_KM3_S2)
+        a = 1.0 / (2.0 / np.sqrt(r2) - v2 / MU_KM3_S2)
+        e = np.sqrt(np.maximum(1.0 - (r2 * v2 - rv * rv) / (MU_KM3_S2 * a), 0.0))
     return e, np.where(a > 0.0, a * (1.0 - e), np.nan)
+
+
+def _direction_grid(times_s):
+    """Times (s) spanning ``times_s``, at most :data:`DIRECTION_STEP_S` apart (two at least)."""
+    lo = float(np.min(times_s, initial=0.0))
+    hi = max(float(np.max(times_s, initial=0.0)), lo + 1.0)
+    return np.linspace(lo, hi, int(math.ceil((hi - lo) / DIRECTION_STEP_S)) + 1)
+
+
+def _interpolated_directions(grid_s, values, times_s):
+    """Unit vectors (m, 3) at ``times_s`` (m,): linear in time between the vectors
+    ``values`` ((len(grid_s), m or 1, 3)) at the times ``grid_s``, normalised."""
+    i = np.clip(np.searchsorted(grid_s, times_s, side="right") - 1, 0, len(grid_s) - 2)
+    f = ((times_s - grid_s[i]) / (grid_s[i + 1] - grid_s[i]))[:, None]
+    cols = np.arange(len(times_s)) if values.shape[1] > 1 else np.zeros(len(times_s), int)
+    out = (1.0 - f) * values[i, cols] + f * values[i + 1, cols]
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def _half_space(apexes, aims, backs, fars, tan_a):
+    """A half-space ``r . n >= level`` holding, for every visit ``j``, the points ``r`` with
+    ``d <= z tan_a + fars[j]`` and ``z >= -backs[j]`` (``z`` and ``d`` the distances along
+    and from the line of sight from ``apexes[j]`` along the unit vector ``aims[j]``): ``n``
+    and ``level`` (km), or None if no normal tried is within ``90 deg - a`` of every aim.
+
+    A point there is ``apex + z b + w`` with ``w`` square to ``b`` and ``|w| <= z tan_a +
+    far``; with ``c = b . n`` and ``s = sqrt(1 - c^2)``, ``w . n >= -|w| s``, so ``(r - apex)
+    . n >= z (c - s tan_a) - far s >= -back (c - s tan_a) - far s`` when ``c >= s tan_a``.
+    The normals tried: the mean aim, the zenith at the mean apex, and their bisector; the
+    one with the highest level is kept (the fewest satellites above it).
+    """
+    mean_aim = aims.sum(axis=0)
+    up = apexes.sum(axis=0)
+    best = None
+    for n in (mean_aim, up, mean_aim / np.linalg.norm(mean_aim) + up / np.linalg.norm(up)):
+        n = n / np.linalg.norm(n)
+        c = aims @ n
+        s = np.sqrt(np.maximum(1.0 - c * c, 0.0))
+        if np.any(c < s * tan_a):
+            continue
+        level = float(np.min(apexes @ n - backs * (c - s * tan_a) - fars * s))
+        if best is None or level > best[1]:
+            best = (n, level)
+    return best
 
 
 def _evict(cache, key, size, position=lambda k: k):
@@ -229,10 +301,9 @@ class NightPrefilter:
         self._k_last = int(math.floor(max(ends) / self.node_step_s)) + 1
         middles = Time(np.full(len(visits), self._jd1), self._jd2 + middles_s / 86400.0,
                        format="jd", scale="utc")
-        # The site in TEME at each visit's middle and each boresight's direction (with the
-        # annual aberration) there: one astropy call each for the night. Within a visit the
-        # site turns about TEME's z at the Earth's rate (the pole's 0.3" tilt from z moves it
-        # by 1e-5 km in 20 s).
+        # The site in TEME at each visit's middle: one astropy call for the night. Within a
+        # visit the site turns about TEME's z at the Earth's rate (the pole's 0.3" tilt from z
+        # moves it by 1e-5 km in 20 s).
         rep = CartesianRepresentation(np.repeat(site.itrs_km[:, None], len(visits), axis=1),
                                       unit=u.km)
         site_mid = (SkyCoord(rep, frame=ITRS(obstime=middles)).transform_to(
@@ -243,15 +314,36 @@ class NightPrefilter:
             c, sn = np.cos(angle), np.sin(angle)
             self._site.append(np.stack([c * r[0] - sn * r[1], sn * r[0] + c * r[1],
                                         np.full(len(s), r[2])], axis=-1))
+        # The Sun's and every boresight's direction in TEME (with the annual aberration) at
+        # a few times of the night (astropy), linear between them (module notes).
         from astropy.coordinates import get_sun
 
-        sun = get_sun(middles).transform_to(TEME(obstime=middles)).cartesian.xyz.value.T
-        self._sun = sun / np.linalg.norm(sun, axis=1, keepdims=True)
-        aim = SkyCoord([v.ra_deg for v in visits] * u.deg, [v.dec_deg for v in visits] * u.deg,
-                       frame="icrs").transform_to(TEME(obstime=middles))
-        b = aim.cartesian.xyz.value.T
-        self._b = b / np.linalg.norm(b, axis=1, keepdims=True)
+        grid_s = _direction_grid(middles_s)
+        grid = Time(np.full(len(grid_s), self._jd1), self._jd2 + grid_s / 86400.0,
+                    format="jd", scale="utc")
+        sun = get_sun(grid).transform_to(TEME(obstime=grid)).cartesian.xyz.value.T
+        self._sun = _interpolated_directions(grid_s, sun[:, None], middles_s)
+        sky = SkyCoord([v.ra_deg for v in visits] * u.deg, [v.dec_deg for v in visits] * u.deg,
+                       frame="icrs")
+        aims = np.stack([sky.transform_to(TEME(obstime=g)).cartesian.xyz.value.T
+                         for g in grid]) if len(visits) else np.zeros((2, 0, 3))
+        self._b = _interpolated_directions(grid_s, aims, middles_s)
         self._e1, self._e2 = _basis(self._b)
+        # Each visit's middle, half-length, apex (the site's mean: within 0.01 km of its
+        # middle) and node interval; the visits of each node interval.
+        self._mid = middles_s
+        self._half = np.array([0.5 * (s[-1] - s[0]) for s in self._samples])
+        self._apex = (np.array([np.mean(site, axis=0) for site in self._site])
+                      if len(visits) else np.zeros((0, 3)))
+        self._kt = np.array([self._interval_of(m) for m in middles_s], int)
+        self._groups, self._group_lists = {}, (None, {})
+        for k, kt in enumerate(self._kt.tolist()):
+            self._groups.setdefault(kt, []).append(k)
+
+    def _interval_of(self, mid):
+        """The node interval (index of its first node) test a uses for a visit's middle."""
+        k = int(math.floor(mid / self.node_step_s))
+        return min(max(k, self._k_first), self._k_last - 1)
 
     def _propagate(self, k, which=None):
         """SGP4 TEME positions and velocities (km, km/s) of the orbits ``which`` (indices;
@@ -260,7 +352,7 @@ class NightPrefilter:
 
         jd2 = np.array([self._jd2 + k * self.node_step_s / 86400.0])
         array = (self._array if which is None
-                 else SatrecArray([self._satrecs[i] for i in which.tolist()]))
+                 else SatrecArray(list(map(self._satrecs.__getitem__, which.tolist()))))
         err, r, v = array.sgp4(np.array([self._jd1]), jd2)
         if np.any(err):
             j = int(np.argwhere(err)[0][0])
@@ -279,15 +371,14 @@ class NightPrefilter:
                 r, v = self._coarse_nodes[k][:2]
                 self._nodes[k] = (r, v, np.ones(n, bool))
             else:
-                self._nodes[k] = (np.full((n, 3), np.nan), np.full((n, 3), np.nan),
-                                  np.zeros(n, bool))
+                self._nodes[k] = (np.empty((n, 3)), np.empty((n, 3)), np.zeros(n, bool))
         r, v, done = self._nodes[k]
         rows = self._all[which]
         missing = rows[~done[rows]]
         if len(missing):
             r[missing], v[missing] = self._propagate(k, missing)
             done[missing] = True
-        return r[rows], v[rows]
+        return np.take(r, rows, axis=0), np.take(v, rows, axis=0)
 
     def _coarse_node(self, k):
         """Every orbit's SGP4 state at node ``k`` of the coarse grid, with its osculating
@@ -315,13 +406,16 @@ class NightPrefilter:
             # An orbit SGP4 gives no ellipse for has no bound: on every shortlist.
             bounded = (e < 1.0) & (perigee > 0.0)  # False for NaN
             e, perigee = e[bounded], perigee[bounded]
-            rate = np.sqrt(MU_KM3_S2 * (1.0 + e) / perigee ** 3)
-            fourth = np.max(COARSE_SLACK * INTERP_SLACK * (1.0 + e) * rate ** 4 * perigee,
-                            initial=0.0)
-            speed = np.max(1.01 * rate * perigee, initial=0.0)  # vis-viva at perigee
+            # w^2 = mu (1 + e) / r_p^3: (1 + e) w^4 r_p = mu^2 (1 + e)^3 / r_p^5 and
+            # w r_p = sqrt(mu (1 + e) / r_p).
+            rise, inverse = 1.0 + e, 1.0 / perigee
+            inverse2 = inverse * inverse
+            fourth = COARSE_SLACK * INTERP_SLACK * MU_KM3_S2 ** 2 * np.max(
+                rise * rise * rise * inverse2 * inverse2 * inverse, initial=0.0)
+            speed = 1.01 * math.sqrt(MU_KM3_S2 * np.max(rise * inverse, initial=0.0))
             h, h_c = self.node_step_s, (k1 - k0) * self.node_step_s
             self._intervals[(k0, k1)] = {
-                "k0": k0, "k1": k1, "r0": r0, "v0": v0, "r1": r1, "v1": v1,
+                "k0": k0, "k1": k1, "states": np.concatenate([r0, v0, r1, v1], axis=1),
                 "speed": speed,
                 "reach_speed": (1.02 * (speed + math.sqrt(3.0) / 216.0 * h ** 3 * fourth)
                                 + SITE_SPEED_KM_S),
@@ -329,41 +423,64 @@ class NightPrefilter:
                 "always": np.flatnonzero(~bounded)}
         return self._intervals[(k0, k1)]
 
-    def _coarse_positions(self, coarse, t_s, which=slice(None)):
-        """The coarse interpolation (km, (n, 3)) of the orbits ``which`` at ``t_s``."""
+    def _hermite_weights(self, coarse, t_s):
+        """The (12, 3) matrix taking a row of the coarse interval's ``states`` (``r0, v0,
+        r1, v1``) to the coarse interpolation at ``t_s``."""
         h = (coarse["k1"] - coarse["k0"]) * self.node_step_s
         s = (t_s - coarse["k0"] * self.node_step_s) / h
         s2, s3 = s * s, s * s * s
-        return ((2 * s3 - 3 * s2 + 1) * coarse["r0"][which]
-                + (h * (s3 - 2 * s2 + s)) * coarse["v0"][which]
-                + (-2 * s3 + 3 * s2) * coarse["r1"][which]
-                + (h * (s3 - s2)) * coarse["v1"][which])
+        weights = np.array([2 * s3 - 3 * s2 + 1, h * (s3 - 2 * s2 + s), -2 * s3 + 3 * s2,
+                            h * (s3 - s2)])
+        return (weights[:, None, None] * np.eye(3)).reshape(12, 3)
 
-    def _interval_middle(self, kt):
-        """All orbits' coarse interpolation at the middle of node interval ``kt``, with
-        their squared norms."""
+    def _coarse_positions(self, coarse, t_s, which=slice(None)):
+        """The coarse interpolation (km, (n, 3)) of the orbits ``which`` at ``t_s``."""
+        states = coarse["states"]
+        rows = states[which] if isinstance(which, slice) else np.take(states, which, axis=0)
+        return rows @ self._hermite_weights(coarse, t_s)
+
+    def _interval(self, kt):
+        """The satellites that may pass test a for a visit of node interval ``kt`` (indices,
+        ascending: those above the half-space of test 0, module notes), their coarse
+        interpolation at test a's time ``t_c``, its squared norms, and ``t_c``."""
         if kt not in self._middles:
             _evict(self._middles, kt, 2)
-            r = self._coarse_positions(self._coarse(kt), (kt + 0.5) * self.node_step_s)
-            self._middles[kt] = (r, np.einsum("ij,ij->i", r, r))
+            coarse = self._coarse(kt)
+            group = self._groups.get(kt, [])
+            # Halfway between the interval's first and last visit middles (all in the
+            # interval: the coarse interpolation holds there).
+            t_c = (0.5 * (self._mid[group].min() + self._mid[group].max()) if group
+                   else (kt + 0.5) * self.node_step_s)
+            backs = (coarse["slack"] + coarse["reach_speed"] * self._half[group] + 0.1
+                     + coarse["speed"] * np.abs(self._mid[group] - t_c))
+            plane = _half_space(self._apex[group], self._b[group], backs, backs / self._cos,
+                                self._tan) if group else None
+            weights = self._hermite_weights(coarse, t_c)
+            if plane is None:
+                which = self._all
+            else:
+                n, level = plane
+                which = np.flatnonzero(coarse["states"] @ (weights @ n)
+                                       >= level - ROUNDING_KM)
+            r = np.take(coarse["states"], which, axis=0) @ weights
+            self._middles[kt] = (which, r, np.einsum("ij,ij->i", r, r), t_c)
         return self._middles[kt]
 
-    def _shortlist(self, mid, half, apex, b):
-        """Indices (ascending) of the satellites that may pass test 1 at a visit's middle
-        ``mid`` (s; the visit ``2 half`` s long, the line of sight from ``apex`` along
-        ``b``): tests a and b of the module notes."""
-        h = self.node_step_s
-        kt = min(max(int(math.floor(mid / h)), self._k_first), self._k_last - 1)
+    def _shortlist(self, k):
+        """Indices (ascending) of the satellites that may pass test 1 at visit ``k``'s middle:
+        tests 0, a and b of the module notes."""
+        mid, half, apex, b = self._mid[k], self._half[k], self._apex[k], self._b[k]
+        kt = self._kt[k]
         coarse = self._coarse(kt)
-        r, norm2 = self._interval_middle(kt)
+        which, r, norm2, t_c = self._interval(kt)
         reach = coarse["slack"] + coarse["reach_speed"] * half + 0.1
-        # a: the interval's middle, on every satellite (|r - apex|^2 = d^2 + z^2).
-        far = (reach + coarse["speed"] * abs(mid - (kt + 0.5) * h)) / self._cos
+        # a: at t_c (|r - apex|^2 = d^2 + z^2).
+        far = (reach + coarse["speed"] * abs(mid - t_c)) / self._cos
         zw = r @ np.stack([b, apex], axis=1)
         z = zw[:, 0] - apex @ b
         bound = z * self._tan + far
         d2 = (norm2 - 2.0 * zw[:, 1] + apex @ apex) - z * z
-        which = np.flatnonzero((bound >= 0.0) & (d2 <= bound * bound))
+        which = which[(bound >= 0.0) & (d2 <= bound * bound)]
         if len(which):
             # b: the visit's middle, on those.
             los = self._coarse_positions(coarse, mid, which) - apex
@@ -371,6 +488,43 @@ class NightPrefilter:
             d = np.linalg.norm(los - z[:, None] * b, axis=1)
             which = which[d <= z * self._tan + reach / self._cos]
         return np.union1d(which, coarse["always"]) if len(coarse["always"]) else which
+
+    def _near(self, k):
+        """Test 1's survivors at visit ``k`` (indices, ascending) and their interpolated
+        positions at its samples ((n, len(samples), 3) km). The visits of a node interval are
+        done together: their shortlists (the satellites on them propagated at the nodes
+        about their middles in one SGP4 call a node), interpolated at all their middles at
+        once, and test 1's survivors at all their samples at once."""
+        kt = self._kt[k]
+        if self._group_lists[0] != kt:
+            group = self._groups[kt]
+            lists = [self._shortlist(j) for j in group]
+            union = np.unique(np.concatenate(lists))
+            r, v = self.positions(self._mid[group], union)
+            nears = []
+            for col, (j, which) in enumerate(zip(group, lists)):
+                rows = np.searchsorted(union, which)
+                nears.append(which[self._test_1(j, np.take(r[:, col], rows, axis=0),
+                                                np.take(v[:, col], rows, axis=0))])
+            union = np.unique(np.concatenate(nears))
+            r, _ = self.positions(np.concatenate([self._samples[j] for j in group]), union)
+            ends = np.cumsum([0] + [len(self._samples[j]) for j in group])
+            self._group_lists = (kt, {j: (near, np.take(r[:, ends[col]:ends[col + 1]],
+                                                         np.searchsorted(union, near), axis=0))
+                                      for col, (j, near) in enumerate(zip(group, nears))})
+        return self._group_lists[1][k]
+
+    def _test_1(self, k, r, v):
+        """Test 1 at visit ``k`` on interpolated positions and velocities at its middle ((n,
+        3) each): a mask."""
+        ts, b, apex = self._samples[k], self._b[k], self._apex[k]
+        los = r - apex
+        z = los @ b
+        d = np.linalg.norm(los - z[:, None] * b, axis=1)
+        # 2% on the speed for its change along an eccentric orbit within the visit.
+        speed = 1.02 * np.linalg.norm(v, axis=1) + SITE_SPEED_KM_S
+        reach = speed * 0.5 * (ts[-1] - ts[0]) + 0.1
+        return (d <= z * self._tan + reach / self._cos) & (z >= -reach)
 
     def positions(self, t_s, which=slice(None)):
         """TEME positions (km, (n, len(t_s), 3)) of the orbits ``which`` at ``t_s`` (s from
@@ -381,41 +535,29 @@ class NightPrefilter:
         u = t_s / h - k
         n = len(self._all[which])
         r_out, v_out = np.empty((n, t_s.size, 3)), np.empty((n, t_s.size, 3))
-        for kk in np.unique(k):
+        for kk in np.unique(k).tolist():
             cols = np.flatnonzero(k == kk)
             r0, v0 = self._node(kk, which)
             r1, v1 = self._node(kk + 1, which)
-            s = u[cols][None, :, None]
+            # The cubic Hermite basis (and its derivative) at each time, on the node states.
+            s = u[cols][:, None]
             s2, s3 = s * s, s * s * s
-            h00, h10, h01, h11 = 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
-            a, b_, c, d = r0[:, None], h * v0[:, None], r1[:, None], h * v1[:, None]
-            r_out[:, cols] = h00 * a + h10 * b_ + h01 * c + h11 * d
-            dh00, dh10 = 6 * s2 - 6 * s, 3 * s2 - 4 * s + 1
-            dh01, dh11 = -6 * s2 + 6 * s, 3 * s2 - 2 * s
-            v_out[:, cols] = (dh00 * a + dh10 * b_ + dh01 * c + dh11 * d) / h
+            weights = np.concatenate([2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2,
+                                      s3 - s2], axis=1)
+            slopes = np.concatenate([6 * s2 - 6 * s, 3 * s2 - 4 * s + 1, -6 * s2 + 6 * s,
+                                     3 * s2 - 2 * s], axis=1) / h
+            states = np.stack([r0, h * v0, r1, h * v1], axis=1)
+            r_out[:, cols] = weights @ states
+            v_out[:, cols] = slopes @ states
         return r_out, v_out
 
     def candidates(self, visit, sunlit=False):
         """Indices (into ``orbits``) of the satellites that may cross ``visit``'s field (and,
         with ``sunlit``, leave the Earth's umbra during it: module notes)."""
         k = self._index[visit.observation_id]
-        ts, site, b = self._samples[k], self._site[k], self._b[k]
-        mid = 0.5 * (ts[0] + ts[-1])
-        apex = np.mean(site, axis=0)  # the site's mean: within 0.01 km of its middle
-        which = self._shortlist(mid, 0.5 * (ts[-1] - ts[0]), apex, b)
-        if not len(which):
-            return which
-        r, v = self.positions([mid], which)
-        los = r[:, 0] - apex
-        z = los @ b
-        d = np.linalg.norm(los - z[:, None] * b, axis=1)
-        # 2% on the speed for its change along an eccentric orbit within the visit.
-        speed = 1.02 * np.linalg.norm(v[:, 0], axis=1) + SITE_SPEED_KM_S
-        reach = speed * 0.5 * (ts[-1] - ts[0])
-        near = which[d <= z * self._tan + (reach + 0.1) / self._cos]
+        near, r = self._near(k)
         if not len(near):
             return near
-        r, _ = self.positions(ts, near)
         keep = self._closest(k, r) <= self.radius
         if sunlit:
             keep &= ~self._dark(k, r)
