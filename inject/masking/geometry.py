@@ -172,16 +172,23 @@ def rectangles_spans(shape, x0, y0, x1, y1, half_width, extend=0.0):
     corner_ys = np.array([cy + a * half_len * uy + b * hw * vy for a in (-1, 1) for b in (-1, 1)])
     first = np.maximum(0, np.ceil(corner_ys.min(axis=0) - _EDGE_EPS))
     last = np.minimum(ny - 1, np.floor(corner_ys.max(axis=0) + _EDGE_EPS))
-    count = np.maximum(last - first + 1, 0).astype(np.intp)
     # A slab whose factor of x is 1e-12 or less runs along the rows: its rectangle's rows take
     # the general arithmetic.
     regular = (np.abs(ux) > 1e-12) & (np.abs(vx) > 1e-12)
+    # The other rectangles' rows from the first to the last where they cross the image's
+    # columns (a pixel more each side: the rows beyond hold no pixel of the image).
+    corner_xs = np.array([cx + a * half_len * ux + b * hw * vx
+                          for a in (-1, 1) for b in (-1, 1)])
+    low, high = _rows_within(corner_xs, corner_ys, -1.5, nx + 0.5)
+    first = np.where(regular, np.maximum(first, np.ceil(low - 1.0)), first)
+    last = np.where(regular, np.minimum(last, np.floor(high + 1.0)), last)
+    count = np.maximum(last - first + 1, 0).astype(np.intp)
     slabs = ((ux, uy, half_len), (vx, vy, hw))
     sides = _sides(corner_ys, slabs, first, last)
     parts = []
     rects = np.flatnonzero(count > 0)
-    # Rectangles in batches of about ROWS_AT_ONCE rows: arrays that stay in the cache and
-    # are not handed back to the system between batches.
+    # Rectangles in batches of about ROWS_AT_ONCE rows: arrays small enough to stay in the
+    # cache.
     batch = np.cumsum(count[rects]) // ROWS_AT_ONCE
     for k in np.split(rects, np.flatnonzero(np.diff(batch)) + 1) if len(rects) else ():
         for rect in (k[regular[k]], k[~regular[k]]):
@@ -201,6 +208,26 @@ def rectangles_spans(shape, x0, y0, x1, y1, half_width, extend=0.0):
     return which[order], rows[order], start[order], stop[order]
 
 
+def _rows_within(xs, ys, x_min, x_max):
+    """The lowest and highest y of each convex quadrilateral (corners ``xs, ys``, ``(4, n)``,
+    in the order of :func:`rectangles_spans`, opposite corners 0-3 and 1-2) between
+    ``x_min`` and ``x_max`` (``inf, -inf`` when it misses them): its corners there and where
+    its sides cross those two lines."""
+    inside = (xs >= x_min) & (xs <= x_max)
+    low = np.where(inside, ys, np.inf).min(axis=0)
+    high = np.where(inside, ys, -np.inf).max(axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for i, j in ((0, 1), (1, 3), (3, 2), (2, 0)):  # the sides, around
+            dx, dy = xs[j] - xs[i], ys[j] - ys[i]
+            for x in (x_min, x_max):
+                t = (x - xs[i]) / dx
+                y = ys[i] + t * dy
+                on = (t >= 0) & (t <= 1) & np.isfinite(y)
+                low = np.minimum(low, np.where(on, y, np.inf))
+                high = np.maximum(high, np.where(on, y, -np.inf))
+    return low, high
+
+
 #: Rows of rectangles :func:`rectangles_spans` takes at once.
 ROWS_AT_ONCE = 16384
 
@@ -215,8 +242,8 @@ def _sides(corner_ys, slabs, first, last):
     (``rest = (y - c_y) w_y``), the first the lower when ``w_x > 0``. Between the second and
     third corners up the rows, a row's ends are on the two sides of one slab; the other
     slab's bounds lie beyond them by 2 px for each row from those corners (the slabs are at
-    right angles: their sides' slopes differ by ``|cot + tan| >= 2``), so that a row a row
-    clear of those corners takes that slab's bounds alone.
+    right angles: their sides' slopes differ by ``|cot + tan| >= 2``), far beyond rounding,
+    so that a row at least a row clear of those corners takes that slab's bounds alone.
     """
     order = np.argsort(corner_ys, axis=0, kind="stable")
     ys = np.take_along_axis(corner_ys, order, axis=0)

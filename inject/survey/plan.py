@@ -434,7 +434,7 @@ def _track_runs(xs_mm, ys_mm, ccd_ids, widths_px):
         if k[i] == last:
             x1[i], y1[i] = x1[i] + half[i] * ux, y1[i] + half[i] * uy
     which, rows, start, stop = rectangles_spans((ny[c, 0], nx[c, 0]), x0, y0, x1, y1, half)
-    return ids[c[which]], rows, start, stop
+    return ids[c][which], rows, start, stop
 
 
 _BOUNDS = fp.boxes_mm()
