@@ -1,10 +1,13 @@
 """Clipping polylines to boxes (:func:`inject.trajectory.clip_path_boxes`) and its users in the
 survey plan, against exact rational arithmetic and a one-piece-at-a-time Liang-Barsky."""
 import math
+import os
 from fractions import Fraction
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from inject.camera import layout as fp
 from inject.survey import plan
@@ -183,7 +186,6 @@ def test_ccds_reached_as_each_ccd_on_its_own(margin):
         want = tuple(c for c in fp.CCDS
                      if scalar_clip_path(xs, ys, c.bounds_mm(margin)))
         assert fp.ccds_reached(xs, ys, margin) == want
-        assert plan.reached_ccds(xs, ys, margin) == want
 
 
 def test_crossed_length_is_the_exact_length_on_each_ccd():
@@ -224,12 +226,79 @@ def test_samples_inside_are_those_on_a_ccd():
         assert plan._inside(hit, xs, ys).tolist() == want
 
 
-def test_run_spans_keep_the_pieces_within_reach_of_the_ccd():
-    ccd = fp.ccd("R22_S11")
-    width = 40.0
-    for xs, ys in focal_polylines(5, count=40, n=50):
+def brute_mask(px, py, width, shape, tol=1e-6):
+    """Pixel centres of an image of ``shape`` in a polyline's mask (pixel coordinates): a
+    rectangle ``width`` wide along each segment, half the width beyond the first and last
+    vertices, from each segment's own unit vectors. ``sure``: inside by ``tol``; ``maybe``:
+    inside or within ``tol`` of an edge (rounding decides those)."""
+    ny, nx = shape
+    half = 0.5 * width
+    x, y = np.meshgrid(np.arange(nx, dtype=float), np.arange(ny, dtype=float))
+    sure, maybe = np.zeros(shape, bool), np.zeros(shape, bool)
+    last = len(px) - 2
+    for k in range(last + 1):
+        ax, ay, bx, by = px[k], py[k], px[k + 1], py[k + 1]
+        length = math.hypot(bx - ax, by - ay)
+        if length == 0:
+            continue
+        ux, uy = (bx - ax) / length, (by - ay) / length
+        along = (x - ax) * ux + (y - ay) * uy
+        across = np.abs((y - ay) * ux - (x - ax) * uy)
+        t0, t1 = (-half if k == 0 else 0.0), (length + half if k == last else length)
+        sure |= (along >= t0 + tol) & (along <= t1 - tol) & (across <= half - tol)
+        maybe |= (along >= t0 - tol) & (along <= t1 + tol) & (across <= half + tol)
+    return sure, maybe
+
+
+#: Where a track starts on a CCD's pixel grid: by an edge (either side of it) or anywhere.
+def _near_edge(n):
+    return st.one_of(st.floats(-120.0, 120.0), st.floats(n - 120.0, n + 120.0),
+                     st.floats(0.0, n - 1.0))
+
+
+@st.composite
+def tracks_by_ccd_edges(draw):
+    """A short polyline (mm) starting by the edge or corner of a CCD, with the mask's widths."""
+    ccd = draw(st.sampled_from(fp.CCDS))
+    ny, nx = ccd.shape
+    x, y = draw(_near_edge(nx)), draw(_near_edge(ny))
+    steps = draw(st.lists(st.tuples(st.floats(-90.0, 90.0), st.floats(-90.0, 90.0)),
+                          min_size=1, max_size=5))
+    px = np.cumsum([x] + [s[0] for s in steps])
+    py = np.cumsum([y] + [s[1] for s in steps])
+    xs, ys = ccd.pixel_to_focal(px, py)
+    widths = {"e2v": draw(st.floats(0.5, 60.0)), "itl": draw(st.floats(0.5, 60.0))}
+    return np.asarray(xs, float), np.asarray(ys, float), widths
+
+
+@settings(max_examples=4 * int(os.environ.get("INJECT_TEST_EXAMPLES", "6")), deadline=None)
+@given(track=tracks_by_ccd_edges())
+def test_mask_pixels_are_the_pixel_centres_in_the_rectangles(track):
+    """mask_spans and ccd_pixels (every segment of every CCD rasterised at once) against a
+    pixel-centre-in-rectangle brute force on each CCD near the track, and union_pixels of
+    run_spans against the same."""
+    xs, ys, widths = track
+    got = plan.ccd_pixels(plan.mask_spans(xs, ys, [np.arange(len(xs))], widths))
+    ccd_of_run, rows, start, stop = plan.mask_spans(xs, ys, [np.arange(len(xs))], widths)
+    for ccd in fp.CCDS:
         px, py = ccd.focal_to_pixel(xs, ys)
-        near = {k for k, _, _ in scalar_clip_path(
-            px, py, (-0.5 - width, ccd.shape[1] - 0.5 + width,
-                     -0.5 - width, ccd.shape[0] - 0.5 + width))}
-        assert len(plan.run_spans(xs, ys, width, ccd)) == len(near)
+        width = widths[ccd.vendor]
+        # Only the window the track and its mask can reach: pixels beyond it are in no
+        # rectangle.
+        x0 = max(0, math.floor(px.min() - width))
+        x1 = min(ccd.shape[1] - 1, math.ceil(px.max() + width))
+        y0 = max(0, math.floor(py.min() - width))
+        y1 = min(ccd.shape[0] - 1, math.ceil(py.max() + width))
+        if x1 < x0 or y1 < y0:
+            assert ccd.name not in got
+            continue
+        sure, maybe = brute_mask(px - x0, py - y0, width, (y1 - y0 + 1, x1 - x0 + 1))
+        painted = np.zeros(ccd.shape, bool)
+        mine = ccd_of_run == ccd.id
+        for r, a, b in zip(rows[mine].tolist(), start[mine].tolist(), stop[mine].tolist()):
+            painted[r, a:b] = True
+        window = painted[y0:y1 + 1, x0:x1 + 1]
+        assert window.sum() == painted.sum()  # nothing outside the window
+        assert np.all(window[sure]) and not np.any(window & ~maybe)
+        assert got.get(ccd.name, 0) == painted.sum()
+        assert plan.union_pixels(plan.run_spans(xs, ys, width, ccd)) == painted.sum()

@@ -39,11 +39,10 @@ def _y(row):
 
 def _band(xs_mm, ys_mm, width=WIDTH):
     """Pixels of a band along a track, by CCD, as the plan counts the fixed mask."""
-    from inject.survey.plan import mask_spans, union_pixels
+    from inject.survey.plan import ccd_pixels, mask_spans
 
-    spans = mask_spans(np.asarray(xs_mm, float), np.asarray(ys_mm, float),
-                       [np.arange(len(xs_mm))], dict.fromkeys(fp.SENSORS, width))
-    return {name: union_pixels(s) for name, s in spans.items() if union_pixels(s)}
+    return ccd_pixels(mask_spans(np.asarray(xs_mm, float), np.asarray(ys_mm, float),
+                                 [np.arange(len(xs_mm))], dict.fromkeys(fp.SENSORS, width)))
 
 
 def test_the_geometry_of_the_hand_counts():

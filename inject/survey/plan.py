@@ -41,7 +41,7 @@ from inject.camera import layout as fp
 from inject.camera.wcs import Pointing
 from inject.errors import InputError, InputWarning, OrbitWarning
 from inject.instrument import LSST
-from inject.masking.geometry import Line, rectangle_spans
+from inject.masking.geometry import rectangles_spans
 from inject.masking.mask import MIN_FWHM
 from inject.maskplanes import STREAK_MASK_SIGMA
 from inject.optics import FIELD_MAX_DEG, telescope_position_angle
@@ -302,17 +302,74 @@ def union_pixels(spans):
     spans = [s for s in spans if len(s[0])]
     if not spans:
         return 0
-    rows = np.concatenate([s[0] for s in spans]).astype(np.int64)
-    start = np.concatenate([s[1] for s in spans]).astype(np.int64)
-    stop = np.concatenate([s[2] for s in spans]).astype(np.int64)
-    # Rows apart by more than any column: intervals of one row never touch another's.
+    rows, start, stop = (np.concatenate([s[i] for s in spans]).astype(np.int64)
+                         for i in range(3))
+    new, _ = _new_pixels(rows, start, stop)
+    return int(np.sum(new))
+
+
+def _new_pixels(lines, start, stop, first_lines=()):
+    """The pixels each row run adds to those before it on its line (runs in order of their
+    start on each line), and where runs on or after each of ``first_lines`` begin in that
+    order.
+
+    Parameters
+    ----------
+    lines, start, stop : ndarray of int64
+        Each run's line (a row of an image) and half-open column range.
+    first_lines : array_like of int
+
+    Returns
+    -------
+    new, where : ndarray of int64
+    """
+    # Lines apart by more than any column: runs of one line never touch another's.
     big = int(stop.max()) + 1
-    lo, hi = rows * big + start, rows * big + stop
-    order = np.lexsort((lo, rows))
+    lo = lines * big
+    hi = lo + stop
+    lo += start
+    order = np.argsort(lo, kind="stable")  # runs come in rising rows: few, long sorted stretches
     lo, hi = lo[order], hi[order]
-    reach = np.maximum.accumulate(hi)
-    before = np.concatenate([[np.iinfo(np.int64).min], reach[:-1]])
-    return int(np.sum(np.maximum(hi - np.maximum(lo, before), 0)))
+    where = np.searchsorted(lo, np.asarray(first_lines, np.int64) * big)
+    # Each run from the furthest any run before it reached (the first from its start).
+    np.maximum(lo[1:], np.maximum.accumulate(hi)[:-1], out=lo[1:])
+    hi -= lo
+    return np.maximum(hi, 0, out=hi), where
+
+
+#: Each science CCD's pixel frame by id: its focal-plane centre (mm), reference pixel and
+#: shape (ny, nx), for the pixel coordinates of a track on many CCDs at once.
+_CENTRE_MM = np.array([c.centre_mm for c in fp.CCDS], float)
+_REFPOS = np.array([c.refpos for c in fp.CCDS], float)
+_SHAPES = np.array([c.shape for c in fp.CCDS], np.int64)
+#: Rows of the tallest CCD: CCD ``i``'s row ``r`` is line ``i * _ROWS + r`` of the focal plane.
+_ROWS = int(_SHAPES[:, 0].max())
+
+
+def ccd_pixels(runs):
+    """Pixels covered per CCD by row runs of many CCDs, each pixel once.
+
+    Parameters
+    ----------
+    runs : tuple of ndarray
+        ``(ccd, rows, start, stop)``: each run's CCD (id, the index in
+        :data:`inject.camera.layout.CCDS`), row and half-open column range (as
+        :func:`mask_spans` returns them).
+
+    Returns
+    -------
+    dict
+        ``{CCD name: pixels}`` of the CCDs with any, in id order.
+    """
+    ccd, rows, start, stop = (np.asarray(v, np.int64) for v in runs)
+    if not len(ccd):
+        return {}
+    # The runs in order of their lines are in order of their CCDs: each CCD's sum is a
+    # difference of the running sum.
+    new, ends = _new_pixels(ccd * _ROWS + rows, start, stop,
+                            np.arange(len(fp.CCDS) + 1) * _ROWS)
+    per_ccd = np.diff(np.concatenate([[0], np.cumsum(new)])[ends])
+    return {fp.CCDS[i].name: int(per_ccd[i]) for i in np.flatnonzero(per_ccd).tolist()}
 
 
 def run_spans(xs_mm, ys_mm, width_px, ccd):
@@ -323,25 +380,61 @@ def run_spans(xs_mm, ys_mm, width_px, ccd):
     Returns
     -------
     list of (rows, start, stop)
+        One item: the runs of all segments (a row may hold several, overlapping).
     """
-    half = 0.5 * width_px
-    px, py = ccd.focal_to_pixel(np.asarray(xs_mm, float), np.asarray(ys_mm, float))
-    n = len(px)
-    # Only the segments that come within reach of the CCD (its pixel area grown by the
-    # width: the rectangle reaches half of it, the cap another half).
-    _, pieces, _, _ = clip_path_boxes(px, py, [(-0.5 - width_px, ccd.shape[1] - 0.5 + width_px,
-                                                -0.5 - width_px, ccd.shape[0] - 0.5 + width_px)])
-    out = []
-    for k in np.unique(pieces).tolist():
-        x0, y0, x1, y1 = px[k], py[k], px[k + 1], py[k + 1]
-        length = math.hypot(x1 - x0, y1 - y0)
-        ux, uy = (x1 - x0) / length, (y1 - y0) / length
-        if k == 0:  # the streak's start: its cap
-            x0, y0 = x0 - half * ux, y0 - half * uy
-        if k == n - 2:  # its end
-            x1, y1 = x1 + half * ux, y1 + half * uy
-        out.append(rectangle_spans(ccd.shape, Line(x0, y0, x1, y1), half))
-    return out
+    _, rows, start, stop = _track_runs(xs_mm, ys_mm, [ccd.id], [width_px])
+    return [(rows, start, stop)]
+
+
+def _track_runs(xs_mm, ys_mm, ccd_ids, widths_px):
+    """Row runs of the mask along a polyline (mm) on several CCDs (:func:`run_spans` on each,
+    every rectangle of every CCD rasterised at once).
+
+    Parameters
+    ----------
+    xs_mm, ys_mm : array_like
+        The polyline's vertices.
+    ccd_ids : sequence of int
+        The CCDs (ids).
+    widths_px : sequence of float
+        The mask's full width on each.
+
+    Returns
+    -------
+    ccd, rows, start, stop : ndarray of int
+        Each run's CCD (id), row and half-open column range.
+    """
+    ids = np.asarray(ccd_ids, np.int64)
+    xs, ys = np.asarray(xs_mm, float), np.asarray(ys_mm, float)
+    width = np.asarray(widths_px, float)[:, None]
+    # Each CCD's pixel coordinates of the vertices (CCD.focal_to_pixel, term by term).
+    px = _REFPOS[ids, 0:1] + (xs - _CENTRE_MM[ids, 0:1]) / fp.PIXEL_MM
+    py = _REFPOS[ids, 1:2] + (ys - _CENTRE_MM[ids, 1:2]) / fp.PIXEL_MM
+    ny, nx = _SHAPES[ids, 0:1], _SHAPES[ids, 1:2]
+    x0, y0, x1, y1 = px[:, :-1], py[:, :-1], px[:, 1:], py[:, 1:]
+    length = np.hypot(x1 - x0, y1 - y0)
+    # The segments whose box comes within reach of the CCD: its pixel area grown by the width
+    # (the rectangle reaches half of it from the segment, a corner of a cap 0.71 of it), so
+    # that no segment with a pixel centre in its rectangle is left out. Those beyond it, kept
+    # by the box, hold no pixel centre and add no run.
+    near = (np.isfinite(length) & (length > 0)
+            & (np.minimum(x0, x1) <= nx - 0.5 + width) & (np.maximum(x0, x1) >= -0.5 - width)
+            & (np.minimum(y0, y1) <= ny - 0.5 + width) & (np.maximum(y0, y1) >= -0.5 - width))
+    c, k = np.nonzero(near)
+    half = 0.5 * width[c, 0]
+    x0, y0, x1, y1 = x0[c, k], y0[c, k], x1[c, k], y1[c, k]
+    last = len(xs) - 2
+    # The end caps, extending the first and last segments by half the width.
+    for i in np.flatnonzero((k == 0) | (k == last)).tolist():
+        dx, dy = x1[i] - x0[i], y1[i] - y0[i]
+        step = math.hypot(dx, dy)
+        ux, uy = dx / step, dy / step
+        if k[i] == 0:
+            x0[i], y0[i] = x0[i] - half[i] * ux, y0[i] - half[i] * uy
+        if k[i] == last:
+            x1[i], y1[i] = x1[i] + half[i] * ux, y1[i] + half[i] * uy
+    which, rows, start, stop = rectangles_spans((ny[c, 0], nx[c, 0]), x0, y0, x1, y1, half)
+    return ids[c][which], rows, start, stop
 
 
 _BOUNDS = fp.boxes_mm()
@@ -367,17 +460,6 @@ def crossed_ccds(xs_mm, ys_mm):
         if last > first:  # summed in order along the path, one piece after the other
             out[fp.CCDS[near[box[first]]]] = float(sum(mm[first:last]))
     return out
-
-
-def reached_ccds(xs_mm, ys_mm, margin_px):
-    """The CCDs whose pixel area grown by ``margin_px`` a polyline (mm) comes into, in
-    detector-id order (:func:`inject.camera.layout.ccds_reached`, the CCDs far from the
-    polyline's box left out first)."""
-    xs, ys = np.asarray(xs_mm, float), np.asarray(ys_mm, float)
-    m = margin_px * fp.PIXEL_MM
-    near = np.flatnonzero((_BOUNDS[:, 0] - m <= xs.max()) & (_BOUNDS[:, 1] + m >= xs.min())
-                          & (_BOUNDS[:, 2] - m <= ys.max()) & (_BOUNDS[:, 3] + m >= ys.min()))
-    return fp.ccds_reached(xs, ys, margin_px, tuple(fp.CCDS[i] for i in near))
 
 
 def _angular_length_deg(xs_mm, ys_mm, pieces_by_ccd):
@@ -530,7 +612,7 @@ def plan_visit(visit, constellation, site=RUBIN, prefilter=None, fixed_width_px=
     seeing = visit.seeing_arcsec if visit.seeing_arcsec is not None else DEFAULT_SEEING
     plan.seeing_arcsec = seeing
     spec = constellation.satellite
-    spans_by_ccd, fixed_by_ccd = {}, {}
+    masks, bands, mask_counts, band_counts = [], [], [], []
     for i in idx:
         orbit = orbits[i]
         p = compute_pass(orbit, exposure, pointing, site, t_s=ts, frame=frame,
@@ -554,18 +636,16 @@ def plan_visit(visit, constellation, site=RUBIN, prefilter=None, fixed_width_px=
         streak, widths = _streak(orbit.name, p, crossings, spec, visit, seeing, sigmas,
                                  constellation.pupil, constellation.focus_offset_um)
         pieces = [piece for piece, _, _ in crossings]
-        mine = mask_spans(xd, yd, pieces, widths)
-        streak.pixels_lost = sum(union_pixels(spans) for spans in mine.values())
-        for name, spans in mine.items():
-            spans_by_ccd.setdefault(name, []).extend(spans)
+        masks.append(mask_spans(xd, yd, pieces, widths))
+        mask_counts.append(ccd_pixels(masks[-1]))
+        streak.pixels_lost = sum(mask_counts[-1].values())
         if fixed_width_px is not None:
-            band = mask_spans(xd, yd, pieces, dict.fromkeys(widths, fixed_width_px))
-            streak.pixels_fixed_mask = sum(union_pixels(spans) for spans in band.values())
-            for name, spans in band.items():
-                fixed_by_ccd.setdefault(name, []).extend(spans)
+            bands.append(mask_spans(xd, yd, pieces, dict.fromkeys(widths, fixed_width_px)))
+            band_counts.append(ccd_pixels(bands[-1]))
+            streak.pixels_fixed_mask = sum(band_counts[-1].values())
         plan.streaks.append(streak)
-    plan.pixels_by_ccd = _merged(spans_by_ccd)
-    plan.fixed_by_ccd = _merged(fixed_by_ccd)
+    plan.pixels_by_ccd = _merged(masks, mask_counts)
+    plan.fixed_by_ccd = _merged(bands, band_counts)
     return plan
 
 
@@ -583,22 +663,50 @@ def mask_spans(xd, yd, pieces, widths):
 
     Returns
     -------
-    dict
-        ``{CCD name: [(rows, start, stop), ...]}``: a rectangle of the CCD's width along each
-        part with its end caps (:func:`run_spans`), on every CCD it reaches.
+    ccd, rows, start, stop : ndarray of int
+        Each run's CCD (id) and its row and half-open column range: a rectangle of the CCD's
+        width along each part with its end caps (:func:`run_spans`), on every CCD it reaches
+        (:func:`ccd_pixels` counts them).
     """
-    mine = {}
+    width = np.array([widths[c.vendor] for c in fp.CCDS], float)
+    # Each CCD's pixel area grown by its width, mm (and a pixel more, for rounding): the
+    # CCDs beyond it from a piece's box hold none of its mask (_track_runs keeps the segments).
+    reach = (width + 1.0) * fp.PIXEL_MM
+    runs = []
     for piece in pieces:
-        for ccd in reached_ccds(xd[piece], yd[piece], max(widths.values())):
-            mine.setdefault(ccd.name, []).extend(
-                run_spans(xd[piece], yd[piece], widths[ccd.vendor], ccd))
-    return mine
+        xs, ys = xd[piece], yd[piece]
+        near = np.flatnonzero((_BOUNDS[:, 0] - reach <= xs.max())
+                              & (_BOUNDS[:, 1] + reach >= xs.min())
+                              & (_BOUNDS[:, 2] - reach <= ys.max())
+                              & (_BOUNDS[:, 3] + reach >= ys.min()))
+        runs.append(_track_runs(xs, ys, near, width[near]))
+    if len(runs) == 1:
+        return runs[0]
+    if not runs:
+        return tuple(np.zeros(0, np.intp) for _ in range(4))
+    return tuple(np.concatenate(column) for column in zip(*runs))
 
 
-def _merged(spans_by_ccd):
-    """Pixels per CCD of the union of its spans (CCDs with none left out)."""
-    merged = {name: union_pixels(spans) for name, spans in spans_by_ccd.items()}
-    return {name: n for name, n in merged.items() if n}
+def _merged(runs, counts):
+    """Pixels per CCD of the union of several :func:`mask_spans`' runs (CCDs with none left
+    out), given each one's :func:`ccd_pixels`.
+
+    A CCD that only one of them reaches keeps that one's count; the runs of the CCDs that
+    several reach are merged, so that their overlaps count once.
+    """
+    total, seen = {}, {}
+    for mine in counts:
+        for name, n in mine.items():
+            total[name] = total.get(name, 0) + n
+            seen[name] = seen.get(name, 0) + 1
+    shared = [fp.ccd(name).id for name, k in seen.items() if k > 1]
+    if shared:
+        parts = []
+        for ccd, rows, start, stop in runs:
+            on = np.isin(ccd, shared)
+            parts.append((ccd[on], rows[on], start[on], stop[on]))
+        total.update(ccd_pixels([np.concatenate(column) for column in zip(*parts)]))
+    return {name: total[name] for name in sorted(total, key=lambda name: fp.ccd(name).id)}
 
 
 def _field(xd, yd, piece, n, rotator_deg=None):
