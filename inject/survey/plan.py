@@ -337,10 +337,7 @@ def _new_pixels(lines, start, stop, first_lines=()):
     return np.maximum(hi, 0, out=hi), where
 
 
-#: Each science CCD's pixel frame by id: its focal-plane centre (mm), reference pixel and
-#: shape (ny, nx), for the pixel coordinates of a track on many CCDs at once.
-_CENTRE_MM = np.array([c.centre_mm for c in fp.CCDS], float)
-_REFPOS = np.array([c.refpos for c in fp.CCDS], float)
+#: Each science CCD's shape (ny, nx) by id.
 _SHAPES = np.array([c.shape for c in fp.CCDS], np.int64)
 #: Rows of the tallest CCD: CCD ``i``'s row ``r`` is line ``i * _ROWS + r`` of the focal plane.
 _ROWS = int(_SHAPES[:, 0].max())
@@ -407,9 +404,10 @@ def _track_runs(xs_mm, ys_mm, ccd_ids, widths_px):
     ids = np.asarray(ccd_ids, np.int64)
     xs, ys = np.asarray(xs_mm, float), np.asarray(ys_mm, float)
     width = np.asarray(widths_px, float)[:, None]
-    # Each CCD's pixel coordinates of the vertices (CCD.focal_to_pixel, term by term).
-    px = _REFPOS[ids, 0:1] + (xs - _CENTRE_MM[ids, 0:1]) / fp.PIXEL_MM
-    py = _REFPOS[ids, 1:2] + (ys - _CENTRE_MM[ids, 1:2]) / fp.PIXEL_MM
+    # Each CCD's pixel coordinates of the vertices: (len(ids), 2, len(xs)).
+    pixels = np.array([fp.CCDS[i].focal_to_pixel(xs, ys) for i in ids.tolist()],
+                      float).reshape(len(ids), 2, len(xs))
+    px, py = pixels[:, 0], pixels[:, 1]
     ny, nx = _SHAPES[ids, 0:1], _SHAPES[ids, 1:2]
     x0, y0, x1, y1 = px[:, :-1], py[:, :-1], px[:, 1:], py[:, 1:]
     length = np.hypot(x1 - x0, y1 - y0)
