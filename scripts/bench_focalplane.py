@@ -22,7 +22,7 @@ temporary directory beside ``--out``.
 Usage::
 
     python scripts/bench_focalplane.py [--rate-ccds 8] [--skip-whole] [--skip-dask]
-        [--paired N] [--skip-rates] [--out out/bench]
+        [--paired N] [--skip-rates] [--baseline-fsync] [--out out/bench]
 """
 import argparse
 import json
@@ -46,12 +46,14 @@ SCENE = os.path.join(os.path.dirname(__file__), "..", "sample_fields",
 
 
 def baseline_ccd(args):
-    """Poisson sky for one CCD written as IMAGE, MASK, VARIANCE (then deleted)."""
+    """Poisson sky for one CCD written as IMAGE, MASK, VARIANCE (then deleted; with
+    ``flush``, first flushed to disk as the runner flushes its files)."""
     from astropy.io import fits
 
     from inject.config import sky_level
+    from inject.io.atomic import fsync_file
     parallel.limit_threads()
-    scene, name, outdir = args
+    scene, name, outdir, flush = args
     start = time.perf_counter()
     rng = np.random.default_rng(np.random.SeedSequence(1, spawn_key=(fp.ccd(name).id,)))
     sky = sky_level(scene)
@@ -61,12 +63,14 @@ def baseline_ccd(args):
                   fits.ImageHDU(np.zeros(image.shape, np.int32), name="MASK"),
                   fits.ImageHDU(np.full(image.shape, sky, np.float32), name="VARIANCE")]
                  ).writeto(path, overwrite=True)
+    if flush:
+        fsync_file(path)
     os.remove(path)
     return {"seconds": time.perf_counter() - start,
             "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
-def paired(plan, crossed, plain, n, outdir):
+def paired(plan, crossed, plain, n, outdir, flush=False):
     fscene = plan.fscene
     """Per-CCD seconds of the runner's task and of the baseline, interleaved in this process
     (alternating which goes first), for ``n`` CCDs without and ``n`` with the streak."""
@@ -75,7 +79,7 @@ def paired(plan, crossed, plain, n, outdir):
     # Warm-up (imports, the stars' PSF stamps, the profile tables' caches), not timed.
     parallel.render_ccd(parallel.Task(fscene, plain[-1].name, outdir,
                                       tuple(plan.streaks(plain[-1])), keep=False))
-    baseline_ccd((ccd_scene(fscene, plain[-1]), plain[-1].name, outdir))
+    baseline_ccd((ccd_scene(fscene, plain[-1]), plain[-1].name, outdir, flush))
     out = {}
     for kind, ccds in (("plain", plain[:n]), ("streak", crossed[:n])):
         # Wall and CPU (user + system) seconds: on a shared machine the CPU time is the
@@ -92,7 +96,7 @@ def paired(plan, crossed, plain, n, outdir):
             steps = [("task", lambda: parallel.render_ccd(parallel.Task(
                          fscene, ccd.name, outdir, tuple(plan.streaks(ccd)), keep=False))),
                      ("base", lambda: baseline_ccd((ccd_scene(fscene, ccd), ccd.name,
-                                                    outdir)))]
+                                                    outdir, flush)))]
             for name, work in steps if k % 2 == 0 else steps[::-1]:
                 timed(name, work)
         (task_s, task_cpu), (base_s, base_cpu) = times["task"], times["base"]
@@ -167,6 +171,10 @@ def main(argv=None):
                         help="N CCDs without and N with the streak, each against the baseline "
                              "in this process")
     parser.add_argument("--skip-rates", action="store_true", help="skip the 1 vs 2 worker rates")
+    parser.add_argument("--baseline-fsync", action="store_true",
+                        help="the baseline flushes each file to disk before deleting it, as "
+                             "the runner flushes its files (without, a file deleted at once "
+                             "may never reach the disk)")
     parser.add_argument("--out", default="out/bench")
     args = parser.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
@@ -177,11 +185,12 @@ def main(argv=None):
     plain = [c for c in fp.CCDS if c not in crossed]
     half = args.rate_ccds // 2
     sample = tuple(sorted(crossed[:half] + plain[:args.rate_ccds - half], key=lambda c: c.id))
-    report = {"crossed": len(crossed), "load_average_at_start": os.getloadavg()}
+    report = {"crossed": len(crossed), "baseline_fsync": args.baseline_fsync,
+              "load_average_at_start": os.getloadavg()}
     try:
         if args.paired:
             report["paired"] = paired(plan, crossed, plain, args.paired,
-                                      os.path.join(work, "p"))
+                                      os.path.join(work, "p"), args.baseline_fsync)
             print(json.dumps({"paired": report["paired"]}), flush=True)
         # The fork server (imports done once, workers forked from it) is up before any clock.
         with parallel.process_pool(1) as pool:
@@ -216,8 +225,8 @@ def main(argv=None):
             os.makedirs(base_dir, exist_ok=True)
             def baseline_189(pool):
                 start = time.perf_counter()
-                rows = list(pool.map(baseline_ccd, [(ccd_scene(fscene, c), c.name, base_dir)
-                                                    for c in fp.CCDS]))
+                rows = list(pool.map(baseline_ccd, [(ccd_scene(fscene, c), c.name, base_dir,
+                                                     args.baseline_fsync) for c in fp.CCDS]))
                 return time.perf_counter() - start, rows
 
             # The baseline before and after the exposure: the ratio is to their mean, so a
