@@ -263,11 +263,7 @@ def _sides(corner_ys, slabs, first, last):
 def _row_positions(first, count):
     """Each rectangle's rows from ``first`` (``count`` of them), one after the other: the
     rectangle of each row and the row."""
-    which = np.repeat(np.arange(len(count)), count)
-    # The position in the output less the rectangle's first position there, from its first row.
-    y = np.repeat(first.astype(np.intp) - (np.cumsum(count) - count), count)
-    y += np.arange(len(which))
-    return which, y
+    return np.repeat(np.arange(len(count)), count), _ranges(first, count)
 
 
 def _columns(which, y, lo, hi, nx):
@@ -349,12 +345,7 @@ def _ranges(start, count):
 
 def span_indices(rows, start, stop):
     """Flat ``(y, x)`` index arrays of the pixels of row runs."""
-    counts = stop - start
-    yy = np.repeat(rows, counts)
-    # Column = start of the run + position inside it.
-    offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    xx = np.repeat(start, counts) + offsets
-    return yy, xx
+    return np.repeat(rows, stop - start), _ranges(start, stop - start)
 
 
 def band_pixels(shape, line, half_width, extend=0.0):
