@@ -715,11 +715,11 @@ def test_simulate_full_disk(capsys, monkeypatch, scene, tmp_path, cli, digest):
 
     real_write = _DigestStream.write
 
-    def full_in_the_data(self, data):
+    def full_in_the_data(self, data, buffer=None):
         # The disk fills up once the headers and the first piece of data are written.
         if self._out.tell() > 2 * 2880:
             enospc()
-        return real_write(self, data)
+        return real_write(self, data, buffer)
 
     monkeypatch.setattr(_DigestStream, "write", full_in_the_data)
     status, _, err = cli("simulate", scene, "-o", out, "--overwrite")

@@ -276,7 +276,7 @@ def test_means_beyond_the_table_use_numpys_sampler():
 
 def test_digest_stream_holes_keep_the_bytes(tmp_path):
     """Zero runs of every length and place (one ending the file) are read back as zeros."""
-    from inject.io.fits import _DigestStream
+    from inject.io.fits import _DigestStream, _Hasher
 
     hole = _DigestStream.HOLE
     gen = np.random.default_rng(2)
@@ -284,14 +284,46 @@ def test_digest_stream_holes_keep_the_bytes(tmp_path):
               gen.integers(0, 255, hole + 5, dtype=np.uint8), np.zeros(hole - 1, np.uint8),
               np.zeros(2 * hole, np.uint8)]
     path = tmp_path / "f.bin"
-    with open(path, "wb") as out:
-        stream = _DigestStream(out)
+    with _Hasher() as hasher, open(path, "wb") as out:
+        stream = _DigestStream(out, hasher)
         for piece in pieces:
             stream.write(piece.data)
         out.truncate()
     data = np.concatenate(pieces).tobytes()
     assert path.read_bytes() == data
-    assert stream.digest.hexdigest() == hashlib.sha256(data).hexdigest()
+    assert hasher.hexdigest() == hashlib.sha256(data).hexdigest()
+
+
+def test_digest_of_a_plane_hashed_behind_its_writer(tmp_path):
+    """A plane of many MiB with a hash that lags far behind the writer: the writer reuses
+    its buffers only once hashed, so the digest is that of the bytes on disk."""
+    import time
+
+    from inject.io.fits import _DigestStream, _Hasher, _write_image_data
+
+    plane = np.random.default_rng(3).random((1500, 1000)).astype(np.float32)  # 6 MB
+    plane[:600] = 0  # a hole too
+
+    class Slow:
+        def __init__(self):
+            self.real = hashlib.sha256()
+
+        def update(self, data):
+            time.sleep(0.002)
+            self.real.update(data)
+
+        def hexdigest(self):
+            return self.real.hexdigest()
+
+    path = tmp_path / "plane.bin"
+    hasher = _Hasher()
+    hasher._digest = Slow()
+    with hasher, open(path, "wb") as out:
+        _write_image_data(_DigestStream(out, hasher), np.tile(plane, (3, 1)), np.float32)
+        out.truncate()
+    data = path.read_bytes()
+    assert data[:plane.nbytes * 3] == np.tile(plane, (3, 1)).astype(">f4").tobytes()
+    assert hasher.hexdigest() == hashlib.sha256(data).hexdigest()
 
 
 def test_a_write_without_its_digest_gives_the_same_bytes(tmp_path, small_scene):

@@ -12,6 +12,7 @@ three, and the mask planes of :mod:`inject.maskplanes` (afw's ``MP_`` cards and 
 import hashlib
 import io
 import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from astropy.io import fits
@@ -268,9 +269,67 @@ def write_truth_csv(path, rows, overwrite=False):
             Table(hdu.data).write(tmp, format="ascii.csv", overwrite=True)
 
 
+class _Hasher:
+    """SHA-256 of a file's bytes computed on a thread of its own while they are written, so
+    the hash runs beside the writing and the flush to disk that follows (hashlib releases
+    the GIL); as a context manager, the thread is joined on the way out.
+
+    Pieces are hashed in the order given. A piece must not change until it is hashed:
+    :meth:`update` copies a small one; a large one is a buffer of :meth:`ring`, which hands
+    a buffer out again only once its last piece is hashed. ``enabled=False``: nothing is
+    hashed and :meth:`hexdigest` is None.
+    """
+
+    #: Buffers in a :meth:`ring`: how far the writer may run ahead of the hash.
+    RING = 8
+
+    def __init__(self, enabled=True):
+        self._digest = hashlib.sha256() if enabled else None
+        self._pool = ThreadPoolExecutor(1) if enabled else None
+        self._done = {}  # id of a ring buffer -> the future of its last piece
+        self._last = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=exc[0] is not None)
+        return False
+
+    def update(self, view, buffer=None):
+        """Queue the bytes ``view`` (a piece of ring ``buffer``, or anything: copied)."""
+        if self._digest is None:
+            return
+        if buffer is None:
+            view = bytes(view)
+        self._last = self._pool.submit(self._digest.update, view)
+        if buffer is not None:
+            self._done[id(buffer)] = self._last
+
+    def ring(self, dtype, size):
+        """An endless cycle of :attr:`RING` arrays of ``size`` items of ``dtype``, each
+        handed out once the hash is done with what was last written from it."""
+        buffers = [np.empty(size, dtype) for _ in range(self.RING if self._digest else 1)]
+        while True:
+            for buffer in buffers:
+                pending = self._done.pop(id(buffer), None)
+                if pending is not None:
+                    pending.result()
+                yield buffer
+
+    def hexdigest(self):
+        """The digest of every piece (waits for them), hex; None when not enabled."""
+        if self._digest is None:
+            return None
+        if self._last is not None:
+            self._last.result()  # one thread, in order: the last piece is hashed last
+        return self._digest.hexdigest()
+
+
 class _DigestStream:
-    """A write-only stream to a binary file that hashes (SHA-256) what goes through it, so a
-    file's digest needs no second read (``digest=False``: no hash, :attr:`digest` None).
+    """A write-only stream to a binary file that hands what goes through it to a
+    :class:`_Hasher`, so a file's digest needs no second read.
 
     Runs of zero bytes of at least :attr:`HOLE` (a zero STREAK_MODEL, most of a MASK) are
     skipped over with a seek instead of written: the file system leaves a hole that reads
@@ -281,13 +340,13 @@ class _DigestStream:
     #: Chunk checked for zeros, bytes (a multiple of the file system's 4 KiB blocks).
     HOLE = 1 << 20
 
-    def __init__(self, out, digest=True):
-        self._out, self.digest = out, hashlib.sha256() if digest else None
+    def __init__(self, out, hasher):
+        self._out, self.hasher = out, hasher
 
-    def write(self, data):
+    def write(self, data, buffer=None):
+        """Write ``data`` (from ring ``buffer`` of the hasher, if so: not copied)."""
         view = memoryview(data).cast("B")
-        if self.digest is not None:
-            self.digest.update(view)
+        self.hasher.update(view, buffer)
         if view.nbytes < self.HOLE:
             self._out.write(view)
             return view.nbytes
@@ -316,23 +375,25 @@ def _write_image_data(stream, array, dtype):
     """Write ``array`` as FITS image data of ``dtype`` (big-endian), padded to a block.
 
     A MiB at a time: each piece is converted (byte-swapped) into a buffer that stays in the
-    core's cache, hashed and written from there, instead of astropy's in-place byte swap of
-    the whole array and back (two passes over memory) before the stream hashes it (a third).
+    core's cache and written from there, instead of astropy's in-place byte swap of the
+    whole array and back (two passes over memory); the hasher's thread hashes it meanwhile.
     """
     written = np.dtype(dtype).newbyteorder(">")
     array = np.asarray(array)
     step = _DigestStream.HOLE // written.itemsize
-    buffer = np.empty(min(step, array.size), written)
+    size = min(step, array.size)
     if array.size and all(s == 0 for s in array.strides):  # one value (a zero model)
-        buffer[...] = array.flat[0]
-        flat = None
+        constant = np.full(size, array.flat[0], written)  # never refilled: no ring
+        for start in range(0, array.size, step):
+            stream.write(constant[:min(step, array.size - start)], constant)
     else:
         flat = np.ascontiguousarray(array).reshape(-1)
-    for start in range(0, array.size, step):
-        piece = buffer[:min(step, array.size - start)]
-        if flat is not None:
+        ring = stream.hasher.ring(written, size)
+        for start in range(0, array.size, step):
+            buffer = next(ring)
+            piece = buffer[:min(step, array.size - start)]
             piece[...] = flat[start:start + piece.size]
-        stream.write(piece)
+            stream.write(piece, buffer)
     nbytes = array.size * written.itemsize
     if nbytes % BLOCK:
         stream.write(bytes(BLOCK - nbytes % BLOCK))
@@ -458,12 +519,12 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
         hdus["RAW"].header.extend(raw_header(result.raw_sections, scene.detector.bias))
     if compression is not None:
         return _write_compressed(path, hdus, data, overwrite, compression)
-    with atomic_path(path, overwrite) as tmp:
+    # The hash goes on while the file is flushed to disk and moved into place.
+    with _Hasher(digest) as hasher, atomic_path(path, overwrite) as tmp:
         with open(tmp, "wb") as out:
-            stream = _DigestStream(out, digest)
-            _write_hdus(stream, hdus, data)
+            _write_hdus(_DigestStream(out, hasher), hdus, data)
             out.truncate()  # a hole at the very end still counts in the file's size
-    return None if stream.digest is None else stream.digest.hexdigest()
+    return hasher.hexdigest()
 
 
 def _write_compressed(path, hdus, data, overwrite, compression):
