@@ -379,3 +379,28 @@ def test_full_size_ccds_same_bytes_with_1_and_2_workers(tmp_path):
             parallel.run(make_plan(full), out, pool)
         got.append(shas(out))
     assert got[0] == got[1] and len(got[0]) == 3
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+@pytest.mark.parametrize("keep", [True, False])
+def test_a_worker_keeps_a_ccds_freed_memory_for_the_next(keep):
+    """In a worker process glibc takes the settings (it refuses a threshold it caps), and a
+    CCD-sized plane's memory stays with the process once freed (by default it goes back to
+    the kernel, to be faulted in and zeroed again for the next CCD's)."""
+    import subprocess
+
+    code = f"""
+import os, numpy as np
+from inject.exposure import runner
+taken = runner.keep_freed_memory() if {keep} else None
+def rss():
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+before = rss()
+np.ones(16_000_000)  # a CCD's float64 plane (128 MB), freed at once
+print(taken, (rss() - before) / 1e6)
+"""
+    taken, kept_mb = subprocess.run([sys.executable, "-c", code], capture_output=True,
+                                    text=True, check=True).stdout.split()
+    assert taken == str(keep if keep else None)
+    assert (float(kept_mb) > 120) if keep else (float(kept_mb) < 8)
