@@ -488,13 +488,6 @@ class PoissonTable:
         self.guide = np.searchsorted(self.cdf, np.arange(self.GUIDE) / self.GUIDE, side="right")
         # Slice j maps to guide[j] .. guide[j + 1]: more than one step needs the search.
         self.wide = np.diff(self.guide, append=kmax) > 1
-        # u below ``low`` or from ``high`` on: every wide slice (and the narrow ones among
-        # them in the tails, which the search draws alike), picked out by two comparisons
-        # instead of a lookup per draw.
-        wide = np.flatnonzero(self.wide)
-        half = self.GUIDE // 2
-        self.low = (wide[wide < half].max(initial=-1) + 1) / self.GUIDE
-        self.high = wide[wide >= half].min(initial=self.GUIDE) / self.GUIDE
 
     def draw(self, gen, shape):
         """An int64 array of ``shape`` of Poisson draws from generator ``gen``."""
@@ -502,9 +495,11 @@ class PoissonTable:
         cell = (u * self.GUIDE).astype(np.intp)  # exact: GUIDE is a power of 2
         k = self.guide[cell]
         k += self.cdf[k] <= u
-        rare = np.nonzero((u < self.low) | (u >= self.high))
-        if rare[0].size:
-            k[rare] = np.searchsorted(self.cdf, u[rare], side="right")
+        # The draws in wide slices, by one lookup (faster than comparing u with the bounds
+        # of the tails that hold them).
+        rare = np.flatnonzero(self.wide[cell])
+        if rare.size:
+            np.put(k, rare, np.searchsorted(self.cdf, np.take(u, rare), side="right"))
         return k
 
 

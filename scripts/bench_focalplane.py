@@ -13,8 +13,11 @@
 * The whole 189-CCD exposure (sky, Bahcall-Soneira stars, noise, cosmic rays, the paper's
   satellite across the focal plane: ``sample_fields/focal_paper_550km.yaml``) end to end on 2
   workers, against the baseline of the same workers drawing Poisson sky for the 189 CCDs and
-  writing each as IMAGE, MASK and VARIANCE (the CCD-scene benchmark's baseline), run before
-  and after the exposure (the ratio is to their mean); and with ``--streak-ccds-only``.
+  writing each as IMAGE, MASK and VARIANCE (the CCD-scene benchmark's baseline) and flushing
+  it to disk, as the runner must before its manifest says a file is done, run before and
+  after the exposure (the ratio is to their mean); and with ``--streak-ccds-only``.
+  ``--baseline-no-fsync``: the baseline deletes each file unflushed, so most of its bytes
+  never reach the disk (a floor of a job that keeps no file).
 
 Files are written, hashed and deleted as they come (189 full CCDs would take ~49 GB), in a
 temporary directory beside ``--out``.
@@ -22,7 +25,7 @@ temporary directory beside ``--out``.
 Usage::
 
     python scripts/bench_focalplane.py [--rate-ccds 8] [--skip-whole] [--skip-dask]
-        [--paired N] [--skip-rates] [--baseline-fsync] [--out out/bench]
+        [--paired N] [--skip-rates] [--baseline-no-fsync] [--out out/bench]
 """
 import argparse
 import json
@@ -115,7 +118,7 @@ def paired(plan, crossed, plain, n, outdir, flush=False):
                     / (n_plain * out["plain"][base] + n_streak * out["streak"][base]))
     print(f"paired, predicted whole exposure over the baseline: "
           f"{out['predicted_whole_over_baseline']:.2f} (wall), "
-          f"{out['predicted_whole_over_baseline_cpu']:.2f} (CPU) (goal <= 1.5)", flush=True)
+          f"{out['predicted_whole_over_baseline_cpu']:.2f} (CPU) (goal <= 1.2)", flush=True)
     return out
 
 
@@ -171,10 +174,10 @@ def main(argv=None):
                         help="N CCDs without and N with the streak, each against the baseline "
                              "in this process")
     parser.add_argument("--skip-rates", action="store_true", help="skip the 1 vs 2 worker rates")
-    parser.add_argument("--baseline-fsync", action="store_true",
-                        help="the baseline flushes each file to disk before deleting it, as "
-                             "the runner flushes its files (without, a file deleted at once "
-                             "may never reach the disk)")
+    parser.add_argument("--baseline-no-fsync", dest="baseline_fsync", action="store_false",
+                        help="the baseline deletes each file without flushing it to disk "
+                             "first (the runner flushes its files): most of its bytes never "
+                             "reach the disk")
     parser.add_argument("--out", default="out/bench")
     args = parser.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
@@ -247,7 +250,7 @@ def main(argv=None):
             report["whole_over_baseline"] = whole / base
             print(f"whole exposure over the baseline: {whole:.0f} s / {base:.0f} s "
                   f"(before {base_before:.0f} s, after {base_after:.0f} s) = "
-                  f"{whole / base:.2f} (goal <= 1.5)", flush=True)
+                  f"{whole / base:.2f} (goal <= 1.2)", flush=True)
             report["streak_ccds_only"] = {"seconds": only, "ccds": len(crossed),
                                           "fraction_of_whole_time": only / whole,
                                           "fraction_of_ccds": len(crossed) / 189}
