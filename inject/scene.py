@@ -609,6 +609,17 @@ def _search_near(u, m):
     return k
 
 
+def _last_lit_row(part, step=8):
+    """Index of the last row of ``part`` with a value > 0, or -1 if none: looked for from the
+    end, ``step`` rows at a time (the stars light the last rows of most blocks, so this
+    reads a few rows instead of the whole block)."""
+    for end in range(part.shape[0], 0, -step):
+        lit = np.flatnonzero(part[max(end - step, 0):end].max(axis=1) > 0)
+        if lit.size:
+            return max(end - step, 0) + int(lit[-1])
+    return -1
+
+
 #: Rows of an amplifier per noise block (its last block holds what is left).
 BLOCK_ROWS = 256
 
@@ -734,11 +745,11 @@ class AmplifierNoise:
             if varying is None:
                 return
             part = varying[block.region]
-            rows = np.flatnonzero(part.max(axis=1) > 0)
-            if not rows.size:
+            last = _last_lit_row(part)
+            if last < 0:
                 return
             gen = self.generator("signal_noise", block)
-            chunks = self._chunks(rows[-1] + 1)
+            chunks = self._chunks(last + 1)
             scratch = np.empty((chunks[0][1], width))
             for r, n in chunks:
                 u = gen.random((n, self.width))[:, :width]

@@ -349,3 +349,18 @@ def test_sparse_zeros_are_zeros_of_the_shape_and_type(shape, dtype):
     a[-1, -1] = 7
     assert a.sum() == 7 and np.count_nonzero(a) == 1
     np.testing.assert_array_equal(pickle.loads(pickle.dumps(a)), a)
+
+
+@pytest.mark.parametrize("rows", [1, 7, 8, 9, 256, 257])
+def test_last_lit_row_is_the_last_row_with_charge(rows):
+    """Against the plain scan, for every single lit row, none, and zero or negative values."""
+    from inject.scene import _last_lit_row
+
+    gen = np.random.default_rng(rows)
+    for lit in [None, *range(rows)]:
+        part = np.where(gen.random((rows, 13)) < 0.5, -1e-6, 0.0)
+        if lit is not None:
+            part[lit, gen.integers(13)] = 1e-9
+            part[:lit, 5] = 3.0  # rows above it lit too
+        expected = np.flatnonzero(part.max(axis=1) > 0)
+        assert _last_lit_row(part) == (expected[-1] if expected.size else -1)

@@ -310,7 +310,8 @@ class _Hasher:
     def ring(self, dtype, size):
         """An endless cycle of :attr:`RING` arrays of ``size`` items of ``dtype``, each
         handed out once the hash is done with what was last written from it."""
-        buffers = [np.empty(size, dtype) for _ in range(self.RING if self._digest else 1)]
+        buffers = [np.empty(size, dtype)
+                   for _ in range(1 if self._digest is None else self.RING)]
         while True:
             for buffer in buffers:
                 pending = self._done.pop(id(buffer), None)
