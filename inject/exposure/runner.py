@@ -104,21 +104,23 @@ HEAP_ALLOCATIONS_UP_TO = 1 << 30
 
 def keep_freed_memory():
     """Let this process reuse the memory of one CCD's planes for the next: with glibc, every
-    allocation up to :data:`HEAP_ALLOCATIONS_UP_TO` comes from the heap, which keeps what is
-    freed (up to as much again). By default an array over 32 MiB is mapped from the kernel
-    and given back when freed, so each CCD's planes would fault in and zero ~260 MB of new
-    pages again (half the sys time of a CCD). The peak memory is the same: a worker renders
-    one CCD at a time. Nothing is changed elsewhere (no glibc).
+    allocation up to :data:`HEAP_ALLOCATIONS_UP_TO` comes from the heap, which gives memory
+    back only when more than that lies free at its top. By default an array over 32 MiB is
+    mapped from the kernel and given back when freed, so each CCD's planes would fault in
+    and zero ~260 MB of new pages again (half the system time of a CCD). The peak memory is
+    the same: a worker renders one CCD at a time. Nothing is changed elsewhere (no glibc).
 
     Returns
     -------
     bool
         Whether the C library took both settings.
     """
+    if not sys.platform.startswith("linux"):
+        return False
     import ctypes
 
     mallopt = getattr(ctypes.CDLL(None), "mallopt", None)  # the C library's, if it has one
-    if mallopt is None or not sys.platform.startswith("linux"):
+    if mallopt is None:
         return False
     return bool(mallopt(_M_MMAP_THRESHOLD, HEAP_ALLOCATIONS_UP_TO)) and bool(
         mallopt(_M_TRIM_THRESHOLD, HEAP_ALLOCATIONS_UP_TO))

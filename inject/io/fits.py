@@ -286,7 +286,9 @@ class _Hasher:
     def __init__(self, enabled=True):
         self._digest = hashlib.sha256() if enabled else None
         self._pool = ThreadPoolExecutor(1) if enabled else None
-        self._done = {}  # id of a ring buffer -> the future of its last piece
+        # id of a ring buffer -> the future of its last piece (an id reused by a later
+        # ring's buffer at most waits for an earlier piece: the thread hashes in order).
+        self._done = {}
         self._last = None
 
     def __enter__(self):
