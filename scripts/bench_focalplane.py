@@ -74,9 +74,9 @@ def baseline_ccd(args):
 
 
 def paired(plan, crossed, plain, n, outdir, flush=False):
-    fscene = plan.fscene
     """Per-CCD seconds of the runner's task and of the baseline, interleaved in this process
     (alternating which goes first), for ``n`` CCDs without and ``n`` with the streak."""
+    fscene = plan.fscene
     parallel.limit_threads()
     os.makedirs(outdir, exist_ok=True)
     # Warm-up (imports, the stars' PSF stamps, the profile tables' caches), not timed.

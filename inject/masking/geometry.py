@@ -191,13 +191,12 @@ def rectangles_spans(shape, x0, y0, x1, y1, half_width, extend=0.0):
     # cache.
     batch = np.cumsum(count[rects]) // ROWS_AT_ONCE
     for k in np.split(rects, np.flatnonzero(np.diff(batch)) + 1) if len(rects) else ():
-        for rect in (k[regular[k]], k[~regular[k]]):
+        for rect, rows_of, bounds in ((k[regular[k]], _regular_rows, sides),
+                                      (k[~regular[k]], _general_rows, slabs)):
             if len(rect):
-                rows_of = _regular_rows if regular[rect[0]] else _general_rows
                 which, rows, start, stop = rows_of(
                     first[rect], count[rect], nx[rect], cx[rect], cy[rect],
-                    [tuple(v[rect] for v in s) for s in (sides if rows_of is _regular_rows
-                                                          else slabs)])
+                    [tuple(v[rect] for v in bound) for bound in bounds])
                 parts.append((rect[which], rows, start, stop))
     if not parts:
         return tuple(np.zeros(0, np.intp) for _ in range(4))
