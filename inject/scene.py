@@ -751,18 +751,23 @@ class AmplifierNoise:
             gen = self.generator("signal_noise", block)
             chunks = self._chunks(last + 1)
             scratch = np.empty((chunks[0][1], width))
+            rows, cols, uniforms = [], [], []
             for r, n in chunks:
                 u = gen.random((n, self.width))[:, :width]
                 mean = part[r:r + n]
                 # CDF(0) = exp(-mean) >= 1 - mean: elsewhere the count is 0 (and where
                 # mean <= 0, always).
                 bound = np.subtract(1.0, mean, out=scratch[:n])
-                where = np.nonzero(u >= bound)
-                if where[0].size:
-                    # Summed in float64 and rounded once: the counts stay exact.
-                    out[r:r + n][where] += poisson_inverse(u[where], mean[where])
+                y, x = np.nonzero(u >= bound)
+                rows.append(y + r)
+                cols.append(x)
+                uniforms.append(u[y, x])
                 np.add(var[r:r + n], np.maximum(mean, 0.0, out=scratch[:n]), out=var[r:r + n],
                        casting="unsafe")
+            # One inversion for the block's pixels that may count (its loops run once, not
+            # once per chunk); summed in float64 and rounded once: the counts stay exact.
+            y, x = np.concatenate(rows), np.concatenate(cols)
+            out[y, x] += poisson_inverse(np.concatenate(uniforms), part[y, x])
         self._each(draw)
         return image, variance
 
