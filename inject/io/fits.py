@@ -13,6 +13,7 @@ import hashlib
 import io
 import os
 from concurrent.futures import ThreadPoolExecutor
+from functools import lru_cache
 
 import numpy as np
 from astropy.io import fits
@@ -411,8 +412,8 @@ def _write_hdus(stream, hdus, planes):
     with data (the TRUTH tables) are small: astropy writes them after an empty primary HDU,
     whose block is dropped.
     """
-    hdus.verify("exception")
     hdus.update_extend()
+    hdus.verify("exception")
     for index, hdu in enumerate(hdus):
         if index in planes:
             hdu.update_header()
@@ -421,9 +422,22 @@ def _write_hdus(stream, hdus, planes):
         elif index == 0 and hdu.data is None:
             stream.write(hdu.header.tostring().encode("ascii"))
         else:
-            buffer = io.BytesIO()
-            fits.HDUList([fits.PrimaryHDU(), hdu]).writeto(buffer)
-            stream.write(buffer.getbuffer()[len(fits.PrimaryHDU().header.tostring()):])
+            stream.write(_extension_bytes(hdu))
+
+
+def _extension_bytes(hdu):
+    """The bytes of an extension HDU with data, as astropy writes it after an empty primary
+    HDU (whose block is dropped)."""
+    buffer = io.BytesIO()
+    fits.HDUList([fits.PrimaryHDU(), hdu]).writeto(buffer)
+    return buffer.getvalue()[len(fits.PrimaryHDU().header.tostring()):]
+
+
+@lru_cache(maxsize=4)
+def _empty_truth_tables(version):
+    """The TRUTH and TRUTH_VERTICES HDUs of no rows as written, for the ``version`` card they
+    carry: the same bytes for every CCD no streak reaches, so built once per process."""
+    return b"".join(_extension_bytes(hdu) for hdu in (truth_table([]), vertices_table([])))
 
 
 #: Tile compression of a CCD file's image planes (:func:`write_exposure`'s ``compression``).
@@ -513,8 +527,11 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
     hdus = fits.HDUList([fits.PrimaryHDU(header=primary_header(scene, primary_cards))])
     hdus.extend(fits.ImageHDU(_stand_in(a, dtype), header=h, name=n) for a, dtype, h, n in planes)
     hdus["STREAK_MODEL"].header["BUNIT"] = "electron"
-    hdus.append(truth_table(result.truth))
-    hdus.append(vertices_table(result.truth))
+    # No streak and nothing after the tables: they are every such CCD's, written last.
+    empty_tables = not result.truth and result.raw is None and compression is None
+    if not empty_tables:
+        hdus.append(truth_table(result.truth))
+        hdus.append(vertices_table(result.truth))
     data = {k + 1: plane[0] for k, plane in enumerate(planes)}
     if result.raw is not None:
         data[len(hdus)] = result.raw
@@ -525,7 +542,10 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
     # The hash goes on while the file is flushed to disk and moved into place.
     with _Hasher(digest) as hasher, atomic_path(path, overwrite) as tmp:
         with open(tmp, "wb") as out:
-            _write_hdus(_DigestStream(out, hasher), hdus, data)
+            stream = _DigestStream(out, hasher)
+            _write_hdus(stream, hdus, data)
+            if empty_tables:
+                stream.write(_empty_truth_tables(version_card()))
             out.truncate()  # a hole at the very end still counts in the file's size
     return hasher.hexdigest()
 
