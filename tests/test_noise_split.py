@@ -223,6 +223,28 @@ def test_streamed_planes_give_the_bytes_of_astropys_write(tmp_path, overrides):
     assert streamed.read_bytes() == dense.read_bytes()
 
 
+def test_empty_truth_tables_carry_the_version_they_are_written_with(tmp_path, monkeypatch):
+    """A CCD no streak reaches writes its empty tables from bytes built once per process:
+    a run of another version (a worker writing as its run) still gets its own INJVER there,
+    and tables of no rows with every column."""
+    import inject
+    from inject.truth import TRUTH_COLUMNS, VERTEX_COLUMNS
+
+    sc = parse_scene(apply_overrides(DEFAULT_SCENE, ["detector.nx=300", "detector.ny=200",
+                                                     "satellites=[]", "stars=false"]))
+    res = simulate(sc)
+    for version in ("1.2.3", "4.5.6"):
+        monkeypatch.setattr(inject, "__version__", version)
+        path = tmp_path / f"{version}.fits"
+        write_exposure(path, sc, res, sc.detector.gain)
+        with fits.open(path) as hdus:
+            assert hdus[0].header["INJVER"] == version
+            for name, spec in (("TRUTH", TRUTH_COLUMNS), ("TRUTH_VERTICES", VERTEX_COLUMNS)):
+                assert hdus[name].header["INJVER"] == version
+                assert len(hdus[name].data) == 0
+                assert hdus[name].columns.names == list(spec)
+
+
 def test_with_a_streak_the_model_is_written_and_masked(small_scene):
     res = simulate(small_scene(nx=300, ny=260))
     assert res.streak_model.strides != (0, 0) and res.streak_model.max() > 0
