@@ -9,6 +9,7 @@ import pytest
 from astropy.io import fits
 from scipy import stats
 
+import inject
 from inject import (
     DEFAULT_SCENE,
     apply_overrides,
@@ -19,6 +20,7 @@ from inject import (
 )
 from inject.camera.detector import ITL
 from inject.scene import AmplifierNoise, PoissonTable, draw_poisson
+from inject.truth import TRUTH_COLUMNS, VERTEX_COLUMNS
 
 #: A small sensor: 2 x 8 amplifiers of 64 x 50 pixels, each with its own read noise.
 READ_NOISE = tuple(3.0 + 0.5 * k for k in range(16))
@@ -227,9 +229,6 @@ def test_empty_truth_tables_carry_the_version_they_are_written_with(tmp_path, mo
     """A CCD no streak reaches writes its empty tables from bytes built once per process:
     a run of another version (a worker writing as its run) still gets its own INJVER there,
     and tables of no rows with every column."""
-    import inject
-    from inject.truth import TRUTH_COLUMNS, VERTEX_COLUMNS
-
     sc = parse_scene(apply_overrides(DEFAULT_SCENE, ["detector.nx=300", "detector.ny=200",
                                                      "satellites=[]", "stars=false"]))
     res = simulate(sc)

@@ -409,8 +409,7 @@ def _write_hdus(stream, hdus, planes):
     Headers are astropy's (verified, ``EXTEND`` set, BITPIX and NAXISn from the data);
     ``planes`` maps the index of an image HDU to the array whose data it holds (the HDU
     itself holds a :func:`_stand_in`), streamed by :func:`_write_image_data`. Other HDUs
-    with data (the TRUTH tables) are small: astropy writes them after an empty primary HDU,
-    whose block is dropped.
+    with data (the TRUTH tables) are small: :func:`_extension_bytes`.
     """
     hdus.update_extend()
     hdus.verify("exception")
@@ -527,7 +526,8 @@ def write_exposure(path, scene, result, gain, wcs_header=None, overwrite=False,
     hdus = fits.HDUList([fits.PrimaryHDU(header=primary_header(scene, primary_cards))])
     hdus.extend(fits.ImageHDU(_stand_in(a, dtype), header=h, name=n) for a, dtype, h, n in planes)
     hdus["STREAK_MODEL"].header["BUNIT"] = "electron"
-    # No streak and nothing after the tables: they are every such CCD's, written last.
+    # A CCD no streak reaches, with no HDU after the tables: the same tables as every such
+    # CCD, written last from their bytes.
     empty_tables = not result.truth and result.raw is None and compression is None
     if not empty_tables:
         hdus.append(truth_table(result.truth))
